@@ -1,0 +1,358 @@
+"""Model cards: per env, the operating point, the observation map and the termination limits.
+
+A model card is a TOML file in ``models/`` named after the env id (``models/Hopper-v5.toml``).
+It is data a user reads and edits; this module parses and validates it. The observation map
+names every entry of the Gymnasium observation by the MuJoCo quantity it is computed from,
+so that later stages (coach, regions of attraction, bounds) address signals by name.
+
+Schema ``pidlab.model-card/1``::
+
+    schema = "pidlab.model-card/1"
+    env_id = "InvertedPendulum-v5"
+    description = "..."
+
+    [operating_point]          # where the coach holds the system
+    name = "upright"
+    qpos = [0.0, 0.0]
+    qvel = [0.0, 0.0]
+    ctrl = [0.0]
+    note = "how it was chosen"
+
+    [[observation]]            # one table per observation entry, in observation order
+    name = "hinge_pos"         # unique; used by every later stage
+    source = "qpos"            # qpos | qvel | qfrc_constraint
+    joint = "hinge"            # joint whose coordinate is read
+    transform = "identity"     # identity | sin | cos
+    clip = [-10.0, 10.0]       # optional
+    unit = "rad"
+    description = "pole angle from upright"
+
+    [[termination]]            # the env terminates when any signal leaves its healthy range
+    signal = "hinge_pos"       # <joint>_pos, <joint>_vel, or site:<site>:x|y|z
+    low = -0.2
+    high = 0.2
+    interval = "closed"        # closed: healthy iff low <= v <= high; open: low < v < high
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import mujoco
+
+from pidlab.errors import ModelCardError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+CARD_SCHEMA = "pidlab.model-card/1"
+OBS_SOURCES = ("qpos", "qvel", "qfrc_constraint")
+OBS_TRANSFORMS = ("identity", "sin", "cos")
+INTERVALS = ("closed", "open")
+
+
+@dataclass(frozen=True)
+class ObservationVariable:
+    """One entry of a Gymnasium observation, named by the MuJoCo quantity it reads.
+
+    Attributes
+    ----------
+    name : str
+        Unique name used by every later stage, e.g. ``"hinge_vel"``.
+    source : {"qpos", "qvel", "qfrc_constraint"}
+        The ``MjData`` array read.
+    joint : str
+        The (hinge or slide) joint whose coordinate is read.
+    transform : {"identity", "sin", "cos"}
+        Function applied to the coordinate.
+    clip : tuple of float or None
+        ``(low, high)`` clipping applied by the env, if any.
+    unit : str
+        Physical unit, for tables.
+    description : str
+        What it is, in words.
+    """
+
+    name: str
+    source: str
+    joint: str
+    transform: str = "identity"
+    clip: tuple[float, float] | None = None
+    unit: str = ""
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class TerminationLimit:
+    """A healthy range of one signal; the env terminates when the signal leaves it.
+
+    Attributes
+    ----------
+    signal : str
+        ``<joint>_pos``, ``<joint>_vel`` or ``site:<site>:x|y|z``.
+    low, high : float
+        Healthy range (``-inf``/``inf`` for one-sided limits).
+    interval : {"closed", "open"}
+        Whether the bounds themselves are healthy.
+    description : str
+    """
+
+    signal: str
+    low: float
+    high: float
+    interval: str = "closed"
+    description: str = ""
+
+    def healthy(self, value: float) -> bool:
+        """Whether ``value`` lies in the healthy range."""
+        if self.interval == "closed":
+            return self.low <= value <= self.high
+        return self.low < value < self.high
+
+
+@dataclass(frozen=True)
+class CardOperatingPoint:
+    """The operating point recorded in a model card."""
+
+    name: str
+    qpos: tuple[float, ...]
+    qvel: tuple[float, ...]
+    ctrl: tuple[float, ...]
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    """A parsed model card (see the module docstring for the schema).
+
+    Attributes
+    ----------
+    env_id : str
+    description : str
+    operating_point : CardOperatingPoint
+    observation : tuple of ObservationVariable
+        In observation order.
+    termination : tuple of TerminationLimit
+    terminate_on_nonfinite : bool
+        The env also terminates when the observation has a NaN or inf.
+    path : str
+        The file the card was read from.
+    """
+
+    env_id: str
+    description: str
+    operating_point: CardOperatingPoint
+    observation: tuple[ObservationVariable, ...]
+    termination: tuple[TerminationLimit, ...]
+    terminate_on_nonfinite: bool
+    path: str
+
+    @property
+    def observation_names(self) -> tuple[str, ...]:
+        """Names of the observation entries, in observation order."""
+        return tuple(v.name for v in self.observation)
+
+    def variable(self, name: str) -> ObservationVariable:
+        """The observation variable called ``name``.
+
+        Raises
+        ------
+        UnknownSignalError
+            With the list of valid names.
+        """
+        from pidlab.errors import UnknownSignalError
+
+        for v in self.observation:
+            if v.name == name:
+                return v
+        raise UnknownSignalError(
+            f"{name!r} is not an observation variable of {self.env_id}; "
+            f"valid names: {', '.join(self.observation_names)}"
+        )
+
+    def check_against(self, model: mujoco.MjModel, frame_skip: int) -> None:
+        """Check that every joint and site the card names exists in ``model``.
+
+        Raises
+        ------
+        ModelCardError
+        """
+        for v in self.observation:
+            _joint_id(model, v.joint, f"{self.path}: observation {v.name!r}")
+        for t in self.termination:
+            _check_signal(model, t.signal, f"{self.path}: termination signal {t.signal!r}")
+        op = self.operating_point
+        for field, values, n in (
+            ("qpos", op.qpos, model.nq),
+            ("qvel", op.qvel, model.nv),
+            ("ctrl", op.ctrl, model.nu),
+        ):
+            if len(values) != n:
+                raise ModelCardError(
+                    f"{self.path}: operating_point.{field} has {len(values)} entries; the model has {n}"
+                )
+
+
+def _joint_id(model: mujoco.MjModel, name: str, where: str) -> int:
+    jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+    if jid < 0:
+        names = [model.joint(j).name for j in range(model.njnt)]
+        raise ModelCardError(f"{where}: no joint {name!r} in the model; joints: {', '.join(names)}")
+    if int(model.jnt_type[jid]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
+        raise ModelCardError(f"{where}: joint {name!r} is not a hinge or slide joint")
+    return jid
+
+
+def _check_signal(model: mujoco.MjModel, signal: str, where: str) -> None:
+    if signal.startswith("site:"):
+        body, _, axis = signal[5:].rpartition(":")
+        if axis not in ("x", "y", "z"):
+            raise ModelCardError(f"{where}: expected site:<name>:x|y|z")
+        if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, body) < 0:
+            raise ModelCardError(f"{where}: no site {body!r} in the model")
+        return
+    joint, _, kind = signal.rpartition("_")
+    if kind not in ("pos", "vel"):
+        raise ModelCardError(f"{where}: expected <joint>_pos, <joint>_vel or site:<name>:x|y|z")
+    _joint_id(model, joint, where)
+
+
+def _require(table: dict[str, Any], key: str, typ: type | tuple[type, ...], where: str) -> Any:
+    if key not in table:
+        raise ModelCardError(f"{where}: missing field {key!r}")
+    value = table[key]
+    if not isinstance(value, typ) or (isinstance(value, bool) and typ is not bool):
+        names = typ.__name__ if isinstance(typ, type) else " or ".join(t.__name__ for t in typ)
+        raise ModelCardError(f"{where}.{key}: expected {names}, got {value!r}")
+    return value
+
+
+def _floats(values: Any, where: str) -> tuple[float, ...]:
+    if not isinstance(values, list) or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in values
+    ):
+        raise ModelCardError(f"{where}: expected a list of numbers, got {values!r}")
+    return tuple(float(v) for v in values)
+
+
+def _bound(value: Any, where: str) -> float:
+    if isinstance(value, str) and value in ("inf", "-inf"):
+        return float(value)
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    raise ModelCardError(f'{where}: expected a number or "inf"/"-inf", got {value!r}')
+
+
+def parse_card(data: dict[str, Any], path: str) -> ModelCard:
+    """Build a :class:`ModelCard` from parsed TOML, validating every field.
+
+    Raises
+    ------
+    ModelCardError
+        Naming the field and what is allowed.
+    """
+    schema = data.get("schema")
+    if schema != CARD_SCHEMA:
+        raise ModelCardError(f"{path}: schema is {schema!r}; expected {CARD_SCHEMA!r}")
+    env_id = _require(data, "env_id", str, path)
+    opt = _require(data, "operating_point", dict, path)
+    op = CardOperatingPoint(
+        name=str(opt.get("name", "operating point")),
+        qpos=_floats(_require(opt, "qpos", list, f"{path}: operating_point"), "qpos"),
+        qvel=_floats(_require(opt, "qvel", list, f"{path}: operating_point"), "qvel"),
+        ctrl=_floats(_require(opt, "ctrl", list, f"{path}: operating_point"), "ctrl"),
+        note=str(opt.get("note", "")),
+    )
+    obs: list[ObservationVariable] = []
+    for i, t in enumerate(_require(data, "observation", list, path)):
+        where = f"{path}: observation[{i}]"
+        source = _require(t, "source", str, where)
+        if source not in OBS_SOURCES:
+            raise ModelCardError(f"{where}.source: {source!r}; allowed: {', '.join(OBS_SOURCES)}")
+        transform = t.get("transform", "identity")
+        if transform not in OBS_TRANSFORMS:
+            raise ModelCardError(f"{where}.transform: {transform!r}; allowed: {', '.join(OBS_TRANSFORMS)}")
+        clip = None
+        if "clip" in t:
+            lo, hi = _floats(t["clip"], f"{where}.clip")
+            clip = (lo, hi)
+        obs.append(
+            ObservationVariable(
+                name=_require(t, "name", str, where),
+                source=source,
+                joint=_require(t, "joint", str, where),
+                transform=transform,
+                clip=clip,
+                unit=str(t.get("unit", "")),
+                description=str(t.get("description", "")),
+            )
+        )
+    names = [v.name for v in obs]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ModelCardError(f"{path}: observation names must be unique; repeated: {dupes}")
+    term: list[TerminationLimit] = []
+    for i, t in enumerate(data.get("termination", [])):
+        where = f"{path}: termination[{i}]"
+        interval = t.get("interval", "closed")
+        if interval not in INTERVALS:
+            raise ModelCardError(f"{where}.interval: {interval!r}; allowed: closed, open")
+        low = _bound(t.get("low", "-inf"), f"{where}.low")
+        high = _bound(t.get("high", "inf"), f"{where}.high")
+        if not low < high:
+            raise ModelCardError(f"{where}: low ({low}) must be below high ({high})")
+        term.append(
+            TerminationLimit(
+                signal=_require(t, "signal", str, where),
+                low=low,
+                high=high,
+                interval=interval,
+                description=str(t.get("description", "")),
+            )
+        )
+    return ModelCard(
+        env_id=env_id,
+        description=str(data.get("description", "")),
+        operating_point=op,
+        observation=tuple(obs),
+        termination=tuple(term),
+        terminate_on_nonfinite=bool(data.get("terminate_on_nonfinite", True)),
+        path=path,
+    )
+
+
+def models_dir() -> Path:
+    """The folder of model cards: ``$PIDLAB_MODELS`` or ``models/`` of the source tree."""
+    env = os.environ.get("PIDLAB_MODELS")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[1] / "models"
+
+
+def load_card(path: str | Path) -> ModelCard:
+    """Read and validate one model card file.
+
+    Raises
+    ------
+    ModelCardError
+    """
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ModelCardError(f"cannot read model card {str(path)!r}: {exc.strerror}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ModelCardError(f"{path}: not valid TOML: {exc}") from exc
+    return parse_card(data, str(path))
+
+
+def find_card(env_id: str) -> ModelCard | None:
+    """The model card of ``env_id`` from :func:`models_dir`, or None when there is none."""
+    path = models_dir() / f"{env_id}.toml"
+    return load_card(path) if path.exists() else None

@@ -1,0 +1,205 @@
+"""Structural properties of a linear model: poles, stability, controllability, observability.
+
+Ranks are computed with an orthogonal staircase (block Krylov) iteration rather than the rank
+of the Kalman matrix ``[B, AB, ..., A^(n-1) B]``, whose columns span many orders of magnitude
+for stiff mechanical models and make the singular-value rank unreliable. Each uncontrollable
+or unobservable mode is also identified by the PBH test, which says whether the model is
+stabilizable and detectable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import control as ct
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Mode:
+    """One eigenvalue of ``A`` with its classification.
+
+    Attributes
+    ----------
+    value : complex
+        Eigenvalue (continuous: rad/s; discrete: z-plane).
+    unstable : bool
+        ``Re > tol`` (continuous) or ``|z| > 1 + tol`` (discrete).
+    marginal : bool
+        On the stability boundary within ``tol``.
+    controllable, observable : bool
+        PBH test: ``rank [A - lambda I, B] == n`` and ``rank [A - lambda I; C] == n``.
+    ctrb_margin, obsv_margin : float
+        Smallest singular value of those PBH matrices relative to ``max(1, |A|)``: how far
+        the mode is from being uncontrollable / unobservable (0 = exactly).
+    """
+
+    value: complex
+    unstable: bool
+    marginal: bool
+    controllable: bool
+    observable: bool
+    ctrb_margin: float
+    obsv_margin: float
+
+    @property
+    def natural_frequency(self) -> float:
+        """``|lambda|`` in rad/s (continuous eigenvalues)."""
+        return float(abs(self.value))
+
+    @property
+    def damping(self) -> float:
+        """Damping ratio ``-Re(lambda) / |lambda|`` (continuous eigenvalues); nan at 0."""
+        mag = abs(self.value)
+        return float(-self.value.real / mag) if mag > 0 else float("nan")
+
+
+@dataclass(frozen=True)
+class LtiReport:
+    """Poles and structural properties of a state-space model.
+
+    Attributes
+    ----------
+    n : int
+        Number of states.
+    discrete : bool
+        Whether the model is discrete-time.
+    dt : float
+        Sampling period (0 for continuous time).
+    modes : tuple of Mode
+        Eigenvalues of ``A``, sorted by real part (continuous) or magnitude (discrete).
+    controllable_dim, observable_dim : int
+        Dimensions of the controllable and observable subspaces (the ranks of the
+        controllability and observability matrices).
+    stabilizable, detectable : bool
+        No unstable or marginal mode is uncontrollable / unobservable.
+    tol : float
+        Relative tolerance used for ranks and for the stability boundary.
+    """
+
+    n: int
+    discrete: bool
+    dt: float
+    modes: tuple[Mode, ...]
+    controllable_dim: int
+    observable_dim: int
+    stabilizable: bool
+    detectable: bool
+    tol: float
+
+    @property
+    def poles(self) -> np.ndarray:
+        """Eigenvalues of ``A``, shape ``(n,)``."""
+        return np.array([m.value for m in self.modes])
+
+    @property
+    def controllable(self) -> bool:
+        """Whether the model is completely controllable."""
+        return self.controllable_dim == self.n
+
+    @property
+    def observable(self) -> bool:
+        """Whether the model is completely observable."""
+        return self.observable_dim == self.n
+
+    @property
+    def n_unstable(self) -> int:
+        """Number of unstable eigenvalues."""
+        return sum(m.unstable for m in self.modes)
+
+
+def reachable_dimension(A: np.ndarray, B: np.ndarray, tol: float = 1e-9) -> int:
+    """Dimension of the reachable subspace of ``(A, B)`` by an orthogonal staircase.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+    B : ndarray, shape (n, m)
+    tol : float
+        Directions with a singular value below ``tol * max(1, |A|, |B|)`` are dropped.
+
+    Returns
+    -------
+    int
+    """
+    n = A.shape[0]
+    if n == 0 or B.size == 0:
+        return 0
+    scale = max(1.0, float(np.linalg.norm(A, 2)), float(np.linalg.norm(B, 2)))
+    basis = np.zeros((n, 0))
+    new = B
+    for _ in range(n):
+        new = new - basis @ (basis.T @ new)
+        u, s, _ = np.linalg.svd(new, full_matrices=False)
+        keep = s > tol * scale
+        if not np.any(keep):
+            break
+        q = u[:, keep]
+        basis = np.column_stack([basis, q])
+        if basis.shape[1] >= n:
+            break
+        new = A @ q
+    return int(min(basis.shape[1], n))
+
+
+def analyze_lti(sys: ct.StateSpace, tol: float = 1e-9) -> LtiReport:
+    """Poles, stability, controllability and observability of ``sys``.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Continuous- or discrete-time model.
+    tol : float, default 1e-9
+        Relative tolerance for ranks and for classifying poles as marginal.
+
+    Returns
+    -------
+    LtiReport
+    """
+    A, B, C = (np.asarray(M, dtype=float) for M in (sys.A, sys.B, sys.C))
+    n = A.shape[0]
+    discrete = bool(sys.isdtime(strict=True))
+    eig = np.linalg.eigvals(A) if n else np.zeros(0, dtype=complex)
+    scale = max(1.0, float(np.linalg.norm(A, 2))) if n else 1.0
+    stab_tol = 1e-7 * scale
+    modes = []
+    for lam in eig:
+        if discrete:
+            margin = abs(lam) - 1.0
+        else:
+            margin = lam.real
+        marginal = abs(margin) <= stab_tol
+        unstable = margin > stab_tol
+        shifted = A - lam * np.eye(n)
+        ctrb_margin = _min_singular(np.hstack([shifted, B]), n) / scale
+        obsv_margin = _min_singular(np.vstack([shifted, C]), n) / scale
+        modes.append(
+            Mode(
+                complex(lam),
+                bool(unstable),
+                bool(marginal),
+                ctrb_margin > tol,
+                obsv_margin > tol,
+                ctrb_margin,
+                obsv_margin,
+            )
+        )
+    key = (lambda m: abs(m.value)) if discrete else (lambda m: m.value.real)
+    modes.sort(key=key)
+    return LtiReport(
+        n=n,
+        discrete=discrete,
+        dt=float(sys.dt) if discrete else 0.0,
+        modes=tuple(modes),
+        controllable_dim=reachable_dimension(A, B, tol),
+        observable_dim=reachable_dimension(A.T, C.T, tol),
+        stabilizable=all(m.controllable for m in modes if m.unstable or m.marginal),
+        detectable=all(m.observable for m in modes if m.unstable or m.marginal),
+        tol=tol,
+    )
+
+
+def _min_singular(M: np.ndarray, n: int) -> float:
+    """The n-th largest singular value of ``M`` (0 when ``M`` has rank below ``n``)."""
+    s = np.linalg.svd(M, compute_uv=False)
+    return float(s[n - 1]) if s.size >= n else 0.0

@@ -1,0 +1,223 @@
+"""Text and JSON presentation of results (the CLI's output layer; no computation here)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from rich.console import Console, Group
+from rich.table import Table
+from rich.text import Text
+
+from pidlab.linearize import Linearization
+from pidlab.lti import LtiReport
+
+
+def _fmt(x: float) -> str:
+    if x == 0:
+        return "0"
+    return f"{x:.4g}"
+
+
+def matrix_table(title: str, M: np.ndarray, rows: Sequence[str], cols: Sequence[str]) -> Table:
+    """A named matrix as a table: one row per ``rows`` name, one column per ``cols`` name."""
+    table = Table(title=title, title_justify="left", min_width=len(title) + 4)
+    table.add_column("", style="bold", no_wrap=True)
+    for c in cols:
+        table.add_column(c, justify="right", no_wrap=True)
+    for name, row in zip(rows, M, strict=True):
+        table.add_row(name, *(_fmt(float(v)) for v in row))
+    return table
+
+
+def modes_table(report: LtiReport, title: str) -> Table:
+    """Eigenvalues with stability marked, damping, natural frequency and PBH results."""
+    table = Table(title=title, title_justify="left", min_width=len(title) + 4)
+    table.add_column("#", justify="right")
+    if report.discrete:
+        table.add_column("z", justify="right")
+        table.add_column("|z|", justify="right")
+        table.add_column("s = ln(z)/dt (rad/s)", justify="right")
+    else:
+        table.add_column("eigenvalue (rad/s)", justify="right")
+        table.add_column("|λ| (rad/s)", justify="right")
+        table.add_column("damping", justify="right")
+    table.add_column("stability")
+    table.add_column("controllable")
+    table.add_column("observable")
+    for i, m in enumerate(report.modes):
+        v = m.value
+        val = f"{v.real:.5g}" + (
+            f" {'+' if v.imag >= 0 else '-'} {abs(v.imag):.5g}j" if abs(v.imag) > 0 else ""
+        )
+        if report.discrete:
+            s = np.log(v + 0j) / report.dt if abs(v) > 0 else complex("-inf")
+            extra = [f"{abs(v):.6g}", f"{s.real:.4g}" + (f" ± {abs(s.imag):.4g}j" if abs(s.imag) > 0 else "")]
+        else:
+            extra = [f"{abs(v):.5g}", "" if not np.isfinite(m.damping) else f"{m.damping:.3f}"]
+        status = (
+            Text("UNSTABLE", style="bold red")
+            if m.unstable
+            else (Text("marginal", style="yellow") if m.marginal else Text("stable", style="green"))
+        )
+        table.add_row(
+            str(i),
+            val,
+            *extra,
+            status,
+            "yes" if m.controllable else Text(f"NO ({m.ctrb_margin:.1e})", style="red"),
+            "yes" if m.observable else Text(f"NO ({m.obsv_margin:.1e})", style="red"),
+        )
+    return table
+
+
+def linearization_view(lin: Linearization, report: LtiReport, discrete: bool) -> Group:
+    """Everything ``pidlab linearize`` prints, as a rich renderable."""
+    op = lin.op
+    head = Text()
+    head.append(f"{lin.source}", style="bold")
+    head.append(
+        f"  integrator {lin.integrator}, timestep {lin.timestep:g} s, frame_skip {lin.frame_skip}, "
+        f"control period {lin.control_dt:g} s\n"
+    )
+    head.append(f"operating point: {op.source}; ctrl: {op.ctrl_source}\n")
+    head.append(f"  qpos = {np.array2string(op.qpos, precision=6, separator=', ')}\n")
+    head.append(f"  qvel = {np.array2string(op.qvel, precision=6, separator=', ')}\n")
+    head.append(f"  ctrl = {np.array2string(op.ctrl, precision=6, separator=', ')}\n")
+    if op.equilibrium is not None:
+        eq = op.equilibrium
+        head.append(
+            f"  inverse-dynamics residual (force the actuators cannot supply): {eq.residual_norm:.3g}\n"
+        )
+        if eq.saturated:
+            head.append(f"  clamped to ctrlrange: {', '.join(eq.saturated)}\n", style="yellow")
+    how = (
+        "finite differences of mj_step x frame_skip"
+        if lin.discretization == "step"
+        else "zero-order hold of the continuous model"
+    )
+    head.append(f"method: {lin.method}; discrete model: {how}\n")
+    eq_err = lin.equilibrium_error
+    if eq_err <= 1e-6:
+        head.append(f"max |f(x0, u0)| = {eq_err:.3g} (an equilibrium)\n")
+    else:
+        head.append(
+            f"max |f(x0, u0)| = {eq_err:.3g} (NOT an equilibrium: the model drifts from this point)\n",
+            style="yellow",
+        )
+    if lin.ncon or lin.nefc:
+        head.append(
+            f"active contacts {lin.ncon}, constraint rows {lin.nefc}: "
+            "the model holds while the contact set does not change\n",
+            style="yellow",
+        )
+    if lin.kink > 1e-3:
+        head.append(
+            f"one-sided derivatives differ by {lin.kink:.2g} (relative): "
+            "the dynamics have a kink here; A is the average of both sides\n",
+            style="yellow",
+        )
+    sys = lin.sysd if discrete else lin.sys
+    kind = f"discrete (dt = {lin.control_dt:g} s)" if discrete else "continuous"
+    a_name, b_name = ("Ad", "Bd") if discrete else ("A", "B")
+    parts: list[Any] = [head]
+    parts.append(
+        matrix_table(
+            f"{a_name}: {kind} state matrix (rows: d/dt or next state)",
+            np.asarray(sys.A),
+            lin.state_names,
+            lin.state_names,
+        )
+    )
+    parts.append(
+        matrix_table(f"{b_name}: {kind} input matrix", np.asarray(sys.B), lin.state_names, lin.input_names)
+    )
+    if lin.output_names != lin.state_names:
+        parts.append(
+            matrix_table(
+                "C: observation variables from states (Jacobian of the observation)",
+                np.asarray(sys.C),
+                lin.output_names,
+                lin.state_names,
+            )
+        )
+    parts.append(modes_table(report, f"Eigenvalues of {a_name}"))
+    summary = Text()
+    summary.append(
+        f"unstable modes: {report.n_unstable}\n", style="bold red" if report.n_unstable else "green"
+    )
+    summary.append(
+        f"controllability rank: {report.controllable_dim} / {report.n}"
+        f" ({'controllable' if report.controllable else 'NOT controllable'};"
+        f" {'stabilizable' if report.stabilizable else 'NOT stabilizable'})\n"
+    )
+    summary.append(
+        f"observability rank:   {report.observable_dim} / {report.n} from the outputs"
+        f" ({'observable' if report.observable else 'NOT observable'};"
+        f" {'detectable' if report.detectable else 'NOT detectable'})\n"
+    )
+    parts.append(summary)
+    return Group(*parts)
+
+
+def _complex_list(values: np.ndarray) -> list[list[float]]:
+    return [[float(v.real), float(v.imag)] for v in values]
+
+
+def linearization_to_dict(lin: Linearization, report_c: LtiReport, report_d: LtiReport) -> dict[str, Any]:
+    """A JSON-ready description of a linearization and both structural reports."""
+
+    def rep(r: LtiReport) -> dict[str, Any]:
+        return {
+            "eigenvalues": _complex_list(r.poles),
+            "unstable": [m.unstable for m in r.modes],
+            "controllable_modes": [m.controllable for m in r.modes],
+            "observable_modes": [m.observable for m in r.modes],
+            "controllability_rank": r.controllable_dim,
+            "observability_rank": r.observable_dim,
+            "n": r.n,
+            "stabilizable": r.stabilizable,
+            "detectable": r.detectable,
+        }
+
+    return {
+        "source": lin.source,
+        "states": list(lin.state_names),
+        "inputs": list(lin.input_names),
+        "outputs": list(lin.output_names),
+        "operating_point": lin.op.to_dict(),
+        "eps": lin.eps,
+        "centered": lin.centered,
+        "method": lin.method,
+        "discretization": lin.discretization,
+        "integrator": lin.integrator,
+        "timestep": lin.timestep,
+        "frame_skip": lin.frame_skip,
+        "control_dt": lin.control_dt,
+        "equilibrium_error": lin.equilibrium_error,
+        "xdot0": lin.xdot0.tolist(),
+        "contacts": lin.ncon,
+        "constraint_rows": lin.nefc,
+        "kink": lin.kink,
+        "continuous": {
+            "A": lin.A.tolist(),
+            "B": lin.B.tolist(),
+            "C": lin.C.tolist(),
+            "D": lin.D.tolist(),
+            **rep(report_c),
+        },
+        "discrete": {
+            "dt": lin.control_dt,
+            "A": lin.Ad.tolist(),
+            "B": lin.Bd.tolist(),
+            "C": np.asarray(lin.sysd.C).tolist(),
+            "D": np.asarray(lin.sysd.D).tolist(),
+            **rep(report_d),
+        },
+    }
+
+
+def wide_console(stderr: bool = False) -> Console:
+    """A console that does not squeeze wide matrices into the terminal width."""
+    return Console(width=max(Console().width, 240), stderr=stderr)
