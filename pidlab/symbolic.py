@@ -63,8 +63,8 @@ class CartPoleParameters:
         Slide joint damping (N s/m) and armature (kg).
     gear : float
         Actuator gear: force on the cart per unit control, N.
-    gravity : float
-        Magnitude of gravity along -z, m/s^2.
+    gravity : tuple of float
+        Gravity ``(g_x, g_z)`` in m/s^2 (InvertedDoublePendulum's MJCF has ``g_x = 1e-5``).
     links : tuple of LinkParameters
         From the cart outwards.
     """
@@ -73,7 +73,7 @@ class CartPoleParameters:
     cart_damping: float
     cart_armature: float
     gear: float
-    gravity: float
+    gravity: tuple[float, float]
     links: tuple[LinkParameters, ...]
 
 
@@ -132,7 +132,7 @@ def cart_pole_parameters(model: mujoco.MjModel) -> CartPoleParameters:
         cart_damping=float(model.dof_damping[0]),
         cart_armature=float(model.dof_armature[0]),
         gear=float(model.actuator_gear[0, 0]),
-        gravity=float(-model.opt.gravity[2]),
+        gravity=(float(model.opt.gravity[0]), float(model.opt.gravity[2])),
         links=tuple(links),
     )
 
@@ -174,7 +174,8 @@ def cart_pole_dynamics(params: CartPoleParameters) -> SymbolicCartPole:
     """Derive the Euler-Lagrange equations of a cart-pole chain with CasADi.
 
     ``T = 1/2 (m_cart + armature) xdot^2 + sum_k [1/2 m_k |v_com,k|^2
-    + 1/2 (I_k phidot_k^2 + armature_k thetadot_k^2)]``, ``V = sum_k m_k g z_com,k``,
+    + 1/2 (I_k phidot_k^2 + armature_k thetadot_k^2)]``, ``V = -sum m g . p_com`` over the cart
+    and the poles,
     generalized forces ``(gear u - d_cart xdot, -d_k thetadot_k)``, where ``phi_k`` is the
     absolute pole angle (sum of the hinge angles up to ``k``).
     """
@@ -183,7 +184,8 @@ def cart_pole_dynamics(params: CartPoleParameters) -> SymbolicCartPole:
     qd = cs.SX.sym("qd", nq)
     u = cs.SX.sym("u")
     kinetic = 0.5 * (params.cart_mass + params.cart_armature) * qd[0] ** 2
-    potential = 0
+    gx, gz = params.gravity
+    potential = -params.cart_mass * gx * q[0]
     origin_x, origin_z = q[0], 0  # frame of the cart
     phi = 0
     for k, link in enumerate(params.links):
@@ -200,7 +202,7 @@ def cart_pole_dynamics(params: CartPoleParameters) -> SymbolicCartPole:
         phidot = cs.sum1(qd[1 : 2 + k])
         kinetic = kinetic + 0.5 * link.mass * cs.dot(vel, vel) + 0.5 * link.inertia * phidot**2
         kinetic = kinetic + 0.5 * link.armature * qd[1 + k] ** 2
-        potential = potential + link.mass * params.gravity * com[1]
+        potential = potential - link.mass * (gx * com[0] + gz * com[1])
     lagrangian = kinetic - potential
     p = cs.gradient(lagrangian, qd)
     mass = cs.jacobian(p, qd)

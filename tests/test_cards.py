@@ -1,0 +1,115 @@
+"""Model cards against the real envs: observation map and termination rule, by name."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from pidlab.card import load_card, parse_card
+from pidlab.errors import ModelCardError, UnknownSignalError
+from pidlab.observation import check_termination, observe
+
+from .conftest import PAPER_ENVS
+
+
+@pytest.mark.parametrize("env_id", PAPER_ENVS)
+def test_observation_map_reproduces_env_observation(models, env_id):
+    card = models[env_id].card
+    assert card is not None
+    env = gym.make(env_id)
+    try:
+        assert len(card.observation) == env.observation_space.shape[0]
+        obs, _ = env.reset(seed=1)
+        u = env.unwrapped
+        checked = terminations = 0
+        rng = np.random.default_rng(0)
+        for _ in range(400):
+            np.testing.assert_array_equal(observe(card, u.model, u.data), obs)
+            checked += 1
+            obs, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape))
+            check = check_termination(card, u.model, u.data)
+            assert check.terminated == terminated, (check, terminated)
+            if terminated or truncated:
+                terminations += terminated
+                obs, _ = env.reset(seed=int(rng.integers(1 << 30)))
+        assert checked == 400
+        assert terminations > 0  # random actions do end episodes: the rule was exercised
+    finally:
+        env.close()
+
+
+def test_observation_names_are_unique_and_named_by_joint(models):
+    hopper = models["Hopper-v5"].card
+    assert "rootx_pos" not in hopper.observation_names  # Hopper's observation drops rootx
+    assert hopper.observation_names[:2] == ("rootz_pos", "rooty_pos")
+    assert hopper.variable("rooty_vel").clip == (-10.0, 10.0)
+    with pytest.raises(UnknownSignalError, match="valid names: rootz_pos, rooty_pos"):
+        hopper.variable("torso_pitch")
+
+
+def test_card_operating_points_are_equilibria(models):
+    from pidlab.linearize import linearize
+
+    for env_id, loaded in models.items():
+        lin = linearize(loaded)
+        assert lin.op.source.startswith("card:")
+        assert lin.equilibrium_error < 1e-8, (env_id, lin.xdot0)
+
+
+GOOD = """
+schema = "pidlab.model-card/1"
+env_id = "X-v0"
+[operating_point]
+qpos = [0.0]
+qvel = [0.0]
+ctrl = [0.0]
+[[observation]]
+name = "a_pos"
+source = "qpos"
+joint = "a"
+[[termination]]
+signal = "a_pos"
+low = -1
+high = 1
+"""
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda s: s.replace('"pidlab.model-card/1"', '"pidlab.model-card/9"'), "schema"),
+        (lambda s: s.replace('source = "qpos"', 'source = "xpos"'), "allowed: qpos, qvel, qfrc_constraint"),
+        (lambda s: s.replace('joint = "a"', "joint = 3"), "joint: expected str"),
+        (lambda s: s.replace("qvel = [0.0]", 'qvel = ["x"]'), "expected a list of numbers"),
+        (lambda s: s.replace("low = -1", "low = 2"), "must be below high"),
+        (
+            lambda s: s.replace('name = "a_pos"', 'name = "a_pos"\ntransform = "tan"'),
+            "allowed: identity, sin, cos",
+        ),
+        (
+            lambda s: s.replace("[[termination]]", 'interval = "half"\n[[termination]]').replace(
+                "high = 1", 'high = 1\ninterval = "half"'
+            ),
+            "allowed: closed, open",
+        ),
+        (lambda s: s.replace('env_id = "X-v0"', ""), "missing field 'env_id'"),
+    ],
+)
+def test_malformed_cards_name_the_field(edit, message):
+    import tomllib
+
+    with pytest.raises(ModelCardError, match=message):
+        parse_card(tomllib.loads(edit(GOOD)), "card.toml")
+
+
+def test_card_that_names_a_missing_joint(models, tmp_path):
+    import tomllib
+
+    card = parse_card(tomllib.loads(GOOD), "card.toml")
+    with pytest.raises(ModelCardError, match="no joint 'a' in the model; joints: slider, hinge"):
+        card.check_against(models["InvertedPendulum-v5"].model, 2)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("schema = [", encoding="utf-8")
+    with pytest.raises(ModelCardError, match="not valid TOML"):
+        load_card(bad)

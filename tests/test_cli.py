@@ -1,0 +1,108 @@
+"""The ``pidlab linearize`` command, as a user runs it: real processes, real output."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from .conftest import PAPER_ENVS
+
+PIDLAB = [sys.executable, "-m", "pidlab.cli"]
+
+
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*PIDLAB, *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("env", PAPER_ENVS)
+def test_linearize_json_on_paper_envs(env, models):
+    res = run("linearize", env, "--json")
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    nv = models[env].model.nv
+    assert len(out["states"]) == 2 * nv
+    assert len(out["continuous"]["A"]) == 2 * nv and len(out["continuous"]["A"][0]) == 2 * nv
+    assert out["outputs"] == list(models[env].card.observation_names)
+    assert out["discrete"]["dt"] == pytest.approx(models[env].control_dt)
+    assert out["continuous"]["controllability_rank"] == 2 * nv
+    assert sum(out["continuous"]["unstable"]) >= 1  # every paper env is open-loop unstable here
+
+
+def test_linearize_table_marks_unstable_and_ranks():
+    res = run("linearize", "InvertedPendulum-v5")
+    assert res.returncode == 0, res.stderr
+    assert "UNSTABLE" in res.stdout
+    assert "controllability rank: 4 / 4" in res.stdout
+    assert "hinge_vel" in res.stdout and "slide" in res.stdout
+    disc = run("linearize", "InvertedPendulum-v5", "--discrete")
+    assert "dt = 0.04 s" in disc.stdout and "|z|" in disc.stdout
+
+
+def test_linearize_mjcf_with_keyframe_and_explicit_point(data_dir: Path):
+    xml = str(data_dir / "floating_arm.xml")
+    res = run("linearize", xml, "--at", "bent", "--json")
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    assert out["operating_point"]["source"] == "keyframe:bent"
+    assert len(out["states"]) == 22
+    res = run(
+        "linearize", "InvertedPendulum-v5", "--at", "qpos0", "--qvel", "0.1,0", "--equilibrium-ctrl", "--json"
+    )
+    out = json.loads(res.stdout)
+    assert out["operating_point"]["source"] == "qpos0+explicit qvel"
+    assert out["operating_point"]["ctrl_source"] == "inverse dynamics"
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["NoSuchEnv-v5"], "unknown env id or missing file 'NoSuchEnv-v5'"),
+        (["Hopper-v9"], "did you mean Hopper-v5"),
+        (["CartPole-v1"], "not a MuJoCo env"),
+        (["missing.xml"], "does not exist"),
+        (["InvertedPendulum-v5", "--at", "upright"], "no keyframe 'upright'"),
+        (
+            ["InvertedPendulum-v5", "--qpos", "0,0,0"],
+            "qpos has 3 entries; the model expects 2 (slider, hinge)",
+        ),
+        (["InvertedPendulum-v5", "--qpos", "a,b"], "expected comma-separated numbers"),
+        (["InvertedPendulum-v5", "--discretization", "tustin"], "expected 'step' or 'zoh'"),
+        (["InvertedPendulum-v5", "--eps", "0"], "expected a positive step"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(args, message):
+    res = run("linearize", *args)
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, res.stderr
+    assert message in lines[0]
+
+
+def test_broken_mjcf_shows_mujocos_message(tmp_path):
+    bad = tmp_path / "broken.xml"
+    bad.write_text("<mujoco><worldbody><body><joint type='hinge'/><geom type='box' size='1'/>")
+    res = run("linearize", str(bad))
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "MuJoCo could not compile" in res.stderr and "XML" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_non_finite_jacobian_exit_2(tmp_path):
+    stiff = tmp_path / "stiff.xml"
+    stiff.write_text(
+        "<mujoco><worldbody><body><joint name='s' type='slide' stiffness='1e308'/>"
+        "<geom type='sphere' size='0.1'/></body></worldbody></mujoco>"
+    )
+    res = run("linearize", str(stiff), "--qpos", "10")
+    assert res.returncode == 2 and "not finite" in res.stderr
+
+
+def test_version_and_help():
+    assert run("--version").stdout.startswith("pidlab ")
+    help_text = run("linearize", "--help").stdout
+    assert "ENV_OR_MJCF" in help_text and "--equilibrium-ctrl" in help_text
