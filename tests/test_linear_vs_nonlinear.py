@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import control as ct
 import mujoco
 import numpy as np
@@ -55,7 +57,7 @@ def assert_quadratic(errors: list[float], exact: bool = True) -> None:
     dynamics are nearly odd-symmetric, the quadratic Taylor term nearly vanishes and the
     error shrinks with the cube.
     """
-    for big, small in zip(errors, errors[1:], strict=False):
+    for big, small in itertools.pairwise(errors):
         ratio = big / small
         assert ratio > 50, f"errors {errors}: ratio {ratio:.1f} is below quadratic"
         if exact:
