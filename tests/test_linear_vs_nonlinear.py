@@ -5,10 +5,10 @@ from __future__ import annotations
 import itertools
 
 import control as ct
-import mujoco
 import numpy as np
 import pytest
 
+from pidlab import validate
 from pidlab.linearize import linearize
 from pidlab.model import LoadedModel, load_model
 from pidlab.operating_point import resolve_operating_point
@@ -16,38 +16,8 @@ from pidlab.operating_point import resolve_operating_point
 SIZES = (1e-2, 1e-3, 1e-4)
 
 
-def _step(loaded: LoadedModel, qpos0, dx: np.ndarray, ctrl: np.ndarray, qvel0) -> np.ndarray:
-    """Tangent state after one control period from qpos0 (+) dx, relative to qpos0."""
-    m = loaded.model
-    d = mujoco.MjData(m)
-    nv = m.nv
-    q = np.array(qpos0, dtype=float)
-    mujoco.mj_integratePos(m, q, dx[:nv], 1.0)
-    d.qpos[:] = q
-    d.qvel[:] = qvel0 + dx[nv:]
-    d.ctrl[:] = ctrl
-    mujoco.mj_step(m, d, nstep=loaded.frame_skip)
-    dq = np.zeros(nv)
-    mujoco.mj_differentiatePos(m, dq, 1.0, qpos0, d.qpos)
-    return np.concatenate([dq, d.qvel - qvel0])
-
-
 def prediction_errors(loaded: LoadedModel, op, sizes=SIZES, seed=0) -> list[float]:
-    lin = linearize(loaded, op)
-    rng = np.random.default_rng(seed)
-    n, nu = lin.Ad.shape[0], lin.Bd.shape[1]
-    direction = rng.standard_normal(n)
-    direction /= np.linalg.norm(direction)
-    udir = rng.standard_normal(nu)
-    udir /= max(np.linalg.norm(udir), 1e-12)
-    nominal = _step(loaded, op.qpos, np.zeros(n), op.ctrl, op.qvel)
-    errors = []
-    for size in sizes:
-        dx, du = size * direction, 0.1 * size * udir
-        actual = _step(loaded, op.qpos, dx, op.ctrl + du, op.qvel) - nominal
-        predicted = lin.Ad @ dx + lin.Bd @ du
-        errors.append(float(np.linalg.norm(actual - predicted)))
-    return errors
+    return list(validate.prediction_errors(loaded, linearize(loaded, op), sizes, seed).errors)
 
 
 def assert_quadratic(errors: list[float], exact: bool = True) -> None:
