@@ -134,12 +134,19 @@ def main() -> None:
                 )
             )
     cases.append(
-        ("floating_arm.xml (free + ball joints, tendon)", "keyframe bent", arm, resolve_operating_point(arm, "bent"))
+        (
+            "floating_arm.xml (free + ball joints, tendon)",
+            "keyframe bent",
+            arm,
+            resolve_operating_point(arm, "bent"),
+        )
     )
     for name, opname, loaded, op in cases:
         check = validate.prediction_errors(loaded, linearize(loaded, op), SIZES, seed=0)
         orders = ", ".join(f"{o:.2f}" for o in check.orders)
-        lines.append(f"| {name} | {opname} | " + " | ".join(f"{e:.2e}" for e in check.errors) + f" | {orders} |")
+        lines.append(
+            f"| {name} | {opname} | " + " | ".join(f"{e:.2e}" for e in check.errors) + f" | {orders} |"
+        )
         print(name, opname, check.errors, orders)
     lines += [
         "",

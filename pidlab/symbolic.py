@@ -106,9 +106,9 @@ def cart_pole_parameters(model: mujoco.MjModel) -> CartPoleParameters:
     links = []
     for j in range(1, model.njnt):
         b = bodies[j]
-        rot = np.zeros(9)
-        mujoco.mju_quat2Mat(rot, model.body_iquat[b])
-        rot = rot.reshape(3, 3)
+        flat = np.zeros(9)
+        mujoco.mju_quat2Mat(flat, model.body_iquat[b])
+        rot = flat.reshape(3, 3)
         inertia = rot @ np.diag(model.body_inertia[b]) @ rot.T
         jpos = model.jnt_pos[j]
         anchor = model.body_pos[b] + _body_rot(model, b) @ jpos
@@ -186,8 +186,9 @@ def cart_pole_dynamics(params: CartPoleParameters) -> SymbolicCartPole:
     kinetic = 0.5 * (params.cart_mass + params.cart_armature) * qd[0] ** 2
     gx, gz = params.gravity
     potential = -params.cart_mass * gx * q[0]
-    origin_x, origin_z = q[0], 0  # frame of the cart
-    phi = 0
+    origin_x: cs.SX = q[0]  # frame of the cart
+    origin_z: cs.SX = cs.SX(0.0)
+    phi: cs.SX = cs.SX(0.0)
     for k, link in enumerate(params.links):
         # Hinge anchor in the parent's frame, rotated by the parent's absolute angle.
         ax, az = link.anchor

@@ -90,10 +90,10 @@ def prediction_errors(
     """
     rng = np.random.default_rng(seed)
     n, nu = lin.Ad.shape[0], lin.Bd.shape[1]
-    direction = rng.standard_normal(n)
-    direction /= np.linalg.norm(direction)
-    udir = rng.standard_normal(nu)
-    udir /= max(float(np.linalg.norm(udir)), 1e-12)
+    raw = np.asarray(rng.standard_normal(n), dtype=float)
+    direction = raw / float(np.linalg.norm(raw))
+    raw_u = np.asarray(rng.standard_normal(nu), dtype=float)
+    udir = raw_u / max(float(np.linalg.norm(raw_u)), 1e-12)
     nominal = _step(loaded, lin, np.zeros(n), np.zeros(nu))
     errors = []
     for size in sizes:

@@ -20,8 +20,10 @@ stamp=.venv/.pidlab-lock.sha256
 want=$(cat requirements.lock pyproject.toml | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     echo "pidlab setup: installing the locked dependencies (CPU build of torch)"
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check -r requirements.lock
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e . \
-        || .venv/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -e .
+    # This machine kind's pip configuration names index folders that may not exist; pip warns
+    # about each of them. Those lines are noise; everything else pip says is shown.
+    quiet() { "$@" 2>&1 | { grep -v "is ignored: it is neither a file nor a directory" || true; }; return "${PIPESTATUS[0]}"; }
+    quiet .venv/bin/python -m pip install --quiet --disable-pip-version-check -r requirements.lock
+    quiet .venv/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -e .
     echo "$want" > "$stamp"
 fi

@@ -5,4 +5,5 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 export PATH="$PWD/.venv/bin:$PATH"
 ruff check pidlab tests benchmarks
+mypy pidlab
 python -m pytest "$@"
