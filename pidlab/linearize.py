@@ -270,15 +270,16 @@ def _fd_jacobian(
             du_hi[k - n], du_lo[k - n] = hi, lo
         f_hi = fun(dx_hi, du_hi) if hi != 0.0 else f0
         f_lo = fun(dx_lo, du_lo) if lo != 0.0 else f0
-        col = (f_hi - f_lo) / (hi - lo)
-        if hi != 0.0 and lo != 0.0:
-            one_sided_gap.append((f_hi - f0) / hi - (f0 - f_lo) / -lo)
+        with np.errstate(invalid="ignore", over="ignore"):
+            col = (f_hi - f_lo) / (hi - lo)
         if not np.all(np.isfinite(col)):
             raise NonFiniteJacobianError(
                 f"{what}: the derivative with respect to {names[k]!r} is not finite "
                 f"(NaN or inf); the dynamics are not differentiable at this operating point "
                 f"- check it (qpos, qvel, ctrl) and the model's parameters"
             )
+        if hi != 0.0 and lo != 0.0:
+            one_sided_gap.append((f_hi - f0) / hi - (f0 - f_lo) / -lo)
         cols.append(col)
     jac = np.column_stack(cols) if cols else np.zeros((f0.size, 0))
     scale = float(np.linalg.norm(jac))

@@ -121,10 +121,11 @@ def linearization_view(lin: Linearization, report: LtiReport, discrete: bool) ->
     sys = lin.sysd if discrete else lin.sys
     kind = f"discrete (dt = {lin.control_dt:g} s)" if discrete else "continuous"
     a_name, b_name = ("Ad", "Bd") if discrete else ("A", "B")
+    rows_are = "next state" if discrete else "time derivative of the state"
     parts: list[Any] = [head]
     parts.append(
         matrix_table(
-            f"{a_name}: {kind} state matrix (rows: d/dt or next state)",
+            f"{a_name}: {kind} state matrix (rows: {rows_are})",
             np.asarray(sys.A),
             lin.state_names,
             lin.state_names,
