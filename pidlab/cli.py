@@ -6,6 +6,7 @@ Every verb is a thin layer over the Python API: parse options, call, print. Bad 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import sys
@@ -101,6 +102,15 @@ def linearize(
             help="Use the control found by inverse dynamics (mj_inverse + actuator moments).",
         ),
     ] = False,
+    settle_joints: Annotated[
+        str | None,
+        typer.Option(
+            "--settle",
+            metavar="JOINT,...",
+            help="Move these hinge/slide joints (e.g. rootz,rooty) until contacts carry the model, "
+            "then use the inverse-dynamics control.",
+        ),
+    ] = None,
     discrete: Annotated[
         bool, typer.Option("--discrete", help="Show the discrete-time model at the env's control period.")
     ] = False,
@@ -130,6 +140,14 @@ def linearize(
         ctrl=_vector(ctrl, "ctrl"),
         equilibrium_ctrl=equilibrium_ctrl,
     )
+    if settle_joints:
+        from pidlab.operating_point import settle
+
+        free = [name.strip() for name in settle_joints.split(",") if name.strip()]
+        settled = settle(loaded, op.qpos, free)
+        base = op.source
+        op = resolve_operating_point(loaded, at, qpos=settled.qpos, qvel=op.qvel, equilibrium_ctrl=True)
+        op = dataclasses.replace(op, source=f"{base}+settled {'/'.join(free)}")
     lin = run_linearize(loaded, op, eps=eps, discretization=discretization)  # type: ignore[arg-type]
     report_c = analyze_lti(lin.sys)
     report_d = analyze_lti(lin.sysd)

@@ -57,6 +57,17 @@ def test_linearize_mjcf_with_keyframe_and_explicit_point(data_dir: Path):
     assert out["operating_point"]["ctrl_source"] == "inverse dynamics"
 
 
+def test_settle_finds_the_standing_point_from_qpos0(models):
+    res = run("linearize", "Hopper-v5", "--at", "qpos0", "--settle", "rootz,rooty", "--json")
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    assert out["operating_point"]["source"] == "qpos0+settled rootz/rooty"
+    assert out["operating_point"]["ctrl_source"] == "inverse dynamics"
+    assert out["equilibrium_error"] < 1e-8  # qpos0 itself hovers and falls
+    card_qpos = models["Hopper-v5"].card.operating_point.qpos
+    assert out["operating_point"]["qpos"] == pytest.approx(list(card_qpos), abs=1e-6)
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -72,6 +83,7 @@ def test_linearize_mjcf_with_keyframe_and_explicit_point(data_dir: Path):
         (["InvertedPendulum-v5", "--qpos", "a,b"], "expected comma-separated numbers"),
         (["InvertedPendulum-v5", "--discretization", "tustin"], "expected 'step' or 'zoh'"),
         (["InvertedPendulum-v5", "--eps", "0"], "expected a positive step"),
+        (["Hopper-v5", "--settle", "knee"], "no joint 'knee' to settle; joints: rootx"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, message):
