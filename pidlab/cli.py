@@ -157,6 +157,89 @@ def linearize(
     wide_console().print(linearization_view(lin, report_d if discrete else report_c, discrete))
 
 
+@app.command()
+@friendly_errors
+def tune(
+    env: Annotated[str, typer.Argument(metavar="ENV", help="A paper env id, e.g. InvertedPendulum-v5.")],
+    auto: Annotated[bool, typer.Option("--auto", help="Tune automatically (required for now).")] = False,
+    bandwidth: Annotated[float | None, typer.Option(help="Target gain crossover, rad/s.")] = None,
+    phase_margin: Annotated[float | None, typer.Option(help="Target phase margin, degrees.")] = None,
+    preset: Annotated[str, typer.Option(help="robust or weak.")] = "robust",
+    output: Annotated[str | None, typer.Option("-o", "--output", help="Spec file to write (TOML).")] = None,
+) -> None:
+    """Auto-tune a PID coach for ENV and write its spec."""
+    from rich.progress import Progress
+
+    from pidlab.autotune import tune as run_tune
+    from pidlab.model import load_model
+    from pidlab.render import wide_console
+    from pidlab.spec import save_spec
+
+    if not auto:
+        _fail("interactive tuning (--ui) is not available yet; use --auto")
+    if preset not in ("robust", "weak"):
+        _fail(f"--preset {preset!r}: expected robust or weak")
+    loaded = load_model(env)
+    out = output or f"tuning/{env}.pidlab-{preset}.toml"
+    with Progress(transient=True) as bar:
+        task = bar.add_task(f"tuning {env} ({preset})", total=None)
+        result = run_tune(
+            loaded,
+            bandwidth=bandwidth,
+            phase_margin=phase_margin,
+            preset=preset,
+            progress=lambda n: bar.update(task, completed=n),
+        )
+    path = save_spec(result.spec, out)
+    con = wide_console()
+    con.print(f"[bold]{env}[/bold] {preset} coach: {result.evaluations} evaluations")
+    con.print(
+        f"  gain crossover (rad/s): asked {result.asked_bandwidth:.4g}, "
+        f"achieved {result.achieved_bandwidth:.4g}"
+    )
+    con.print(
+        f"  phase margin (deg):     asked {result.asked_phase_margin:.1f}, "
+        f"achieved {result.achieved_phase_margin:.1f}"
+    )
+    con.print(f"  Ms: {result.achieved_ms:.3g}; closed-loop spectral radius {result.spectral_radius:.5f}")
+    if result.refined_return is not None:
+        con.print(
+            f"  refined on the real env: mean return {result.refined_return:.1f} on tuning seeds 1000-1002"
+        )
+    con.print(f"wrote {path}")
+
+
+@app.command()
+@friendly_errors
+def analyze(
+    spec_file: Annotated[str, typer.Argument(metavar="FILE", help="A coach spec (TOML).")],
+    plots: Annotated[str | None, typer.Option(metavar="DIR", help="Write PNG plots to DIR.")] = None,
+    episodes: Annotated[int, typer.Option(help="Coach-alone episodes on the real env (0: skip).")] = 10,
+) -> None:
+    """Analyze a coach: margins, poles, responses, and its score alone on the real env."""
+    from pidlab.analysis import analyze_coach
+    from pidlab.model import load_model
+    from pidlab.pid import Coach
+    from pidlab.render import analysis_view, wide_console
+    from pidlab.rollout import coach_alone
+    from pidlab.spec import load_spec
+
+    if episodes < 0:
+        _fail(f"--episodes {episodes}: expected 0 or more")
+    spec = load_spec(spec_file)
+    loaded = load_model(spec.env_id)
+    coach = Coach(spec, loaded)
+    result = analyze_coach(coach, loaded)
+    score = coach_alone(spec, loaded, episodes=episodes) if episodes else None
+    con = wide_console()
+    con.print(analysis_view(result, score))
+    if plots:
+        from pidlab.plots import write_plots
+
+        written = write_plots(result, coach, plots)
+        con.print(f"wrote {len(written)} plots to {plots}")
+
+
 def main() -> None:
     """Console entry point."""
     try:

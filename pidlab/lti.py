@@ -122,24 +122,9 @@ def reachable_dimension(A: np.ndarray, B: np.ndarray, tol: float = 1e-9) -> int:
     -------
     int
     """
-    n = A.shape[0]
-    if n == 0 or B.size == 0:
+    if A.shape[0] == 0 or B.size == 0:
         return 0
-    scale = max(1.0, float(np.linalg.norm(A, 2)), float(np.linalg.norm(B, 2)))
-    basis = np.zeros((n, 0))
-    new = B
-    for _ in range(n):
-        new = new - basis @ (basis.T @ new)
-        u, s, _ = np.linalg.svd(new, full_matrices=False)
-        keep = s > tol * scale
-        if not np.any(keep):
-            break
-        q = u[:, keep]
-        basis = np.column_stack([basis, q])
-        if basis.shape[1] >= n:
-            break
-        new = A @ q
-    return int(min(basis.shape[1], n))
+    return int(_orthonormal_reachable_basis(A, B, tol).shape[1])
 
 
 def analyze_lti(sys: ct.StateSpace, tol: float = 1e-9) -> LtiReport:
@@ -203,3 +188,59 @@ def _min_singular(M: np.ndarray, n: int) -> float:
     """The n-th largest singular value of ``M`` (0 when ``M`` has rank below ``n``)."""
     s = np.linalg.svd(M, compute_uv=False)
     return float(s[n - 1]) if s.size >= n else 0.0
+
+
+def _orthonormal_reachable_basis(A: np.ndarray, B: np.ndarray, tol: float) -> np.ndarray:
+    n = A.shape[0]
+    scale = max(1.0, float(np.linalg.norm(A, 2)), float(np.linalg.norm(B, 2)))
+    basis = np.zeros((n, 0))
+    new = B
+    for _ in range(n):
+        new = new - basis @ (basis.T @ new)
+        u, s, _ = np.linalg.svd(new, full_matrices=False)
+        keep = s > tol * scale
+        if not np.any(keep):
+            break
+        q = u[:, keep]
+        basis = np.column_stack([basis, q])
+        if basis.shape[1] >= n:
+            break
+        new = A @ q
+    return basis[:, :n]
+
+
+def observable_part(sys: ct.StateSpace, tol: float = 1e-9) -> tuple[ct.StateSpace, tuple[str, ...]]:
+    """Restrict ``sys`` to its observable subspace.
+
+    The unobservable subspace is ``A``-invariant and invisible in the outputs, so in an
+    orthonormal basis ``V`` of its complement ``(V' A V, V' B, C V, D)`` reproduces every
+    input-output behaviour. Used so that modes no output feedback can see (Hopper's and
+    Walker2d's ``rootx``) do not count against closed-loop stability.
+
+    Returns
+    -------
+    reduced : control.StateSpace
+        States named ``z0, z1, ...`` unless nothing was removed (then ``sys`` itself).
+    removed : tuple of str
+        Names of the original states that are (mostly) unobservable, for reporting.
+    """
+    A, B, C, D = (np.asarray(M, dtype=float) for M in (sys.A, sys.B, sys.C, sys.D))
+    V = _orthonormal_reachable_basis(A.T, C.T, tol)
+    n = A.shape[0]
+    if V.shape[1] == n:
+        return sys, ()
+    # the original state directions least represented in V are the removed ones
+    weight = np.sum(V**2, axis=1)
+    removed = tuple(sys.state_labels[i] for i in np.argsort(weight)[: n - V.shape[1]])
+    reduced = ct.ss(
+        V.T @ A @ V,
+        V.T @ B,
+        C @ V,
+        D,
+        sys.dt,
+        inputs=sys.input_labels,
+        outputs=sys.output_labels,
+        states=[f"z{i}" for i in range(V.shape[1])],
+        name=f"{sys.name}_observable",
+    )
+    return reduced, removed

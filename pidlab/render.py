@@ -222,3 +222,176 @@ def linearization_to_dict(lin: Linearization, report_c: LtiReport, report_d: Lti
 def wide_console(stderr: bool = False) -> Console:
     """A console that does not squeeze wide matrices into the terminal width."""
     return Console(width=max(Console().width, 240), stderr=stderr)
+
+
+def _db(x: float) -> str:
+    if x == float("inf"):
+        return "inf"
+    if x == float("-inf"):
+        return "-inf"
+    return f"{x:.2f}"
+
+
+def margins_table(title: str, margins: Sequence[Any]) -> Table:
+    """Per-actuator stability margins with units."""
+    t = Table(title=title, title_justify="left", min_width=len(title) + 4)
+    for col in (
+        "loop broken at",
+        "GM (dB)",
+        "lower GM (dB)",
+        "PM (deg)",
+        "delay margin (s)",
+        "disk margin",
+        "disk GM (dB)",
+        "disk PM (deg)",
+        "Ms (dB)",
+        "gain crossover (rad/s)",
+        "phase crossover (rad/s)",
+    ):
+        t.add_column(col, justify="right" if col != "loop broken at" else "left")
+    for m in margins:
+        t.add_row(
+            m.actuator,
+            _db(m.gain_margin_db),
+            _db(m.lower_gain_margin_db),
+            f"{m.phase_margin_deg:.1f}",
+            f"{m.delay_margin_s:.4g}",
+            f"{m.disk_margin:.3f}",
+            f"{m.disk_gain_margin_db:.2f}",
+            f"{m.disk_phase_margin_deg:.1f}",
+            _db(m.ms_db),
+            f"{m.gain_crossover:.4g}",
+            f"{m.phase_crossover:.4g}",
+        )
+    return t
+
+
+def poles_table(title: str, poles: Sequence[Any], discrete: bool) -> Table:
+    """Closed-loop poles with damping and natural frequency."""
+    t = Table(title=title, title_justify="left", min_width=len(title) + 4)
+    t.add_column("#", justify="right")
+    if discrete:
+        t.add_column("z", justify="right")
+        t.add_column("|z|", justify="right")
+    t.add_column("s (rad/s)", justify="right")
+    t.add_column("damping", justify="right")
+    t.add_column("wn (rad/s)", justify="right")
+    t.add_column("")
+    for i, p in enumerate(poles):
+        s = p.s
+        s_txt = f"{s.real:.4g}" + (f" ± {abs(s.imag):.4g}j" if abs(s.imag) > 1e-12 else "")
+        row = [str(i)]
+        if discrete:
+            z = p.value
+            row += [
+                f"{z.real:.5g}"
+                + (f" {'+' if z.imag >= 0 else '-'} {abs(z.imag):.4g}j" if abs(z.imag) > 1e-12 else ""),
+                f"{abs(z):.6f}",
+            ]
+        row += [s_txt, f"{p.damping:.3f}", f"{p.natural_frequency:.4g}"]
+        t.add_row(*row, Text("stable", style="green") if p.stable else Text("UNSTABLE", style="bold red"))
+    return t
+
+
+def responses_table(responses: Sequence[Any]) -> Table:
+    """Step and initial-condition response metrics."""
+    t = Table(title="Closed-loop responses (discrete, linear)", title_justify="left")
+    for col in (
+        "response",
+        "loop",
+        "signal",
+        "overshoot (%)",
+        "settling 2% (s)",
+        "rise 10-90% (s)",
+        "peak |u| / half-range",
+    ):
+        t.add_column(col, justify="left" if col in ("response", "loop", "signal") else "right")
+    for r in responses:
+        what = "unit setpoint step" if r.kind == "step" else f"initial deviation {r.size:g}"
+        t.add_row(
+            what,
+            r.loop,
+            r.signal,
+            f"{r.overshoot_pct:.1f}",
+            f"{r.settling_time_s:.3g}",
+            "" if r.rise_time_s != r.rise_time_s else f"{r.rise_time_s:.3g}",
+            f"{r.peak_control:.3g}",
+        )
+    return t
+
+
+def score_table(score: Any) -> Table:
+    """Coach-alone episodes summary: return statistics and failure causes."""
+    t = Table(
+        title=f"Coach alone on {score.env_id}: {len(score.episodes)} episodes (seeds "
+        f"{score.episodes[0].seed}..{score.episodes[-1].seed})",
+        title_justify="left",
+    )
+    t.add_column("mean return", justify="right")
+    t.add_column("std", justify="right")
+    t.add_column("min", justify="right")
+    t.add_column("max", justify="right")
+    t.add_column("mean length (steps)", justify="right")
+    t.add_column("how episodes ended")
+    r = score.returns
+    causes = "; ".join(f"{n}x {c}" for c, n in sorted(score.causes.items(), key=lambda kv: -kv[1]))
+    t.add_row(
+        f"{score.mean:.1f}",
+        f"{score.std:.1f}",
+        f"{r.min():.1f}",
+        f"{r.max():.1f}",
+        f"{score.mean_length:.0f}",
+        causes,
+    )
+    return t
+
+
+def analysis_view(analysis: Any, score: Any | None) -> Group:
+    """Everything ``pidlab analyze`` prints."""
+    parts: list[Any] = []
+    head = Text()
+    head.append(f"{analysis.env_id} / {analysis.spec_name}", style="bold")
+    head.append(
+        f"  control period {analysis.dt:g} s; plant linearized at {analysis.linearization.op.source}\n"
+    )
+    if analysis.unobservable:
+        head.append(f"left out (unobservable from the observation): {', '.join(analysis.unobservable)}\n")
+    if analysis.linearization.kink > 1e-3:
+        head.append(
+            "contacts at the operating point: the linear analysis is an averaged local picture, "
+            "the coach-alone score is the real test\n",
+            style="yellow",
+        )
+    if analysis.stable:
+        head.append("closed loop (discrete, linear): STABLE\n", style="bold green")
+    else:
+        bad = [p for p in analysis.discrete.poles if not p.stable]
+        listing = ", ".join(f"|z|={abs(p.value):.5f}" for p in bad)
+        head.append(
+            f"closed loop (discrete, linear): UNSTABLE - {len(bad)} pole(s) on or outside the unit "
+            f"circle ({listing}); the margins below do not certify anything\n",
+            style="bold red",
+        )
+    parts.append(head)
+    parts.append(
+        margins_table(
+            "Margins, discrete (what runs), each loop broken at its actuator", analysis.discrete.margins
+        )
+    )
+    parts.append(
+        margins_table(
+            "Margins, continuous (coach by inverse Tustin, sampling ignored)", analysis.continuous.margins
+        )
+    )
+    parts.append(poles_table("Closed-loop poles (discrete)", analysis.discrete.poles, True))
+    parts.append(responses_table(analysis.responses))
+    parts.append(
+        Text(
+            f"pole cross-check: python-control interconnect vs hand-assembled A_cl: "
+            f"max difference {analysis.discrete.pole_check:.2g} (discrete), "
+            f"{analysis.continuous.pole_check:.2g} (continuous)"
+        )
+    )
+    if score is not None:
+        parts.append(score_table(score))
+    return Group(*parts)

@@ -1,0 +1,163 @@
+"""Plots of a coach analysis (matplotlib; compute lives in :mod:`pidlab.analysis`).
+
+Each ``plot_*`` function draws on a given ``ax`` (or a new figure) and returns the figure.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import control as ct
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from pidlab.analysis import CoachAnalysis, LoopMargins, loop_at_actuator
+from pidlab.pid import Coach
+
+
+def _omega(dt: float) -> np.ndarray:
+    top = np.pi / dt
+    return np.logspace(np.log10(top) - 4, np.log10(top) - 1e-6, 1500)
+
+
+def plot_bode(L: ct.StateSpace, margins: LoopMargins, dt: float, title: str) -> plt.Figure:
+    """Bode plot of a loop transfer function with gain and phase margins marked."""
+    w = _omega(dt)
+    resp = np.asarray(L.frequency_response(w).complex).ravel()
+    mag = 20 * np.log10(np.abs(resp))
+    phase = np.unwrap(np.angle(resp)) * 180 / np.pi
+    fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(7, 6))
+    a1.semilogx(w, mag)
+    a1.axhline(0, color="k", lw=0.8)
+    a1.set_ylabel("|L| (dB)")
+    a2.semilogx(w, phase)
+    for k in range(-3, 2):
+        a2.axhline(-180 + 360 * k, color="k", lw=0.5, ls=":")
+    a2.set_ylabel("phase (deg)")
+    a2.set_xlabel("frequency (rad/s)")
+    if np.isfinite(margins.gain_crossover):
+        a1.axvline(margins.gain_crossover, color="C1", ls="--")
+        a2.axvline(
+            margins.gain_crossover,
+            color="C1",
+            ls="--",
+            label=f"PM {margins.phase_margin_deg:.1f} deg at {margins.gain_crossover:.3g} rad/s",
+        )
+    if np.isfinite(margins.phase_crossover):
+        a1.axvline(
+            margins.phase_crossover,
+            color="C2",
+            ls="--",
+            label=f"GM {margins.gain_margin_db:.1f} dB at {margins.phase_crossover:.3g} rad/s",
+        )
+    a1.axvline(np.pi / dt, color="0.5", lw=0.8)
+    a1.legend(loc="best", fontsize=8) if np.isfinite(margins.phase_crossover) else None
+    a2.legend(loc="best", fontsize=8) if np.isfinite(margins.gain_crossover) else None
+    a1.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_nyquist(L: ct.StateSpace, dt: float, title: str) -> plt.Figure:
+    """Nyquist curve of a loop (positive and negative frequencies) with the -1 point."""
+    w = _omega(dt)
+    resp = np.asarray(L.frequency_response(w).complex).ravel()
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.plot(resp.real, resp.imag, "C0", label="L(e^{jwT}), w > 0")
+    ax.plot(resp.real, -resp.imag, "C0--", lw=0.8, label="w < 0")
+    ax.plot([-1], [0], "r+", ms=14, mew=2, label="-1")
+    circle = np.exp(1j * np.linspace(0, 2 * np.pi, 200))
+    ax.plot(circle.real, circle.imag, color="0.7", lw=0.6)
+    lim = max(3.0, min(10.0, float(np.percentile(np.abs(resp), 90))))
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    ax.set_aspect("equal")
+    ax.set_xlabel("Re")
+    ax.set_ylabel("Im")
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_poles(analysis: CoachAnalysis) -> plt.Figure:
+    """Closed-loop poles (discrete, z-plane) with the unit circle."""
+    fig, ax = plt.subplots(figsize=(6, 6))
+    circle = np.exp(1j * np.linspace(0, 2 * np.pi, 400))
+    ax.plot(circle.real, circle.imag, "k", lw=0.8)
+    ol = np.linalg.eigvals(analysis.linearization.Ad)
+    ax.plot(ol.real, ol.imag, "x", color="0.5", label="open loop (plant)")
+    z = np.array([p.value for p in analysis.discrete.poles])
+    colors = ["C0" if p.stable else "C3" for p in analysis.discrete.poles]
+    ax.scatter(z.real, z.imag, edgecolors=colors, marker="o", facecolors="none", label="closed loop")
+    ax.set_aspect("equal")
+    ax.set_xlabel("Re z")
+    ax.set_ylabel("Im z")
+    ax.legend(fontsize=8)
+    ax.set_title(f"{analysis.env_id} / {analysis.spec_name}: poles (dt = {analysis.dt:g} s)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_responses(analysis: CoachAnalysis, coach: Coach, horizon_s: float = 20.0) -> plt.Figure:
+    """Closed-loop setpoint-step and initial-deviation responses of every loop's signal."""
+    cl = analysis.discrete.sys
+    dt = analysis.dt
+    steps = round(horizon_s / dt)
+    t = np.arange(steps) * dt
+    lay = coach.layout
+    n = lay.n_loops
+    fig, axes = plt.subplots(n, 2, figsize=(10, 2.4 * n), squeeze=False)
+    A, C = np.asarray(cl.A), np.asarray(cl.C)
+    Cp = np.asarray(analysis.plant.C)
+    plant_n = analysis.plant.nstates
+    for j, lp in enumerate(lay.spec.loops):
+        sig = lay.observation_names.index(lp.signal)
+        resp = ct.forced_response(cl, T=t, U=np.tile(np.eye(n)[j][:, None], (1, steps)))
+        axes[j, 0].plot(t, np.asarray(resp.outputs)[sig])
+        axes[j, 0].set_title(f"unit step of {lp.name} setpoint -> {lp.signal}", fontsize=9)
+        x = np.concatenate([np.linalg.pinv(Cp)[:, sig] * 0.05, np.zeros(A.shape[0] - plant_n)])
+        ys = []
+        for _ in range(steps):
+            ys.append((C @ x)[sig])
+            x = A @ x
+        axes[j, 1].plot(t, ys)
+        axes[j, 1].set_title(f"initial {lp.signal} = 0.05 -> {lp.signal}", fontsize=9)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)")
+    fig.tight_layout()
+    return fig
+
+
+def write_plots(analysis: CoachAnalysis, coach: Coach, folder: str | Path) -> list[Path]:
+    """Write Bode and Nyquist plots per actuator loop, the pole map and the responses as PNG."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    plant = analysis.plant
+    coach_d = coach.linear_model()
+    ny = plant.noutputs
+    coach_y = ct.ss(
+        coach_d.A, np.asarray(coach_d.B)[:, :ny], coach_d.C, np.asarray(coach_d.D)[:, :ny], coach_d.dt
+    )
+    written = []
+    for margins in analysis.discrete.margins:
+        i = list(plant.input_labels).index(margins.actuator)
+        L = loop_at_actuator(plant, coach_y, i)
+        title = f"{analysis.spec_name}: loop broken at {margins.actuator}"
+        for kind, fig in (
+            ("bode", plot_bode(L, margins, analysis.dt, title)),
+            ("nyquist", plot_nyquist(L, analysis.dt, title)),
+        ):
+            path = folder / f"{kind}_{margins.actuator}.png"
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            written.append(path)
+    for name, fig in (("poles", plot_poles(analysis)), ("responses", plot_responses(analysis, coach))):
+        path = folder / f"{name}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written

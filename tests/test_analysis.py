@@ -1,0 +1,133 @@
+"""Closed-loop analysis: margins against python-control's references, pole cross-check, theory vs MuJoCo."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import control as ct
+import mujoco
+import numpy as np
+import pytest
+
+from pidlab.analysis import analyze_coach, coach_to_continuous, loop_margins
+from pidlab.observation import observe
+from pidlab.pid import Coach, law
+from pidlab.spec import load_spec
+
+TUNING = Path(__file__).resolve().parents[1] / "tuning"
+s = ct.tf("s")
+
+# (loop, gm, pm, sm, wpc, wgc): reference values from python-control's own margin tests
+REFERENCES = [
+    (ct.tf([1], [1, 2, 3, 4]), 2.0, np.inf, 0.4170, 1.7321, np.nan),
+    (
+        ct.ss([[1.0, 4.0], [3.0, 2.0]], [[1.0], [-4.0]], [[1.0, 0.0]], [[0.0]]),
+        np.inf,
+        147.0743,
+        np.nan,
+        np.nan,
+        2.5483,
+    ),
+    (
+        (8.75 * (4 * s**2 + 0.4 * s + 1))
+        / ((100 * s + 1) * (s**2 + 0.22 * s + 1))
+        / (s**2 / 10.0**2 + 2 * 0.04 * s / 10.0 + 1),
+        2.2716,
+        97.5941,
+        0.5591,
+        10.0053,
+        0.0850,
+    ),
+    (0.01 * (10 - s) / (2 + s) / (1 + s), 300.0, np.inf, 0.9917, 5.6569, np.nan),
+]
+
+
+@pytest.mark.parametrize(("L", "gm", "pm", "sm", "wpc", "wgc"), REFERENCES)
+def test_margins_match_python_control_reference_cases(L, gm, pm, sm, wpc, wgc):
+    m = loop_margins(ct.ss(L), "u")
+    assert 10 ** (m.gain_margin_db / 20) == pytest.approx(gm, rel=2e-3)
+    assert m.phase_margin_deg == pytest.approx(pm, rel=2e-3)
+    if np.isfinite(sm):
+        assert 1 / m.ms == pytest.approx(sm, rel=2e-3)
+    if np.isfinite(wpc):
+        assert m.phase_crossover == pytest.approx(wpc, rel=2e-3)
+    if np.isfinite(wgc):
+        assert m.gain_crossover == pytest.approx(wgc, rel=2e-3)
+        if len(m.crossovers) == 1:  # with several crossovers the delay margin is their minimum
+            assert m.delay_margin_s == pytest.approx(np.deg2rad(pm) / wgc, rel=2e-3)
+
+
+def test_discrete_margins_agree_with_python_control():
+    L = ct.sample_system(ct.ss(ct.tf([1], [1, 2, 3, 4])), 0.05)
+    with pytest.warns(UserWarning, match="Falling back"):
+        gm, _pm, sm, wpc, _wgc, _ = ct.stability_margins(L)
+    m = loop_margins(L, "u")
+    assert 10 ** (m.gain_margin_db / 20) == pytest.approx(gm, rel=1e-3)
+    assert m.phase_crossover == pytest.approx(wpc, rel=1e-3)
+    assert 1 / m.ms == pytest.approx(sm, rel=2e-3)
+
+
+def test_inverse_tustin_inverts_bilinear_sampling():
+    sys = ct.ss([[-1.0, 2.0], [0.0, -3.0]], [[1.0, 0.0], [0.5, 1.0]], [[1.0, 1.0]], [[0.0, 0.2]])
+    back = coach_to_continuous(ct.sample_system(sys, 0.04, method="bilinear"))
+    np.testing.assert_allclose(ct.evalfr(back, 2j), ct.evalfr(sys, 2j), rtol=1e-10)
+
+
+@pytest.mark.parametrize(
+    ("env", "kind", "stable"),
+    [
+        ("InvertedPendulum-v5", "pidlab-robust", True),
+        ("InvertedDoublePendulum-v5", "pidlab-robust", True),
+        ("InvertedPendulum-v5", "paper", False),  # cart drift: a slow pole just outside the unit circle
+    ],
+)
+def test_closed_loop_poles_cross_check_and_stability(models, env, kind, stable):
+    loaded = models[env]
+    spec = load_spec(TUNING / f"{env}.{kind}.toml")
+    a = analyze_coach(Coach(spec, loaded), loaded)
+    assert a.discrete.pole_check < 1e-9 and a.continuous.pole_check < 1e-9
+    assert a.stable is stable
+    assert len(a.discrete.margins) == 1 and a.discrete.margins[0].actuator == "slide"
+
+
+def _linear_prediction_error(loaded, spec, size: float, steps: int = 25) -> float:
+    """Max observation error between MuJoCo + coach and the linear closed loop, from a pole tilt."""
+    from pidlab.linearize import linearize
+
+    lin = linearize(loaded)
+    m = loaded.model
+    d = mujoco.MjData(m)
+    sig = loaded.card.observation_names.index("hinge_pos")
+    x0 = np.linalg.pinv(lin.C)[:, sig] * size
+    q = lin.op.qpos.copy()
+    mujoco.mj_integratePos(m, q, x0[: m.nv], 1.0)
+    d.qpos[:] = q
+    d.qvel[:] = lin.op.qvel + x0[m.nv :]
+    mujoco.mj_forward(m, d)
+    coach = Coach(spec, loaded)
+    obs = observe(loaded.card, m, d)
+    coach.reset(obs)
+    # linear: plant deviation x, driven by the same (unsaturated) coach law
+    y_op = obs - lin.C @ x0
+    lay = coach.layout
+    state = coach.state.copy()
+    x = x0.copy()
+    worst = 0.0
+    for _ in range(steps):
+        u = coach.act(obs)
+        d.ctrl[:] = u
+        mujoco.mj_step(m, d, nstep=loaded.frame_skip)
+        obs = observe(loaded.card, m, d)
+        state, u_lin, _ = law(lay, state, y_op + lin.C @ x, lay.setpoints, saturate=False)
+        x = lin.Ad @ x + lin.Bd @ (u_lin - lin.op.ctrl)
+        worst = max(worst, float(np.max(np.abs(obs - (y_op + lin.C @ x)))))
+    return worst
+
+
+def test_nonlinear_response_matches_linear_prediction(models):
+    loaded = models["InvertedPendulum-v5"]
+    spec = load_spec(TUNING / "InvertedPendulum-v5.pidlab-robust.toml")
+    e2 = _linear_prediction_error(loaded, spec, 0.02)
+    e1 = _linear_prediction_error(loaded, spec, 0.01)
+    assert e1 < 0.05 * 0.01  # within 5 % of the perturbation
+    assert e2 / e1 > 2.5  # and the mismatch is nonlinear (second order or higher)
