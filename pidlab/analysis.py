@@ -366,6 +366,31 @@ def _settling_time(t: np.ndarray, y: np.ndarray, final: float, band: float) -> f
     return float(t[outside[-1] + 1])
 
 
+def initial_response(
+    cl: ct.StateSpace, plant: ct.StateSpace, signal: int, size: float, steps: int
+) -> np.ndarray:
+    """Outputs of the discrete closed loop from an initial deviation of one observation variable.
+
+    The plant starts at the least-norm state whose observation ``signal`` equals ``size`` (the
+    others zero), the coach at rest.
+
+    Returns
+    -------
+    outputs : ndarray, shape (steps, n_outputs)
+        Observation variables, then actuator commands (deviations).
+    """
+    A, C = np.asarray(cl.A), np.asarray(cl.C)
+    x = np.concatenate(
+        [np.linalg.pinv(np.asarray(plant.C))[:, signal] * size, np.zeros(A.shape[0] - plant.nstates)]
+    )
+    out = np.empty((steps, C.shape[0]))
+    with np.errstate(over="ignore", invalid="ignore"):  # unstable loops grow without bound
+        for k in range(steps):
+            out[k] = C @ x
+            x = A @ x
+    return out
+
+
 def _responses(
     report: ClosedLoopReport, coach: Coach, plant: ct.StateSpace, horizon_s: float
 ) -> tuple[ResponseMetrics, ...]:
@@ -400,23 +425,13 @@ def _responses(
             over, settle, rise = float("inf"), float("inf"), float("nan")
         out.append(ResponseMetrics("step", lp.name, lp.signal, float(over), settle, rise, peak_u, 1.0))
     # initial deviation of each loop's signal, everything else at the operating point
-    A = np.asarray(cl.A)
-    C = np.asarray(cl.C)
-    plant_n = plant.nstates
-    Cp = np.asarray(plant.C)
     for lp in lay.spec.loops:
         sig = lay.observation_names.index(lp.signal)
         size = 0.05
-        x0p = np.linalg.pinv(Cp)[:, sig] * size
-        x = np.concatenate([x0p, np.zeros(A.shape[0] - plant_n)])
-        ys, us = [], []
-        for _ in range(steps):
-            out_k = C @ x
-            ys.append(out_k[sig])
-            us.append(out_k[nobs:])
-            x = A @ x
+        outputs = initial_response(cl, plant, sig, size, steps)
+        ys, us = outputs[:, sig], outputs[:, nobs:]
         y = np.array(ys)
-        peak_u = float(np.max(np.abs(np.array(us)).T / halfwidth[:, None])) if us and len(us[0]) else 0.0
+        peak_u = float(np.max(np.abs(us).T / halfwidth[:, None])) if us.size else 0.0
         over = max(0.0, float(np.max(-np.sign(size) * y)) / abs(size) * 100)
         settle = _settling_time(t, y, 0.0, SETTLE_FRACTION * abs(size)) if report.stable else float("inf")
         out.append(ResponseMetrics("initial", lp.name, lp.signal, over, settle, float("nan"), peak_u, size))

@@ -14,7 +14,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pidlab.analysis import CoachAnalysis, LoopMargins, loop_at_actuator
+from pidlab.analysis import CoachAnalysis, LoopMargins, initial_response, loop_at_actuator
 from pidlab.pid import Coach
 
 
@@ -111,19 +111,12 @@ def plot_responses(analysis: CoachAnalysis, coach: Coach, horizon_s: float = 20.
     lay = coach.layout
     n = lay.n_loops
     fig, axes = plt.subplots(n, 2, figsize=(10, 2.4 * n), squeeze=False)
-    A, C = np.asarray(cl.A), np.asarray(cl.C)
-    Cp = np.asarray(analysis.plant.C)
-    plant_n = analysis.plant.nstates
     for j, lp in enumerate(lay.spec.loops):
         sig = lay.observation_names.index(lp.signal)
         resp = ct.forced_response(cl, T=t, U=np.tile(np.eye(n)[j][:, None], (1, steps)))
         axes[j, 0].plot(t, np.asarray(resp.outputs)[sig])
         axes[j, 0].set_title(f"unit step of {lp.name} setpoint -> {lp.signal}", fontsize=9)
-        x = np.concatenate([np.linalg.pinv(Cp)[:, sig] * 0.05, np.zeros(A.shape[0] - plant_n)])
-        ys = []
-        for _ in range(steps):
-            ys.append((C @ x)[sig])
-            x = A @ x
+        ys = initial_response(cl, analysis.plant, sig, 0.05, steps)[:, sig]
         axes[j, 1].plot(t, ys)
         axes[j, 1].set_title(f"initial {lp.signal} = 0.05 -> {lp.signal}", fontsize=9)
     for ax in axes[-1]:

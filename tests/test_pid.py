@@ -124,9 +124,7 @@ def test_saturation_and_anti_windup(models, aw):
     else:
         assert 1.5 < integral < 3.5  # held near the limit by back-calculation
     # recovery: after the error flips, how long until the output leaves the limit
-    recover = next(
-        (k for k in range(1, 400) if coach.act(np.array([1.0, 0.0, 0.0, 0.0]))[0] < 3.0), 400
-    )
+    recover = next((k for k in range(1, 400) if coach.act(np.array([1.0, 0.0, 0.0, 0.0]))[0] < 3.0), 400)
     if aw == "none":
         assert recover > 100
     else:
