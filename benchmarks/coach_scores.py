@@ -91,7 +91,9 @@ def main() -> None:
             print(env, kind, f"{s.mean:.1f} +- {s.std:.1f}", causes, stab)
     lines += [
         "",
-        "Paper, for reference: RL agents scored " + ", ".join(f"{e} {v}" for e, v in PAPER_RL.items()) + ".",
+        "The paper's own figures (Table I, on the old v2/v3 envs, one run each): its RL agents scored "
+        + ", ".join(f"{e.split('-')[0]} {v}" for e, v in PAPER_RL.items())
+        + "; its PID coaches the numbers in the last column.",
         "",
         f"Analysis time of one spec (InvertedPendulum-v5.pidlab-robust: discrete and continuous closed "
         f"loops, margins at every actuator, poles, step and initial responses): best of 5 "

@@ -13,7 +13,8 @@ The loop structure comes from a template (which signals, which actuators, which 
 
 Presets: ``robust`` (all loops, phase margin >= 60 deg, Ms <= 1.6), and ``weak``, a deliberately
 barely functioning coach in the spirit of the paper: core loops only (for the pendulums: the
-poles but not the cart) and a phase margin of 25 deg.
+poles but not the cart), a phase margin of 25 deg, and the lowest sensible crossover: 1.4 times
+the fastest unstable open-loop pole.
 """
 
 from __future__ import annotations
@@ -98,6 +99,12 @@ class Preset:
     bandwidth_factor: float
     max_spectral_radius: float
 
+
+WEAK_CROSSOVER_FACTOR = 1.4
+"""Weak preset: asked crossover = this factor times the fastest unstable open-loop pole, rad/s."""
+
+POSTURE_START = (1.0, 0.1)
+"""Contact-rich envs: a joint-posture PD start (kp, kd) tried beside the linear design."""
 
 CONTACT_RICH = ("Hopper-v5", "Walker2d-v5")
 """Envs whose linear model has a kink at the operating point (soft contacts with pyramidal
@@ -286,9 +293,10 @@ def tune(
     max_evaluations : int
         Budget of the shaping step.
     refine_evaluations : int
-        Contact-rich envs (Hopper, Walker2d) with the robust preset: budget of the refinement
-        that maximizes the mean coach-alone return over three tuning seeds (1000-1002, disjoint
-        from the evaluation seeds 0..N-1). 0 disables it.
+        Contact-rich envs (Hopper, Walker2d) with the robust preset: budget of each of the two
+        refinements (from the linear design and from a posture-PD start) that maximize the mean
+        coach-alone return over three tuning seeds (1000-1002, disjoint from the evaluation
+        seeds 0..N-1); the better is kept. 0 disables it.
     progress : callable, optional
         Called with the number of evaluations so far.
 
@@ -343,9 +351,14 @@ def tune(
 
     start, loops = _lqr_projection(lin, loops)
     wc0, _pm0, _ms0, _rho0 = figures(start)
-    target_wc = (
-        bandwidth if bandwidth is not None else (wc0 if math.isfinite(wc0) else 1.0) * p.bandwidth_factor
-    )
+    unstable = [ev.real for ev in np.linalg.eigvals(lin.A) if ev.real > 1e-9]
+    if bandwidth is not None:
+        target_wc = bandwidth
+    elif preset == "weak" and unstable:
+        # the slowest loop that can still catch the fastest unstable pole
+        target_wc = WEAK_CROSSOVER_FACTOR * max(unstable)
+    else:
+        target_wc = (wc0 if math.isfinite(wc0) else 1.0) * p.bandwidth_factor
     target_pm = phase_margin if phase_margin is not None else p.phase_margin
     signs = np.where(start >= 0, 1.0, -1.0)
     count = 0
@@ -385,17 +398,31 @@ def tune(
     if loaded.env_id in CONTACT_RICH and preset == "robust" and refine_evaluations > 0:
         from pidlab.rollout import coach_alone
 
-        def neg_return(z: np.ndarray) -> float:
+        def neg_return(z: np.ndarray, sign: np.ndarray) -> float:
             nonlocal count
             count += 1
             if progress is not None:
                 progress(count)
-            spec = _spec(env_id, loops, signs * np.exp(z), setpoints, offset, "candidate")
+            spec = _spec(env_id, loops, sign * np.exp(z), setpoints, offset, "candidate")
             return -coach_alone(spec, loaded, episodes=3, seed0=1000).mean
 
-        sim = minimize(
-            neg_return, best.x, method="Nelder-Mead", options={"maxfev": refine_evaluations, "adaptive": True}
+        # two starts: the linear design, and plain posture PD on every joint loop (the torso-pitch
+        # loop nearly off); both are refined and the better result is kept
+        posture = np.array(
+            [-v if lt.signal.endswith("joint_pos") else -1e-3 for lt in loops for v in POSTURE_START]
         )
+        candidates = [(signs, best.x), (np.where(posture >= 0, 1.0, -1.0), np.log(np.abs(posture)))]
+        results = []
+        for cand_signs, z_start in candidates:
+            res = minimize(
+                neg_return,
+                z_start,
+                args=(cand_signs,),
+                method="Nelder-Mead",
+                options={"maxfev": refine_evaluations, "adaptive": True},
+            )
+            results.append((float(res.fun), cand_signs, res))
+        _, signs, sim = min(results, key=lambda r: r[0])
         gains = signs * np.exp(sim.x)
         refined = float(-sim.fun)
         wc, pm, ms, rho = figures(gains)

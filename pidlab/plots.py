@@ -34,10 +34,14 @@ def plot_bode(L: ct.StateSpace, margins: LoopMargins, dt: float, title: str) -> 
     a1.axhline(0, color="k", lw=0.8)
     a1.set_ylabel("|L| (dB)")
     a2.semilogx(w, phase)
-    for k in range(-3, 2):
-        a2.axhline(-180 + 360 * k, color="k", lw=0.5, ls=":")
+    for k in range(-6, 6):
+        level = -180 + 360 * k
+        if phase.min() - 30 <= level <= phase.max() + 30:
+            a2.axhline(level, color="k", lw=0.5, ls=":")
     a2.set_ylabel("phase (deg)")
     a2.set_xlabel("frequency (rad/s)")
+    for wc in margins.crossovers:
+        a1.axvline(wc, color="C1", ls=":", lw=0.8)
     if np.isfinite(margins.gain_crossover):
         a1.axvline(margins.gain_crossover, color="C1", ls="--")
         a2.axvline(

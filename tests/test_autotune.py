@@ -47,3 +47,11 @@ def test_weak_preset_drops_the_cart_loop(models):
 def test_bad_targets(models, kwargs, message):
     with pytest.raises(PidlabError, match=message):
         tune(models["InvertedPendulum-v5"], **kwargs)
+
+
+def test_contact_rich_refinement_runs_on_the_real_env(models):
+    """Mechanics only (a tiny budget): both starts are refined on the env and the result recorded."""
+    result = tune(models["Hopper-v5"], max_evaluations=20, refine_evaluations=3)
+    assert result.refined_return is not None
+    assert result.spec.provenance["refined_mean_return_tuning_seeds"] == result.refined_return
+    assert result.evaluations >= 20 + 2 * 3
