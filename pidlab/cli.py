@@ -13,6 +13,7 @@ import sys
 from collections.abc import Callable
 from typing import Annotated, Any, TypeVar
 
+import numpy as np
 import typer
 
 from pidlab import __version__
@@ -238,6 +239,133 @@ def analyze(
 
         written = write_plots(result, coach, plots)
         con.print(f"wrote {len(written)} plots to {plots}")
+
+
+@app.command()
+@friendly_errors
+def roa(
+    spec_file: Annotated[str, typer.Argument(metavar="SPEC", help="A coach spec (TOML).")],
+    samples: Annotated[int, typer.Option(help="Simulated initial states in the final check (N).")] = 1000,
+    seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
+    horizon: Annotated[float, typer.Option(help="Simulated time per trajectory, s.")] = 3.0,
+    plots: Annotated[
+        str | None, typer.Option(metavar="DIR", help="Write the slice and phase portrait as PNG.")
+    ] = None,
+    slice_vars: Annotated[
+        str | None,
+        typer.Option("--slice", help="Two observation variables for the plots (default: first loop)."),
+    ] = None,
+) -> None:
+    """Estimate and certify the coach's region of attraction (Lyapunov + MuJoCo simulation)."""
+    from pidlab.model import load_model
+    from pidlab.render import roa_view, wide_console
+    from pidlab.roa import estimate_roa
+    from pidlab.spec import load_spec
+
+    if samples < 1:
+        _fail(f"--samples {samples}: expected a positive number")
+    if not horizon > 0:
+        _fail(f"--horizon {horizon}: expected a positive time in s")
+    spec = load_spec(spec_file)
+    loaded = load_model(spec.env_id)
+    assert loaded.card is not None
+    units = {v.name: v.unit for v in loaded.card.observation}
+    pair: tuple[str, str] | None = None
+    if plots:
+        from pidlab.bounds import _check_variables
+
+        lp0 = spec.loops[0]
+        chosen = (
+            [v.strip() for v in slice_vars.split(",")] if slice_vars else [lp0.signal, lp0.rate_signal or ""]
+        )
+        if len(chosen) != 2 or not all(chosen):
+            _fail("--slice: expected two observation variables, e.g. --slice hinge_pos,hinge_vel")
+        _check_variables(chosen, loaded)
+        pair = (chosen[0], chosen[1])
+    result, kept = estimate_roa(
+        spec,
+        loaded,
+        samples=samples,
+        seed=seed,
+        horizon_s=horizon,
+        keep_trajectories=80 if pair else 0,
+        record=pair,
+    )
+    con = wide_console()
+    con.print(roa_view(result, units))
+    if plots and pair is not None:
+        from pathlib import Path
+
+        import matplotlib.pyplot as plt
+
+        from pidlab.plots import plot_phase_portrait, plot_roa_slice
+        from pidlab.roa import phase_portrait
+
+        folder = Path(plots)
+        folder.mkdir(parents=True, exist_ok=True)
+        fig = plot_roa_slice(result, pair, kept, units)
+        fig.savefig(folder / f"roa_{pair[0]}_{pair[1]}.png", dpi=110)
+        plt.close(fig)
+        if result.lyapunov is not None:
+            L = result.lyapunov
+            ext = [
+                2
+                * float(
+                    np.sqrt(result.level * np.linalg.inv(L.P_y)[L.variables.index(v)][L.variables.index(v)])
+                )
+                if v in L.variables
+                else 0.1
+                for v in pair
+            ]
+        else:
+            ext = [2 * result.box.get(v, 0.1) for v in pair]
+        paths = phase_portrait(spec, loaded, pair, (ext[0], ext[1]), horizon_s=horizon)
+        fig = plot_phase_portrait(
+            paths, pair, units, f"{spec.env_id} / {spec.name}: coached phase portrait (MuJoCo)"
+        )
+        fig.savefig(folder / f"phase_{pair[0]}_{pair[1]}.png", dpi=110)
+        plt.close(fig)
+        con.print(f"wrote 2 plots to {folder}")
+
+
+@app.command()
+@friendly_errors
+def bounds(
+    spec_file: Annotated[str, typer.Argument(metavar="SPEC", help="A coach spec (TOML).")],
+    variables: Annotated[
+        str | None, typer.Option(help="Box variables, comma-separated (observation names).")
+    ] = None,
+    write: Annotated[
+        bool, typer.Option("--write", help="Write the bounds into the spec's [bounds] table.")
+    ] = False,
+    samples: Annotated[
+        int, typer.Option(help="Simulated initial states in the region's final check.")
+    ] = 1000,
+    seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
+) -> None:
+    """Derive critical-state bounds (ellipsoid and box) from the certified region."""
+    from pidlab.bounds import _check_variables, derive_bounds, with_bounds
+    from pidlab.model import load_model
+    from pidlab.render import bounds_view, roa_view, wide_console
+    from pidlab.roa import estimate_roa
+    from pidlab.spec import load_spec, save_spec
+
+    if samples < 1:
+        _fail(f"--samples {samples}: expected a positive number")
+    spec = load_spec(spec_file)
+    loaded = load_model(spec.env_id)
+    names = [v.strip() for v in variables.split(",") if v.strip()] if variables else None
+    if names:
+        _check_variables(names, loaded)
+    result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed)
+    crit = derive_bounds(result, spec, loaded, variables=names, seed=seed)
+    con = wide_console()
+    assert loaded.card is not None
+    con.print(roa_view(result, {v.name: v.unit for v in loaded.card.observation}))
+    con.print(bounds_view(crit))
+    if write:
+        path = save_spec(with_bounds(spec, crit), spec_file)
+        con.print(f"wrote the bounds into {path}")
 
 
 def main() -> None:

@@ -109,3 +109,55 @@ def check_termination(card: ModelCard, model: mujoco.MjModel, data: mujoco.MjDat
         values=tuple(values),
         nonfinite=nonfinite,
     )
+
+
+class CompiledCard:
+    """A model card's observation map and termination rule, compiled to index arrays.
+
+    Same results as :func:`observe` and :func:`check_termination`, without name lookups per
+    call: the form used in simulation loops (regions of attraction, rollouts).
+    """
+
+    def __init__(self, card: ModelCard, model: mujoco.MjModel) -> None:
+        self.card = card
+        n = len(card.observation)
+        self._source = [v.source for v in card.observation]
+        self._addr = np.array([_address(model, v) for v in card.observation])
+        self._sin = np.array([v.transform == "sin" for v in card.observation])
+        self._cos = np.array([v.transform == "cos" for v in card.observation])
+        self._lo = np.array([v.clip[0] if v.clip else -np.inf for v in card.observation])
+        self._hi = np.array([v.clip[1] if v.clip else np.inf for v in card.observation])
+        self._groups = {s: np.array([i for i in range(n) if self._source[i] == s]) for s in set(self._source)}
+        limits = []
+        for limit in card.termination:
+            if limit.signal.startswith("site:"):
+                site, _, axis = limit.signal[5:].rpartition(":")
+                sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
+                limits.append(("site", sid, "xyz".index(axis), limit))
+            else:
+                joint, _, kind = limit.signal.rpartition("_")
+                jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
+                adr = int(model.jnt_qposadr[jid]) if kind == "pos" else int(model.jnt_dofadr[jid])
+                limits.append((kind, adr, 0, limit))
+        self._limits = limits
+
+    def observe(self, data: mujoco.MjData) -> np.ndarray:
+        """The observation (as :func:`observe`)."""
+        out = np.empty(len(self._addr))
+        for source, idx in self._groups.items():
+            out[idx] = getattr(data, source)[self._addr[idx]]
+        out = np.where(self._sin, np.sin(out), np.where(self._cos, np.cos(out), out))
+        return np.clip(out, self._lo, self._hi)
+
+    def terminated(self, data: mujoco.MjData) -> bool:
+        """Whether the env would terminate (as :func:`check_termination`)."""
+        for kind, a, b, limit in self._limits:
+            if kind == "site":
+                v = float(data.site_xpos[a, b])
+            elif kind == "pos":
+                v = float(data.qpos[a])
+            else:
+                v = float(data.qvel[a])
+            if not limit.healthy(v):
+                return True
+        return bool(self.card.terminate_on_nonfinite and not np.all(np.isfinite(self.observe(data))))

@@ -6,6 +6,7 @@ Each ``plot_*`` function draws on a given ``ax`` (or a new figure) and returns t
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import control as ct
 import matplotlib
@@ -158,3 +159,62 @@ def write_plots(analysis: CoachAnalysis, coach: Coach, folder: str | Path) -> li
         plt.close(fig)
         written.append(path)
     return written
+
+
+def plot_roa_slice(
+    result: Any, variables: tuple[str, str], trajectories: list[Any], units: dict[str, str]
+) -> plt.Figure:
+    """The certified set in the plane of two variables, with simulated trajectories overlaid."""
+    fig, ax = plt.subplots(figsize=(7, 6))
+    if result.lyapunov is not None:
+        L = result.lyapunov
+        idx = [L.variables.index(v) for v in variables]
+        M = L.P_y[np.ix_(idx, idx)]
+        t = np.linspace(0, 2 * np.pi, 300)
+        circle = np.vstack([np.cos(t), np.sin(t)])
+        pts = np.linalg.solve(np.linalg.cholesky(M / result.level).T, circle)
+        ax.plot(
+            L.center[idx[0]] + pts[0],
+            L.center[idx[1]] + pts[1],
+            "k",
+            lw=2,
+            label=f"slice of V <= c (c = {result.level:.3g})",
+        )
+    else:
+        hx, hy = (result.box.get(v, np.nan) for v in variables)
+        ax.add_patch(plt.Rectangle((-hx, -hy), 2 * hx, 2 * hy, fill=False, lw=2, label="recoverable box"))
+    for k, tr in enumerate(trajectories):
+        if len(tr.path) == 0:
+            continue
+        color = "C2" if tr.recovered else "C3"
+        label = None
+        if k == 0 or (not tr.recovered and all(t.recovered for t in trajectories[:k])):
+            label = "recovered" if tr.recovered else "failed"
+        ax.plot(tr.path[:, 0], tr.path[:, 1], color=color, lw=0.7, alpha=0.7, label=label)
+        ax.plot(tr.path[0, 0], tr.path[0, 1], ".", color=color, ms=3)
+    ax.set_xlabel(f"{variables[0]} ({units.get(variables[0], '')})")
+    ax.set_ylabel(f"{variables[1]} ({units.get(variables[1], '')})")
+    ax.set_title(f"{result.env_id} / {result.spec_name}\n{result.method}", fontsize=9)
+    ax.legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    return fig
+
+
+def plot_phase_portrait(
+    paths: list[np.ndarray], variables: tuple[str, str], units: dict[str, str], title: str
+) -> plt.Figure:
+    """Coached trajectories from a grid of initial conditions in the plane of two variables."""
+    fig, ax = plt.subplots(figsize=(7, 6))
+    for p in paths:
+        if len(p):
+            ax.plot(p[:, 0], p[:, 1], color="C0", lw=0.6, alpha=0.8)
+            ax.plot(p[0, 0], p[0, 1], "o", color="C0", ms=2)
+            if len(p) > 2:
+                ax.annotate(
+                    "", xy=p[2], xytext=p[0], arrowprops={"arrowstyle": "->", "color": "C0", "lw": 0.6}
+                )
+    ax.set_xlabel(f"{variables[0]} ({units.get(variables[0], '')})")
+    ax.set_ylabel(f"{variables[1]} ({units.get(variables[1], '')})")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return fig

@@ -395,3 +395,70 @@ def analysis_view(analysis: Any, score: Any | None) -> Group:
     if score is not None:
         parts.append(score_table(score))
     return Group(*parts)
+
+
+def roa_view(result: Any, units: dict[str, str] | None = None) -> Group:
+    """What ``pidlab roa`` prints: method, levels, samples, confidence, extents with units."""
+    head = Text()
+    head.append(f"{result.env_id} / {result.spec_name}: region of attraction\n", style="bold")
+    head.append(f"method: {result.method}\n")
+    chk = result.check
+    if result.lyapunov is not None:
+        opt = "not available" if result.c_optimization is None else f"{result.c_optimization:.4g}"
+        head.append(
+            f"level c (V = X' P X, Q = I): certified {result.level:.4g}; CasADi estimate {opt}; "
+            f"simulation bisection {result.c_simulation:.4g}\n"
+        )
+    head.append(
+        f"certification: {chk.samples} simulated initial states, {chk.failures} failures "
+        f"({chk.terminated} terminated, {chk.not_converged} not converged) over {chk.horizon_s:g} s; "
+        f"failure probability < {chk.failure_bound_95:.2g} at 95 % (rule of three)\n"
+    )
+    head.append(f"computed in {result.elapsed_s:.1f} s\n")
+    parts: list[Any] = [head]
+    t = Table(
+        title="Extent of the certified region per variable (others free within the set)", title_justify="left"
+    )
+    t.add_column("variable")
+    t.add_column("unit")
+    t.add_column("operating point", justify="right")
+    t.add_column("half-width", justify="right")
+    if result.lyapunov is not None:
+        L = result.lyapunov
+        Pinv = np.linalg.inv(L.P_y)
+        for i, v in enumerate(L.variables):
+            t.add_row(
+                v, (units or {}).get(v, ""), f"{L.center[i]:.4g}", f"{np.sqrt(result.level * Pinv[i, i]):.4g}"
+            )
+    else:
+        for v, h in result.box.items():
+            t.add_row(v, (units or {}).get(v, ""), "", f"{h:.4g}")
+    parts.append(t)
+    return Group(*parts)
+
+
+def bounds_view(b: Any) -> Group:
+    """What ``pidlab bounds`` prints."""
+    head = Text()
+    head.append(f"critical-state bounds ({b.method})\n", style="bold")
+    if b.variables:
+        frac = b.provenance.get("one_step_action_fraction", 1.0)
+        head.append(
+            f"ellipsoid: V <= rho c with rho = {b.rho:.4g} (c = {b.level:.4g}) over "
+            f"{', '.join(b.variables)}\n"
+        )
+        if frac < 1.0:
+            head.append(
+                f"one-step margin sized for agent actions up to {frac:.0%} of the action range: "
+                "from the equilibrium, one full-range action is more than this coach recovers from\n",
+                style="yellow",
+            )
+    samples, escapes = b.one_step_check
+    head.append(f"one-step check in MuJoCo: {samples} boundary states, {escapes} not recovered\n")
+    t = Table(title="Box: the coach takes over outside", title_justify="left")
+    t.add_column("variable")
+    t.add_column("low", justify="right")
+    t.add_column("high", justify="right")
+    for v, (lo, hi) in b.box.items():
+        t.add_row(v, f"{lo:.4g}", f"{hi:.4g}")
+    return Group(head, t)

@@ -133,6 +133,10 @@ class CoachSpec:
         Control added to every command, per actuator.
     provenance : dict
         Free-form record of how the spec was made (tool, version, date, targets, achieved).
+    bounds : dict or None
+        Critical-state bounds (``[bounds]`` table, see :mod:`pidlab.bounds`): ``method``, an
+        optional ``ellipsoid`` (``variables``, ``center``, ``shape``, ``level``, ``rho``), an
+        optional ``box`` (variable -> ``[low, high]``) and their ``provenance``.
     """
 
     env_id: str
@@ -141,6 +145,7 @@ class CoachSpec:
     description: str = ""
     offset: tuple[tuple[str, float], ...] = ()
     provenance: dict[str, Any] = field(default_factory=dict, compare=True, hash=False)
+    bounds: dict[str, Any] | None = field(default=None, compare=True, hash=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "offset", tuple((str(a), float(v)) for a, v in self.offset))
@@ -299,6 +304,9 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> CoachSpec:
     provenance = data.get("provenance", {})
     if not isinstance(provenance, dict):
         raise SpecError(f"{where}: provenance: expected a table")
+    bounds = data.get("bounds")
+    if bounds is not None:
+        _check_bounds(bounds, f"{where}: bounds")
     spec = CoachSpec(
         env_id=env_id,
         name=name,
@@ -306,9 +314,63 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> CoachSpec:
         loops=tuple(loops),
         offset=offset,
         provenance=dict(provenance),
+        bounds=bounds,
     )
     spec.order()  # raises on cascade cycles
     return spec
+
+
+def _check_bounds(b: Any, where: str) -> None:
+    if not isinstance(b, dict):
+        raise SpecError(f"{where}: expected a table")
+    unknown = set(b) - {"method", "ellipsoid", "box", "provenance"}
+    if unknown:
+        raise SpecError(
+            f"{where}: unknown field(s) {sorted(unknown)}; allowed: method, ellipsoid, box, provenance"
+        )
+    _str(b.get("method"), f"{where}.method")
+    if "ellipsoid" in b:
+        e = b["ellipsoid"]
+        if not isinstance(e, dict):
+            raise SpecError(f"{where}.ellipsoid: expected a table")
+        names = e.get("variables")
+        if not isinstance(names, list) or not names or not all(isinstance(v, str) for v in names):
+            raise SpecError(f"{where}.ellipsoid.variables: expected a list of observation variable names")
+        k = len(names)
+        center = e.get("center")
+        if not isinstance(center, list) or len(center) != k:
+            raise SpecError(f"{where}.ellipsoid.center: expected {k} numbers")
+        [_num(v, f"{where}.ellipsoid.center") for v in center]
+        shape = e.get("shape")
+        if (
+            not isinstance(shape, list)
+            or len(shape) != k
+            or not all(isinstance(r, list) and len(r) == k for r in shape)
+        ):
+            raise SpecError(f"{where}.ellipsoid.shape: expected a {k} x {k} matrix")
+        [_num(v, f"{where}.ellipsoid.shape") for r in shape for v in r]
+        for key in ("level", "rho"):
+            if _num(e.get(key), f"{where}.ellipsoid.{key}") <= 0:
+                raise SpecError(f"{where}.ellipsoid.{key}: must be positive")
+    if "box" in b:
+        box = b["box"]
+        if not isinstance(box, dict):
+            raise SpecError(f"{where}.box: expected a table of variable = [low, high]")
+        for name, lim in box.items():
+            if not isinstance(lim, list) or len(lim) != 2:
+                raise SpecError(f"{where}.box.{name}: expected [low, high]")
+            lo, hi = (_num(v, f"{where}.box.{name}") for v in lim)
+            if not lo < hi:
+                raise SpecError(f"{where}.box.{name}: low ({lo}) must be below high ({hi})")
+
+
+def bound_variables(spec: CoachSpec) -> list[str]:
+    """Observation variables the spec's bounds mention."""
+    if not spec.bounds:
+        return []
+    names = list(spec.bounds.get("ellipsoid", {}).get("variables", []))
+    names += [n for n in spec.bounds.get("box", {}) if n not in names]
+    return names
 
 
 def validate_against(
@@ -326,6 +388,12 @@ def validate_against(
         Naming the field and listing the valid names.
     """
     obs = ", ".join(observation_names)
+    for name in bound_variables(spec):
+        if name not in observation_names:
+            raise SpecError(
+                f"{where}: bounds: {name!r} is not an observation variable of {spec.env_id}; "
+                f"valid names: {obs}"
+            )
     for lp in spec.loops:
         for key in ("signal", "rate_signal"):
             name = getattr(lp, key)
@@ -392,6 +460,8 @@ def spec_to_dict(spec: CoachSpec) -> dict[str, Any]:
     out["loop"] = loops
     if spec.provenance:
         out["provenance"] = spec.provenance
+    if spec.bounds:
+        out["bounds"] = spec.bounds
     return out
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from pidlab.card import load_card, parse_card
 from pidlab.errors import ModelCardError, UnknownSignalError
-from pidlab.observation import check_termination, observe
+from pidlab.observation import CompiledCard, check_termination, observe
 
 from .conftest import PAPER_ENVS
 
@@ -24,12 +24,15 @@ def test_observation_map_reproduces_env_observation(models, env_id):
         u = env.unwrapped
         checked = terminations = 0
         rng = np.random.default_rng(0)
+        fast = CompiledCard(card, u.model)
         for _ in range(400):
             np.testing.assert_array_equal(observe(card, u.model, u.data), obs)
+            np.testing.assert_array_equal(fast.observe(u.data), obs)
             checked += 1
             obs, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape))
             check = check_termination(card, u.model, u.data)
             assert check.terminated == terminated, (check, terminated)
+            assert fast.terminated(u.data) == terminated
             if terminated or truncated:
                 terminations += terminated
                 obs, _ = env.reset(seed=int(rng.integers(1 << 30)))

@@ -1,0 +1,122 @@
+"""Regions of attraction and critical bounds: certified against MuJoCo, honest about failure."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pidlab.bounds import derive_bounds, with_bounds
+from pidlab.errors import UnknownSignalError
+from pidlab.roa import METHOD_LYAPUNOV, METHOD_SIMULATION, RegionError, estimate_roa
+from pidlab.spec import dumps_spec, load_spec, loads_spec
+
+TUNING = Path(__file__).resolve().parents[1] / "tuning"
+
+
+@pytest.fixture(scope="module")
+def ip_region(models):
+    spec = load_spec(TUNING / "InvertedPendulum-v5.pidlab-robust.toml")
+    roa, kept = estimate_roa(
+        spec,
+        models["InvertedPendulum-v5"],
+        samples=150,
+        keep_trajectories=10,
+        record=("hinge_pos", "hinge_vel"),
+    )
+    return spec, roa, kept
+
+
+def test_ip_region_is_certified_with_zero_failures(ip_region):
+    _, roa, kept = ip_region
+    assert roa.method == METHOD_LYAPUNOV
+    assert roa.check.samples == 150 and roa.check.failures == 0
+    assert roa.check.failure_bound_95 == pytest.approx(3 / 150)
+    assert roa.level > 0
+    # the Lyapunov function is one: A' P A - P = -Q
+    L = roa.lyapunov
+    np.testing.assert_allclose(L.A_cl.T @ L.P @ L.A_cl - L.P, -L.Q, atol=1e-6 * np.abs(L.P).max())
+    # the certified set stays inside the termination limit on the pole angle (|hinge| <= 0.2)
+    i = L.variables.index("hinge_pos")
+    half = np.sqrt(roa.level * np.linalg.inv(L.P_y)[i, i])
+    assert abs(L.center[i]) + half <= 0.2 + 1e-9
+    assert len(kept) == 10 and all(t.recovered for t in kept) and kept[0].path.shape[1] == 2
+
+
+def test_independent_samples_inside_the_certified_set_recover(ip_region, models):
+    """A fresh seed: states drawn in {V <= c} do not fail either (what the certificate claims)."""
+    from pidlab.analysis import analyze_coach
+    from pidlab.pid import Coach
+    from pidlab.roa import _check_level, _Simulator
+
+    spec, roa, _ = ip_region
+    loaded = models["InvertedPendulum-v5"]
+    sim = _Simulator(spec, loaded, analyze_coach(Coach(spec, loaded), loaded).linearization)
+    term, nonconv, _ = _check_level(sim, roa.lyapunov, roa.level, 100, 75, np.random.default_rng(12345))
+    assert term == 0 and nonconv == 0
+    # and far outside it the coach does fail: the check can fail
+    term, nonconv, _ = _check_level(sim, roa.lyapunov, 200 * roa.level, 30, 75, np.random.default_rng(1))
+    assert term + nonconv > 0
+
+
+def test_bounds_round_trip_in_the_spec(ip_region, models):
+    spec, roa, _ = ip_region
+    b = derive_bounds(roa, spec, models["InvertedPendulum-v5"], check_samples=30)
+    assert b.one_step_check == (30, 0)
+    assert 0 < b.rho <= 1
+    lo, hi = b.box["hinge_vel"]
+    assert lo < 0 < hi
+    spec2 = with_bounds(spec, b)
+    text = dumps_spec(spec2)
+    assert loads_spec(text) == spec2 and dumps_spec(loads_spec(text)) == text
+    assert spec2.bounds["provenance"]["samples"] == 150
+    assert spec2.bounds["ellipsoid"]["variables"] == ["slider_pos", "hinge_pos", "slider_vel", "hinge_vel"]
+
+
+def test_unknown_variable_lists_valid_names(ip_region, models):
+    spec, roa, _ = ip_region
+    with pytest.raises(UnknownSignalError, match="valid names: slider_pos, hinge_pos, slider_vel, hinge_vel"):
+        derive_bounds(roa, spec, models["InvertedPendulum-v5"], variables=["pole_rate"])
+
+
+def test_unstable_coach_has_no_region(models):
+    spec = load_spec(TUNING / "InvertedPendulum-v5.paper.toml")
+    with pytest.raises(RegionError, match="no region of attraction: closed loop is unstable; poles"):
+        estimate_roa(spec, models["InvertedPendulum-v5"], samples=10)
+
+
+def test_region_that_certifies_nothing(models):
+    """A coach that barely holds the pole: every level fails -> say so, write nothing."""
+    spec = load_spec(TUNING / "InvertedPendulum-v5.pidlab-robust.toml")
+    text = dumps_spec(spec).replace("kp = 4.991143175184444", "kp = 1.53", 1)
+    weak = loads_spec(text)
+    with pytest.raises(RegionError, match="c -> 0|no useful bound|no region"):
+        roa, _ = estimate_roa(weak, models["InvertedPendulum-v5"], samples=20, bisection_samples=20)
+        derive_bounds(roa, weak, models["InvertedPendulum-v5"], check_samples=10)
+
+
+def test_contact_rich_env_uses_simulation_only(models):
+    spec = load_spec(TUNING / "Hopper-v5.pidlab-robust.toml")
+    roa, _ = estimate_roa(
+        spec, models["Hopper-v5"], samples=12, bisection_samples=8, bisection_rounds=4, horizon_s=1.0
+    )
+    assert roa.method == METHOD_SIMULATION and roa.lyapunov is None
+    assert set(roa.box) == {"rooty_pos", "rooty_vel"} and roa.box["rooty_vel"] > 0
+
+
+def test_cli_roa_and_bounds_bad_input(tmp_path):
+    def run(*a):
+        return subprocess.run(
+            [sys.executable, "-m", "pidlab.cli", *a], capture_output=True, text=True, timeout=300
+        )
+
+    res = run("roa", str(TUNING / "InvertedPendulum-v5.paper.toml"))
+    assert res.returncode == 2 and "no region of attraction: closed loop is unstable; poles" in res.stderr
+    res = run("bounds", str(TUNING / "InvertedPendulum-v5.pidlab-robust.toml"), "--variables", "pole_rate")
+    assert res.returncode == 2 and "valid names: slider_pos" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    res = run("roa", str(TUNING / "InvertedPendulum-v5.pidlab-robust.toml"), "--samples", "0")
+    assert res.returncode == 2 and "positive" in res.stderr
