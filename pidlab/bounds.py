@@ -204,22 +204,29 @@ def derive_bounds(
                 out.append(x)
             return out
 
-        def box_escapes(scale: float, n: int) -> int:
-            return sum(_escapes(sim, x, vertices, steps, None, 0.0) for x in box_points(scale, n))
+        def box_escapes(scale: float, n: int, acts: np.ndarray) -> int:
+            return sum(_escapes(sim, x, acts, steps, None, 0.0) for x in box_points(scale, n))
 
-        kappa = _bisect(lambda k: box_escapes(k, 12) == 0)
+        fraction = 1.0
+        kappa = _bisect(lambda k: box_escapes(k, 12, vertices) == 0)
+        if kappa == 0.0:
+            # one full-range step from the standing pose is already unrecoverable: size the margin
+            # for the largest recoverable fraction of the action range, halved, and say so
+            zero = np.zeros(2 * m.nv)
+            fraction = 0.5 * _bisect(lambda f: _escapes(sim, zero, f * vertices, steps, None, 0.0) == 0)
+            if fraction > 0.0:
+                kappa = _bisect(lambda k: box_escapes(k, 12, fraction * vertices) == 0)
         if kappa == 0.0:
             raise RegionError(
-                "no useful bound: one worst-case agent step from the smallest box tried "
-                "already leads to a fall"
+                "no useful bound: one agent step from the smallest box tried already leads to a fall"
             )
         n_check = max(check_samples // 10, 4)
-        escapes = box_escapes(kappa, n_check)
+        escapes = box_escapes(kappa, n_check, fraction * vertices)
         for _ in range(6):
             if escapes == 0:
                 break
             kappa *= 0.7
-            escapes = box_escapes(kappa, n_check)
+            escapes = box_escapes(kappa, n_check, fraction * vertices)
         else:
             raise RegionError(f"no useful bound for {spec.name}: one-step falls persist as the box shrinks")
         box = {}
@@ -231,6 +238,7 @@ def derive_bounds(
                 "rho": float(kappa),
                 "one_step_samples": int(n_check),
                 "one_step_escapes": int(escapes),
+                "one_step_action_fraction": float(fraction),
                 "one_step_margin": "recoverable box scaled so the coach recovers after one worst-case step",
             }
         )

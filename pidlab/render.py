@@ -441,18 +441,20 @@ def bounds_view(b: Any) -> Group:
     """What ``pidlab bounds`` prints."""
     head = Text()
     head.append(f"critical-state bounds ({b.method})\n", style="bold")
+    frac = b.provenance.get("one_step_action_fraction", 1.0)
     if b.variables:
-        frac = b.provenance.get("one_step_action_fraction", 1.0)
         head.append(
             f"ellipsoid: V <= rho c with rho = {b.rho:.4g} (c = {b.level:.4g}) over "
             f"{', '.join(b.variables)}\n"
         )
-        if frac < 1.0:
-            head.append(
-                f"one-step margin sized for agent actions up to {frac:.0%} of the action range: "
-                "from the equilibrium, one full-range action is more than this coach recovers from\n",
-                style="yellow",
-            )
+    else:
+        head.append(f"box scaled to {b.rho:.4g} of the recoverable box for the one-step margin\n")
+    if frac < 1.0:
+        head.append(
+            f"one-step margin sized for agent actions up to {frac:.0%} of the action range: "
+            "from the operating point, one full-range action is more than this coach recovers from\n",
+            style="yellow",
+        )
     samples, escapes = b.one_step_check
     head.append(f"one-step check in MuJoCo: {samples} boundary states, {escapes} not recovered\n")
     t = Table(title="Box: the coach takes over outside", title_justify="left")
