@@ -24,10 +24,10 @@ ROOT = Path(__file__).resolve().parents[1]
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")
 # the paper's hand-chosen bounds (its text): variable, bound
 PAPER = {
-    "InvertedPendulum-v5": ("hinge_vel", 0.4, "|pole angular velocity| <= 0.4"),
-    "InvertedDoublePendulum-v5": ("hinge_sin", 0.2, "|lower angle| <= 0.2 (sin of it, as observed)"),
-    "Hopper-v5": ("rooty_vel", 0.3, "|torso pitch rate| <= 0.3"),
-    "Walker2d-v5": ("rooty_vel", 1.0, "|torso pitch rate| <= 1.0"),
+    "InvertedPendulum-v5": ("hinge_vel", 0.4, "abs(pole angular velocity) <= 0.4"),
+    "InvertedDoublePendulum-v5": ("hinge_sin", 0.2, "abs(lower angle) <= 0.2 (its sine, as observed)"),
+    "Hopper-v5": ("rooty_vel", 0.3, "abs(torso pitch rate) <= 0.3"),
+    "Walker2d-v5": ("rooty_vel", 1.0, "abs(torso pitch rate) <= 1.0"),
 }
 
 
