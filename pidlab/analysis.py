@@ -404,7 +404,7 @@ def _responses(
     nobs = len(lay.observation_names)
     out = []
     for j, lp in enumerate(lay.spec.loops):
-        sig = nobs and lay.observation_names.index(lp.signal)
+        sig = lay.observation_names.index(lp.signal)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             resp = ct.forced_response(cl, T=t, U=np.vstack([np.eye(lay.n_loops)[j]] * steps).T)

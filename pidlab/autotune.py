@@ -324,17 +324,9 @@ def tune(
     if lin is None:
         lin = linearize(loaded)
     loops = tuple(lt for lt in TEMPLATES[loaded.env_id] if lt.core or not p.core_only)
-    y0 = np.asarray(lin.C @ np.zeros(lin.A.shape[0]))  # deviation zero; absolute values below
-    import mujoco
+    from pidlab.observation import observe_at
 
-    from pidlab.observation import observe
-
-    data = mujoco.MjData(loaded.model)
-    data.qpos[:] = lin.op.qpos
-    data.qvel[:] = lin.op.qvel
-    mujoco.mj_forward(loaded.model, data)
-    y_abs = observe(loaded.card, loaded.model, data)
-    del y0
+    y_abs = observe_at(loaded.card, loaded.model, lin.op.qpos, lin.op.qvel)
     setpoints = {name: float(v) for name, v in zip(loaded.card.observation_names, y_abs, strict=True)}
     offset = tuple((a, float(u)) for a, u in zip(loaded.input_names, lin.op.ctrl, strict=True))
     omega = np.logspace(-2, math.log10(math.pi / lin.control_dt) - 1e-6, 400)

@@ -33,9 +33,15 @@ import scipy.linalg
 from scipy.optimize import minimize
 
 from pidlab import __version__
-from pidlab.errors import UnknownSignalError
 from pidlab.model import LoadedModel
-from pidlab.roa import METHOD_SIMULATION, RegionError, RegionOfAttraction, _sample_ellipsoid, _Simulator
+from pidlab.roa import (
+    METHOD_SIMULATION,
+    RegionError,
+    RegionOfAttraction,
+    _sample_ellipsoid,
+    _Simulator,
+    geometric_bisect,
+)
 from pidlab.spec import CoachSpec
 
 
@@ -110,14 +116,11 @@ def _largest_box(M: np.ndarray, r: float) -> np.ndarray:
     return h * min(1.0, math.sqrt(r / worst))
 
 
-def _check_variables(names: list[str], loaded: LoadedModel) -> None:
+def check_variables(names: list[str], loaded: LoadedModel) -> None:
+    """Raise :class:`~pidlab.errors.UnknownSignalError` (listing the valid names) for an unknown name."""
     assert loaded.card is not None
-    valid = loaded.card.observation_names
     for n in names:
-        if n not in valid:
-            raise UnknownSignalError(
-                f"{n!r} is not an observation variable of {loaded.name}; valid names: {', '.join(valid)}"
-            )
+        loaded.card.variable(n)
 
 
 def derive_bounds(
@@ -153,7 +156,7 @@ def derive_bounds(
     lp0 = spec.loops[0]
     if variables is None:
         variables = list(roa.box) if roa.box else [v for v in (lp0.signal, lp0.rate_signal) if v]
-    _check_variables(variables, loaded)
+    check_variables(variables, loaded)
     from pidlab.analysis import analyze_coach
     from pidlab.pid import Coach
 
@@ -208,14 +211,16 @@ def derive_bounds(
             return sum(_escapes(sim, x, acts, steps, None, 0.0) for x in box_points(scale, n))
 
         fraction = 1.0
-        kappa = _bisect(lambda k: box_escapes(k, 12, vertices) == 0)
+        kappa = geometric_bisect(lambda k: box_escapes(k, 12, vertices) == 0)
         if kappa == 0.0:
             # one full-range step from the standing pose is already unrecoverable: size the margin
             # for the largest recoverable fraction of the action range, halved, and say so
             zero = np.zeros(2 * m.nv)
-            fraction = 0.5 * _bisect(lambda f: _escapes(sim, zero, f * vertices, steps, None, 0.0) == 0)
+            fraction = 0.5 * geometric_bisect(
+                lambda f: _escapes(sim, zero, f * vertices, steps, None, 0.0) == 0
+            )
             if fraction > 0.0:
-                kappa = _bisect(lambda k: box_escapes(k, 12, fraction * vertices) == 0)
+                kappa = geometric_bisect(lambda k: box_escapes(k, 12, fraction * vertices) == 0)
         if kappa == 0.0:
             raise RegionError(
                 "no useful bound: one agent step from the smallest box tried already leads to a fall"
@@ -273,18 +278,18 @@ def derive_bounds(
     def escapes_at(r: float, n: int, acts: np.ndarray) -> int:
         return sum(_escapes(sim, (lyap.to_state @ y)[:plant_n], acts, steps, lyap, c) for y in boundary(r, n))
 
-    rho = _bisect(lambda r: escapes_at(r, 20, vertices) == 0)
+    rho = geometric_bisect(lambda r: escapes_at(r, 20, vertices) == 0)
     fraction = 1.0
     if rho == 0.0:
         # not even a worst-case step from (near) the equilibrium is recoverable: find the largest
         # fraction of the action range that is, and size the margin for that, saying so
-        fraction = 0.5 * _bisect(lambda f: escapes_at(1e-4, 4, f * vertices) == 0)
+        fraction = 0.5 * geometric_bisect(lambda f: escapes_at(1e-4, 4, f * vertices) == 0)
         if fraction == 0.0:
             raise RegionError(
                 f"no useful bound: from the smallest ellipsoid tried (c = {c:.3g}), one agent step of even "
                 "a small fraction of the action range takes the state where the coach cannot recover"
             )
-        rho = _bisect(lambda r: escapes_at(r, 20, fraction * vertices) == 0)
+        rho = geometric_bisect(lambda r: escapes_at(r, 20, fraction * vertices) == 0)
         if rho == 0.0:
             raise RegionError(
                 f"no useful bound for {spec.name}: the one-step margin leaves nothing (c = {c:.3g})"
@@ -331,21 +336,6 @@ def derive_bounds(
         (check_samples, escapes),
         provenance,
     )
-
-
-def _bisect(ok: Any, rounds: int = 8) -> float:
-    """Largest factor in (0, 1] for which ``ok`` holds (geometric bisection); 0 if none found."""
-    if ok(1.0):
-        return 1.0
-    lo, hi = 0.0, 1.0
-    r = 0.25
-    for _ in range(rounds):
-        if ok(r):
-            lo = r
-        else:
-            hi = r
-        r = math.sqrt(lo * hi) if lo > 0 else r / 4.0
-    return lo
 
 
 def _escapes(

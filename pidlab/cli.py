@@ -272,7 +272,7 @@ def roa(
     units = {v.name: v.unit for v in loaded.card.observation}
     pair: tuple[str, str] | None = None
     if plots:
-        from pidlab.bounds import _check_variables
+        from pidlab.bounds import check_variables
 
         lp0 = spec.loops[0]
         chosen = (
@@ -280,7 +280,7 @@ def roa(
         )
         if len(chosen) != 2 or not all(chosen):
             _fail("--slice: expected two observation variables, e.g. --slice hinge_pos,hinge_vel")
-        _check_variables(chosen, loaded)
+        check_variables(chosen, loaded)
         pair = (chosen[0], chosen[1])
     result, kept = estimate_roa(
         spec,
@@ -344,7 +344,7 @@ def bounds(
     seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
 ) -> None:
     """Derive critical-state bounds (ellipsoid and box) from the certified region."""
-    from pidlab.bounds import _check_variables, derive_bounds, with_bounds
+    from pidlab.bounds import check_variables, derive_bounds, with_bounds
     from pidlab.model import load_model
     from pidlab.render import bounds_view, roa_view, wide_console
     from pidlab.roa import estimate_roa
@@ -356,7 +356,7 @@ def bounds(
     loaded = load_model(spec.env_id)
     names = [v.strip() for v in variables.split(",") if v.strip()] if variables else None
     if names:
-        _check_variables(names, loaded)
+        check_variables(names, loaded)
     result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed)
     crit = derive_bounds(result, spec, loaded, variables=names, seed=seed)
     con = wide_console()

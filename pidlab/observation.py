@@ -51,6 +51,15 @@ def observe(card: ModelCard, model: mujoco.MjModel, data: mujoco.MjData) -> np.n
     return out
 
 
+def observe_at(card: ModelCard, model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """The observation at a state ``(qpos, qvel)`` (fresh ``MjData``, ``mj_forward``)."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    data.qvel[:] = qvel
+    mujoco.mj_forward(model, data)
+    return observe(card, model, data)
+
+
 def signal_value(model: mujoco.MjModel, data: mujoco.MjData, signal: str) -> float:
     """Value of a named state signal: ``<joint>_pos``, ``<joint>_vel`` or ``site:<s>:x|y|z``.
 

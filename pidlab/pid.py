@@ -312,9 +312,4 @@ class Coach:
         )
 
 
-def check_spec(spec: CoachSpec, loaded: LoadedModel) -> None:
-    """Raise :class:`SpecError` if ``spec`` does not fit ``loaded``."""
-    compile_spec(spec, loaded)
-
-
-__all__ = ["Coach", "CoachLayout", "SpecError", "check_spec", "compile_spec", "law"]
+__all__ = ["Coach", "CoachLayout", "SpecError", "compile_spec", "law"]

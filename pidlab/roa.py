@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import casadi as cs
@@ -44,7 +45,7 @@ from pidlab.autotune import CONTACT_RICH
 from pidlab.errors import PidlabError
 from pidlab.linearize import Linearization
 from pidlab.model import LoadedModel
-from pidlab.observation import CompiledCard, observe
+from pidlab.observation import CompiledCard, observe_at
 from pidlab.pid import N_LOOP_STATES, Coach, law
 from pidlab.spec import CoachSpec
 
@@ -230,10 +231,7 @@ class _Simulator:
         assert loaded.card is not None
         self.card = loaded.card
         self.fast = CompiledCard(loaded.card, self.m)
-        self.d.qpos[:] = lin.op.qpos
-        self.d.qvel[:] = lin.op.qvel
-        mujoco.mj_forward(self.m, self.d)
-        self.y_op = observe(self.card, self.m, self.d)
+        self.y_op = observe_at(self.card, self.m, lin.op.qpos, lin.op.qvel)
 
     def start(self, x_plant: np.ndarray) -> np.ndarray:
         """Put MuJoCo at op (+) x_plant (tangent) and reset the coach; returns the observation."""
@@ -467,6 +465,26 @@ def optimization_level(
 # The estimate
 
 
+def geometric_bisect(ok: Callable[[float], bool], rounds: int = 8) -> float:
+    """Largest factor in (0, 1] for which ``ok`` holds, by geometric bisection; 0 if none.
+
+    Tries 1 first; after a failure with nothing passed yet, quarters the factor; otherwise
+    takes the geometric mean of the largest pass and the smallest failure. ``1 + rounds``
+    calls of ``ok`` at most.
+    """
+    if ok(1.0):
+        return 1.0
+    lo, hi = 0.0, 1.0
+    r = 0.25
+    for _ in range(rounds):
+        if ok(r):
+            lo = r
+        else:
+            hi = r
+        r = math.sqrt(lo * hi) if lo > 0 else r / 4.0
+    return lo
+
+
 def _termination_cap(lyap: Lyapunov, loaded: LoadedModel) -> float:
     """Largest c whose ellipsoid stays inside the termination limits on observed joint positions."""
     assert loaded.card is not None
@@ -556,20 +574,16 @@ def estimate_roa(
     if not math.isfinite(hi):
         hi = 1e3 * float(np.max(lyap.center**2) + 1.0)
     rng = np.random.default_rng(seed)
-    lo = 0.0
-    c = hi
-    for _ in range(bisection_rounds):
-        term, nonconv, _ = _check_level(sim, lyap, c, bisection_samples, steps, rng)
-        if term + nonconv == 0:
-            lo = c
-            if c == hi:
-                break
-        else:
-            hi = c
-        c = math.sqrt(lo * hi) if lo > 0 else hi / 4.0
+
+    def passes(fraction: float) -> bool:
+        term, nonconv, _ = _check_level(sim, lyap, fraction * hi, bisection_samples, steps, rng)
+        return term + nonconv == 0
+
+    lo = hi * geometric_bisect(passes, bisection_rounds - 1)
     if lo == 0.0:
+        smallest = hi * 0.25 ** max(bisection_rounds - 1, 0)
         raise RegionError(
-            f"no region of attraction certified for {spec.name}: every level down to {hi:.3g} had "
+            f"no region of attraction certified for {spec.name}: every level down to {smallest:.3g} had "
             "failures in simulation (c -> 0); no useful bound can be written"
         )
     # final certification with N samples; shrink while anything fails
