@@ -368,6 +368,103 @@ def bounds(
         con.print(f"wrote the bounds into {path}")
 
 
+def _resolve_coach(env: str, coach: str) -> tuple[Any, str | None]:
+    """``none``, a spec file, or a spec name in ``tuning/`` (``pidlab-robust``)."""
+    from pathlib import Path
+
+    from pidlab.spec import load_spec
+
+    if coach == "none":
+        return None, None
+    path = Path(coach)
+    if not path.exists() and path.suffix != ".toml":
+        path = Path(__file__).resolve().parents[1] / "tuning" / f"{env}.{coach}.toml"
+    if not path.exists():
+        _fail(
+            f"--coach {coach!r}: expected none, a coach spec file, or the name of a spec in tuning/ "
+            f"(e.g. pidlab-robust for tuning/{env}.pidlab-robust.toml)"
+        )
+    spec = load_spec(path)
+    if spec.env_id != env:
+        _fail(f"--coach {coach}: the spec is for {spec.env_id}, not for {env}")
+    return spec, str(path)
+
+
+@app.command()
+@friendly_errors
+def train(
+    env: Annotated[
+        str, typer.Argument(metavar="ENV", help="A Gymnasium env id with a recipe, e.g. InvertedPendulum-v5.")
+    ],
+    coach: Annotated[
+        str | None,
+        typer.Option(
+            metavar="SPEC|none",
+            help="The coach: a spec file, a spec name in tuning/ (e.g. pidlab-robust), or none.",
+        ),
+    ] = None,
+    recipe_file: Annotated[
+        str | None, typer.Option("--recipe", metavar="FILE", help="Recipe (default coach/ENV.toml).")
+    ] = None,
+    algo: Annotated[str | None, typer.Option(help="ppo or sac (default: the recipe's).")] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="Budget in env steps, agent + coach (default: the recipe's).")
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed (default: the recipe's).")] = None,
+    n_envs: Annotated[
+        int | None, typer.Option("--n-envs", help="Parallel envs (default: the recipe's).")
+    ] = None,
+    resume_dir: Annotated[
+        str | None,
+        typer.Option("--resume", metavar="RUN_DIR", help="Continue this run from its last checkpoint."),
+    ] = None,
+    run_dir: Annotated[
+        str | None,
+        typer.Option("--run-dir", metavar="DIR", help="Where to write (default runs/ENV/COACH-ALGO-seedS)."),
+    ] = None,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+) -> None:
+    """Train an agent with SB3, coached by a PID coach (or not); evaluate it alone as it learns."""
+    from pidlab.recipe import default_recipe_path, load_recipe, with_overrides
+    from pidlab.render import train_view, wide_console
+    from pidlab.train import default_run_dir, load_run_config
+    from pidlab.train import resume as resume_run
+    from pidlab.train import train as run_train
+
+    argv = ["pidlab", *sys.argv[1:]]
+    if resume_dir is not None:
+        saved, saved_spec, _ = load_run_config(resume_dir)
+        given = {"ENV": (env, saved.env_id), "--algo": (algo, saved.algo), "--seed": (seed, saved.seed),
+                 "--n-envs": (n_envs, saved.n_envs),
+                 "--coach": (None if coach is None else _resolve_coach(env, coach)[0],
+                             saved_spec)}  # fmt: skip
+        for flag, (asked, had) in given.items():
+            if asked is not None and asked != had:
+                shown = getattr(had, "name", had)
+                _fail(f"{flag} differs from the run in {resume_dir} ({shown!r}); a resumed run keeps them")
+        if coach == "none" and saved_spec is not None:
+            _fail(f"--coach none: the run in {resume_dir} was coached by {saved_spec.name}")
+        if recipe_file is not None:
+            _fail("--recipe: a resumed run keeps the recipe it started with (see its config.toml)")
+        result = resume_run(resume_dir, steps=steps, progress_bar=progress, argv=argv)
+        recipe = saved
+    else:
+        if coach is None:
+            _fail("--coach: required; a spec file, a spec name in tuning/ (e.g. pidlab-robust), or none")
+        assert coach is not None
+        spec, source = _resolve_coach(env, coach)
+        path = recipe_file or str(default_recipe_path(env))
+        recipe = load_recipe(path)
+        if recipe.env_id != env:
+            _fail(f"--recipe {path}: the recipe is for {recipe.env_id}, not for {env}")
+        recipe = with_overrides(recipe, algo=algo, steps=steps, seed=seed, n_envs=n_envs)
+        folder = run_dir or str(default_run_dir(recipe, spec))
+        result = run_train(recipe, spec, folder, coach_source=source, progress_bar=progress, argv=argv)
+    wide_console().print(train_view(result, recipe.win.target))
+    if not result.completed:
+        raise typer.Exit(code=130)
+
+
 def main() -> None:
     """Console entry point."""
     try:

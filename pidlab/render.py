@@ -464,3 +464,30 @@ def bounds_view(b: Any) -> Group:
     for v, (lo, hi) in b.box.items():
         t.add_row(v, f"{lo:.4g}", f"{hi:.4g}")
     return Group(head, t)
+
+
+def train_view(result: Any, win_target: float) -> Group:
+    """What ``pidlab train`` prints at the end: step accounts and the agent-alone score."""
+    t = Table(title=f"Training run {result.run_dir}", title_justify="left")
+    t.add_column("quantity")
+    t.add_column("value", justify="right")
+    env = max(result.env_steps, 1)
+    t.add_row("env steps (agent + coach)", f"{result.env_steps:,}")
+    t.add_row("agent steps", f"{result.agent_steps:,}")
+    t.add_row("coach steps", f"{result.coach_steps:,} ({100 * result.coach_steps / env:.1f} %)")
+    t.add_row("interventions", f"{result.interventions:,}")
+    t.add_row("training episodes", f"{result.episodes:,}")
+    if result.wall_s > 0:
+        t.add_row("wall time (this session)", f"{result.wall_s:.1f} s")
+    ev = result.final_evaluation
+    if ev is not None:
+        wins = sum(r >= win_target for r in ev.returns)
+        t.add_row(
+            "agent alone (coach off, deterministic)",
+            f"{ev.mean:.1f} +- {ev.std:.1f} over {len(ev.returns)} seeds; {wins} >= {win_target:g}",
+        )
+    status = Text(
+        "completed" if result.completed else "stopped: resume with --resume " + str(result.run_dir),
+        style="green" if result.completed else "yellow",
+    )
+    return Group(t, status)

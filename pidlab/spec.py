@@ -502,9 +502,6 @@ def load_spec(path: str | Path) -> CoachSpec:
 
 def save_spec(spec: CoachSpec, path: str | Path) -> Path:
     """Write ``spec`` atomically (temporary file, then rename) in canonical form."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(dumps_spec(spec), encoding="utf-8")
-    tmp.replace(path)
-    return path
+    from pidlab.runinfo import atomic_write_text
+
+    return atomic_write_text(path, dumps_spec(spec))

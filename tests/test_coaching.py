@@ -123,7 +123,7 @@ def test_nudge_mode_takes_exactly_n_steps(ip_spec, models):
 
 
 def test_schedule_zero_means_no_coaching(ip_spec, models):
-    env, _ = coached(ip_spec, models, schedule=lambda p: 1.0 - p)
+    env, _ = coached(ip_spec, models, probability=lambda p: 1.0 - p)
     env.set_progress(1.0)
     env.reset(seed=0)
     for _ in range(100):
