@@ -373,6 +373,7 @@ class _Stop:
 
 def _make_callback(trainer: _Trainer) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
     class TrainingMonitor(BaseCallback):
         """Counts env steps, logs episodes, evaluates, checkpoints, stops at the budget."""
@@ -384,7 +385,17 @@ def _make_callback(trainer: _Trainer) -> Any:
             trainer.maybe_checkpoint()
 
         def _on_step(self) -> bool:
-            return trainer.on_step(self.locals["infos"])
+            go_on = trainer.on_step(self.locals["infos"])
+            if not go_on and isinstance(self.model, OffPolicyAlgorithm):
+                # SB3 returns before storing this step's transition when a callback stops it;
+                # store it as SB3 would have, so the replay buffer holds every agent step taken
+                loc = self.locals
+                self.model._update_info_buffer(loc["infos"], loc["dones"])
+                self.model._store_transition(
+                    loc["replay_buffer"], loc["buffer_actions"], loc["new_obs"], loc["rewards"], loc["dones"],
+                    loc["infos"],
+                )  # fmt: skip
+            return go_on
 
     return TrainingMonitor()
 

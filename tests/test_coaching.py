@@ -198,3 +198,113 @@ def test_bad_configuration(ip_spec, models):
         coached(bare, models)
     with pytest.raises(CoachingError, match="the spec is for InvertedPendulum-v5"):
         CoachingWrapper(gym.make("Hopper-v5"), ip_spec, loaded=models[IP])
+
+
+def test_gymnasium_vector_envs_carry_the_accounts(ip_spec, models):
+    from gymnasium.vector import AsyncVectorEnv, SyncVectorEnv
+
+    def make():
+        return CoachingWrapper(gym.make(IP), ip_spec)
+
+    for cls in (SyncVectorEnv, AsyncVectorEnv):
+        vec = cls([make, make])
+        vec.reset(seed=0)
+        agent = np.zeros(2, dtype=int)
+        coach = np.zeros(2, dtype=int)
+        finished = 0
+        rng = np.random.default_rng(0)
+        for _ in range(300):
+            _, _, te, tr, info = vec.step(rng.uniform(-1, 1, (2, 1)))
+            stepped = info.get("_coach_steps", np.zeros(2, bool))  # False: an autoreset step
+            agent += stepped
+            coach += np.where(stepped, info.get("coach_steps", 0), 0)
+            for i in np.flatnonzero(te | tr):
+                ep = info["coaching_episode"]
+                assert ep["_agent_steps"][i]
+                assert ep["agent_steps"][i] + ep["coach_steps"][i] == ep["env_steps"][i]
+                finished += 1
+        assert finished > 0 and coach.sum() > 0
+        assert list(vec.get_attr("total_coach_steps")) == list(coach)
+        assert list(vec.get_attr("total_agent_steps")) == list(agent)
+        vec.close()
+
+
+def test_sb3_subproc_vec_env(ip_spec):
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    def make():
+        return CoachingWrapper(gym.make(IP), ip_spec)
+
+    vec = SubprocVecEnv([make, make])
+    vec.seed(0)
+    vec.reset()
+    coach = 0
+    for _ in range(200):
+        _, _, _, infos = vec.step(np.full((2, 1), 1.0))
+        coach += sum(i["coach_steps"] for i in infos)
+    totals = vec.get_attr("total_coach_steps")
+    assert sum(totals) == coach > 0 and vec.get_attr("total_agent_steps") == [200, 200]
+    vec.env_method("set_progress", 1.0)
+    assert vec.get_attr("progress") == [1.0, 1.0]
+    vec.close()
+
+
+def test_growth_trigger_on_hand_made_histories():
+    from collections import deque
+
+    from pidlab.coaching import GrowthTrigger
+
+    t = GrowthTrigger("hinge_vel", 0.0, 0.3, 2)
+    assert t.fires(deque([0.1, 0.2, 0.25]))  # grew twice, same sign, inside the band
+    assert t.fires(deque([-0.1, -0.2, -0.25]))
+    assert not t.fires(deque([0.2, 0.25]))  # too short a history
+    assert not t.fires(deque([0.1, 0.2, 0.35]))  # outside the band
+    assert not t.fires(deque([-0.1, 0.2, 0.25]))  # sign changed
+    assert not t.fires(deque([0.2, 0.1, 0.25]))  # did not grow on both steps
+    assert not t.fires(deque([0.0, 0.0, 0.0]))
+    band = GrowthTrigger("v", 0.1, 0.4, 3)  # Hopper's: 0.1 <= |v| <= 0.4, growing for 3 steps
+    assert band.fires(deque([0.01, 0.05, 0.08, 0.12]))
+    assert not band.fires(deque([0.01, 0.05, 0.08, 0.09]))
+    with pytest.raises(CoachingError, match="band"):
+        GrowthTrigger("v", 0.5, 0.1, 1)
+
+
+def test_growth_trigger_needs_nudge(ip_spec, models):
+    from pidlab.coaching import GrowthTrigger
+
+    with pytest.raises(CoachingError, match="mode = nudge"):
+        coached(ip_spec, models, trigger=GrowthTrigger("hinge_vel", 0, 0.3, 2))
+    with pytest.raises(CoachingError, match="not an observation variable"):
+        coached(ip_spec, models, mode="nudge", trigger=GrowthTrigger("pole_vel", 0, 0.3, 2))
+
+
+def test_width_schedule_scales_the_region(ip_spec, models):
+    from pidlab.schedule import Schedule
+
+    env, _ = coached(ip_spec, models, width=Schedule("linear", 1.0, 100.0))
+    env.set_progress(0.0)
+    assert env.region.scale == 1.0
+    env.set_progress(1.0)
+    assert env.region.scale == 100.0
+    env.reset(seed=0)
+    for _ in range(20):  # 100 times the box: hinge_vel +-9.9 rad/s, the agent is never coached
+        _, _, te, tr, info = env.step(np.array([0.3]))
+        assert info["coach_steps"] == 0
+        if te or tr:
+            break
+
+
+def test_no_coach_is_a_pass_through_that_keeps_accounts(models):
+    env = CoachingWrapper(gym.make(IP), None)
+    bare = gym.make(IP)
+    env.reset(seed=3)
+    bare.reset(seed=3)
+    for _ in range(50):
+        a = np.array([0.7])
+        o1, r1, te1, tr1, info = env.step(a)
+        o2, r2, te2, tr2, _ = bare.step(a)
+        np.testing.assert_array_equal(o1, o2)
+        assert (r1, te1, tr1) == (r2, te2, tr2) and info["coach_steps"] == 0
+        if te1 or tr1:
+            assert info["coaching_episode"]["agent_steps"] == info["episode_agent_steps"]
+            break
