@@ -101,6 +101,8 @@ class CriticalRegion:
             hi = np.array([v[1] for v in box.values()])
             self.center = 0.5 * (lo + hi)
             self.half = 0.5 * (hi - lo)
+            self._indices = [int(i) for i in self.index]
+            self._set_limits()
         else:
             e = b.get("ellipsoid")
             if not e:
@@ -112,12 +114,31 @@ class CriticalRegion:
             self.shape = np.array(e["shape"], dtype=float)
             self.threshold = float(e["rho"]) * float(e["level"])
 
+    @property
+    def scale(self) -> float:
+        """Factor on the region's size about its centre."""
+        return self._scale
+
+    @scale.setter
+    def scale(self, value: float) -> None:
+        self._scale = float(value)
+        if self.kind == "box" and hasattr(self, "_indices"):
+            self._set_limits()
+
+    def _set_limits(self) -> None:
+        # plain floats: the box test runs on every agent step, and for a handful of variables
+        # Python comparisons are several times faster than numpy calls on tiny arrays
+        self._limits = [
+            (i, float(c - h * self._scale), float(c + h * self._scale))
+            for i, c, h in zip(self._indices, self.center, self.half, strict=True)
+        ]
+
     def inside(self, obs: np.ndarray) -> bool:
         """Whether ``obs`` lies in the region (where the agent explores freely)."""
-        y = np.asarray(obs, dtype=float)[self.index] - self.center
         if self.kind == "box":
-            return bool(np.all(np.abs(y) <= self.half * self.scale))
-        return bool(y @ self.shape @ y <= self.threshold * self.scale**2)
+            return all(lo <= obs[i] <= hi for i, lo, hi in self._limits)
+        y = np.asarray(obs, dtype=float)[self.index] - self.center
+        return bool(y @ self.shape @ y <= self.threshold * self._scale**2)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,165 @@
+"""Throughput of coached vs uncoached SB3 training, and what vectorized envs gain on this machine.
+
+Writes docs/coaching-throughput.md. Run: .venv/bin/python benchmarks/coaching_throughput.py
+[--steps N] [--repeats R] [--envs InvertedPendulum-v5,Hopper-v5]
+
+Every configuration trains PPO (the recipe's hyperparameters) for the same number of agent steps,
+with the pidlab env stack the trainer uses (gym.make -> CoachingWrapper -> Monitor ->
+DummyVecEnv/SubprocVecEnv -> VecNormalize), and times ``model.learn`` only. Configurations are
+run interleaved (A, B, C, A, B, C, ...) and the median of the repeats is reported, so slow
+drifts of the machine hit all of them alike.
+
+1. Coaching machinery: ``bare`` (no wrapper) vs ``uncoached`` (wrapper without coach) vs
+   ``coached, never triggers`` (the coach spec with bounds so wide the trigger never fires:
+   the same trajectory as bare, so the difference is the pure per-step cost of coaching).
+2. ``coached`` with the spec's derived bounds: env steps/s and agent steps/s, and the share of
+   coach steps; coach steps skip the policy and the gradient updates, so they are cheap.
+3. Vectorized envs: 1 env (SB3's default) vs 2 envs in one process (DummyVecEnv) vs 2 envs in
+   two processes (SubprocVecEnv), each with the same rollout size (n_steps * n_envs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import torch
+from stable_baselines3 import PPO
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
+
+from pidlab import __version__
+from pidlab.recipe import load_recipe
+from pidlab.runinfo import atomic_write_text, git_state
+from pidlab.spec import load_spec
+from pidlab.train import make_vec_env, sb3_arguments
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bare(env_id: str) -> gym.Env:
+    return Monitor(gym.make(env_id))
+
+
+def bare_vec_env(recipe, n_envs: int, subproc: bool):
+    fns = [lambda e=recipe.env_id: _bare(e)] * n_envs
+    venv = SubprocVecEnv(fns) if subproc else DummyVecEnv(fns)
+    gamma = float(recipe.hyperparameters.get("gamma", 0.99))
+    return VecNormalize(venv, norm_obs=recipe.normalize_obs, norm_reward=recipe.normalize_reward, gamma=gamma)
+
+
+def run_once(recipe, spec, kind: str, steps: int, n_envs: int = 1, subproc: bool = False) -> dict:
+    kwargs = sb3_arguments(recipe)
+    if n_envs > 1:
+        kwargs["n_steps"] = max(kwargs.get("n_steps", 2048) // n_envs, 1)
+    r = dataclasses.replace(recipe, n_envs=n_envs, vec_env="subproc" if subproc else "dummy")
+    venv = bare_vec_env(r, n_envs, subproc) if kind == "bare" else make_vec_env(r, spec)
+    model = PPO("MlpPolicy", venv, seed=0, device="cpu", verbose=0, **kwargs)
+    t = time.perf_counter()
+    model.learn(total_timesteps=steps)
+    wall = time.perf_counter() - t
+    agent = int(model.num_timesteps)
+    coach = 0
+    if kind != "bare":
+        coach = sum(venv.get_attr("total_coach_steps"))
+    venv.close()
+    return {"wall": wall, "agent": agent, "coach": coach, "env": agent + coach}
+
+
+def median_rate(runs: list[dict], key: str) -> float:
+    return statistics.median(r[key] / r["wall"] for r in runs)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--steps", type=int, default=20000, help="agent steps per training run")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--envs", default="InvertedPendulum-v5,Hopper-v5")
+    parser.add_argument("--out", default=str(ROOT / "docs" / "coaching-throughput.md"))
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    envs = [e.strip() for e in args.envs.split(",") if e.strip()]
+
+    lines_a, lines_v = [], []
+    for env_id in envs:
+        recipe = load_recipe(ROOT / "coach" / f"{env_id}.toml")
+        spec = load_spec(ROOT / "tuning" / f"{env_id}.pidlab-robust.toml")
+        wide_box = {v: [-1e9, 1e9] for v in (spec.bounds or {}).get("box", {})}
+        never = dataclasses.replace(spec, bounds={"method": "benchmark: never triggers", "box": wide_box})
+        configs = {
+            "bare": (None, "bare"),
+            "uncoached": (None, "wrapper"),
+            "coached, never triggers": (never, "wrapper"),
+            "coached": (spec, "wrapper"),
+        }
+        runs: dict[str, list[dict]] = {k: [] for k in configs}
+        for rep in range(args.repeats):
+            for name, (s, kind) in configs.items():
+                out = run_once(recipe, s, kind, args.steps)
+                runs[name].append(out)
+                print(f"{env_id} rep {rep} {name}: {out['env'] / out['wall']:.0f} env steps/s "
+                      f"({out['agent']} agent, {out['coach']} coach steps, {out['wall']:.1f} s)", flush=True)  # fmt: skip
+        base = median_rate(runs["bare"], "env")
+        for name, rs in runs.items():
+            env_rate, agent_rate = median_rate(rs, "env"), median_rate(rs, "agent")
+            share = statistics.median(r["coach"] / r["env"] for r in rs)
+            lines_a.append(
+                f"| {env_id} | {name} | {env_rate:.0f} | {agent_rate:.0f} | {100 * share:.1f} | "
+                f"{env_rate / base:.3f} | {100 * (base / env_rate - 1):+.1f} % |"
+            )
+        vec_configs = {"1 env": (1, False), "2 envs, DummyVecEnv": (2, False), "2 envs, SubprocVecEnv": (2, True)}
+        vruns: dict[str, list[dict]] = {k: [] for k in vec_configs}
+        for rep in range(args.repeats):
+            for name, (n, sub) in vec_configs.items():
+                out = run_once(recipe, None, "wrapper", args.steps, n_envs=n, subproc=sub)
+                vruns[name].append(out)
+                print(f"{env_id} rep {rep} {name}: {out['env'] / out['wall']:.0f} env steps/s", flush=True)
+        one = median_rate(vruns["1 env"], "env")
+        for name, rs in vruns.items():
+            rate = median_rate(rs, "env")
+            lines_v.append(f"| {env_id} | {name} | {rate:.0f} | {rate / one:.2f} |")
+
+    git = git_state()
+    text = f"""# Coaching throughput
+
+Measured by `.venv/bin/python benchmarks/coaching_throughput.py --steps {args.steps} --repeats {args.repeats}
+--envs {",".join(envs)}` (pidlab {__version__}, git {(git["sha"] or "?")[:10]}{" + local changes" if git["dirty"] else ""},
+{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1, Python {platform.python_version()}).
+PPO with each env's recipe hyperparameters trains for {args.steps:,} agent steps per run; only `model.learn` is timed;
+configurations run interleaved, {args.repeats} repeats, medians shown.
+
+## Coached vs uncoached (PPO, 1 env)
+
+- **bare**: `gym.make` + SB3 Monitor, no pidlab wrapper.
+- **uncoached**: what `pidlab train --coach none` runs (the wrapper keeps the accounts, no coach).
+- **coached, never triggers**: the pidlab-robust coach with bounds so wide that it never intervenes: the same
+  trajectory as bare, so the difference is the pure cost of the coaching machinery (trigger test, bookkeeping).
+- **coached**: the pidlab-robust coach with its derived bounds (takeover). Coach steps skip the policy and
+  the gradient updates, so they cost less than agent steps; env steps/s rises with the coach's share.
+
+"cost" is the extra wall time per env step relative to bare (negative: faster).
+
+| env | configuration | env steps/s | agent steps/s | coach steps (%) | ratio to bare | cost per env step |
+|---|---|---:|---:|---:|---:|---:|
+{chr(10).join(lines_a)}
+
+## Vectorized envs on this machine (uncoached, PPO)
+
+Same rollout size per update (`n_steps * n_envs` equal), so the learning updates are the same size.
+
+| env | configuration | env steps/s | speed-up vs 1 env |
+|---|---|---:|---:|
+{chr(10).join(lines_v)}
+"""
+    atomic_write_text(args.out, text)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
