@@ -103,8 +103,9 @@ def main() -> None:
             for name, (s, kind) in configs.items():
                 out = run_once(recipe, s, kind, args.steps)
                 runs[name].append(out)
-                print(f"{env_id} rep {rep} {name}: {out['env'] / out['wall']:.0f} env steps/s "
-                      f"({out['agent']} agent, {out['coach']} coach steps, {out['wall']:.1f} s)", flush=True)  # fmt: skip
+                rate = out["env"] / out["wall"]
+                print(f"{env_id} rep {rep} {name}: {rate:.0f} env steps/s ({out['agent']} agent, "
+                      f"{out['coach']} coach steps, {out['wall']:.1f} s)", flush=True)  # fmt: skip
         base = median_rate(runs["bare"], "env")
         for name, rs in runs.items():
             env_rate, agent_rate = median_rate(rs, "env"), median_rate(rs, "agent")
@@ -113,7 +114,11 @@ def main() -> None:
                 f"| {env_id} | {name} | {env_rate:.0f} | {agent_rate:.0f} | {100 * share:.1f} | "
                 f"{env_rate / base:.3f} | {100 * (base / env_rate - 1):+.1f} % |"
             )
-        vec_configs = {"1 env": (1, False), "2 envs, DummyVecEnv": (2, False), "2 envs, SubprocVecEnv": (2, True)}
+        vec_configs = {
+            "1 env": (1, False),
+            "2 envs, DummyVecEnv": (2, False),
+            "2 envs, SubprocVecEnv": (2, True),
+        }
         vruns: dict[str, list[dict]] = {k: [] for k in vec_configs}
         for rep in range(args.repeats):
             for name, (n, sub) in vec_configs.items():
@@ -126,20 +131,26 @@ def main() -> None:
             lines_v.append(f"| {env_id} | {name} | {rate:.0f} | {rate / one:.2f} |")
 
     git = git_state()
+    sha = (git["sha"] or "?")[:10] + (" + local changes" if git["dirty"] else "")
+    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+    command = (
+        f".venv/bin/python benchmarks/coaching_throughput.py --steps {args.steps} --repeats {args.repeats} "
+        f"--envs {','.join(envs)}"
+    )
     text = f"""# Coaching throughput
 
-Measured by `.venv/bin/python benchmarks/coaching_throughput.py --steps {args.steps} --repeats {args.repeats}
---envs {",".join(envs)}` (pidlab {__version__}, git {(git["sha"] or "?")[:10]}{" + local changes" if git["dirty"] else ""},
-{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1, Python {platform.python_version()}).
-PPO with each env's recipe hyperparameters trains for {args.steps:,} agent steps per run; only `model.learn` is timed;
-configurations run interleaved, {args.repeats} repeats, medians shown.
+Measured by `{command}`
+(pidlab {__version__}, git {sha}, {machine}, torch threads 1, Python {platform.python_version()}).
+PPO with each env's recipe hyperparameters trains for {args.steps:,} agent steps per run; only
+`model.learn` is timed; configurations run interleaved, {args.repeats} repeats, medians shown.
 
 ## Coached vs uncoached (PPO, 1 env)
 
 - **bare**: `gym.make` + SB3 Monitor, no pidlab wrapper.
 - **uncoached**: what `pidlab train --coach none` runs (the wrapper keeps the accounts, no coach).
-- **coached, never triggers**: the pidlab-robust coach with bounds so wide that it never intervenes: the same
-  trajectory as bare, so the difference is the pure cost of the coaching machinery (trigger test, bookkeeping).
+- **coached, never triggers**: the pidlab-robust coach with bounds so wide that it never intervenes: the
+  same trajectory as bare, so the difference is the pure cost of the coaching machinery (trigger test,
+  bookkeeping).
 - **coached**: the pidlab-robust coach with its derived bounds (takeover). Coach steps skip the policy and
   the gradient updates, so they cost less than agent steps; env steps/s rises with the coach's share.
 
