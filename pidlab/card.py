@@ -37,7 +37,6 @@ Schema ``pidlab.model-card/1``::
 from __future__ import annotations
 
 import os
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,11 +44,7 @@ from typing import Any
 import mujoco
 
 from pidlab.errors import ModelCardError
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from pidlab.tomlfile import read_toml
 
 CARD_SCHEMA = "pidlab.model-card/1"
 OBS_SOURCES = ("qpos", "qvel", "qfrc_constraint")
@@ -342,14 +337,7 @@ def load_card(path: str | Path) -> ModelCard:
     ------
     ModelCardError
     """
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ModelCardError(f"cannot read model card {str(path)!r}: {exc.strerror}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ModelCardError(f"{path}: not valid TOML: {exc}") from exc
-    return parse_card(data, str(path))
+    return parse_card(read_toml(path, "model card", ModelCardError), str(path))
 
 
 def find_card(env_id: str) -> ModelCard | None:

@@ -427,7 +427,7 @@ def train(
     """Train an agent with SB3, coached by a PID coach (or not); evaluate it alone as it learns."""
     from pidlab.recipe import default_recipe_path, load_recipe, with_overrides
     from pidlab.render import train_view, wide_console
-    from pidlab.train import default_run_dir, load_run_config
+    from pidlab.rundir import default_run_dir, load_run_config
     from pidlab.train import resume as resume_run
     from pidlab.train import train as run_train
 

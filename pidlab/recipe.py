@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import inspect
 import math
-import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -67,11 +66,7 @@ from typing import Any
 from pidlab.coaching import MODES, REGIONS, REWARDS, GrowthTrigger
 from pidlab.errors import PidlabError
 from pidlab.schedule import Schedule, ScheduleError, parse_schedule, schedule_to_dict
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from pidlab.tomlfile import read_toml
 
 RECIPE_SCHEMA = "pidlab.recipe/1"
 ALGOS = ("ppo", "sac")
@@ -399,15 +394,7 @@ def load_recipe(path: str | Path) -> Recipe:
     ------
     RecipeError
     """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise RecipeError(f"cannot read recipe {str(path)!r}: {exc.strerror}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise RecipeError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "recipe", RecipeError)
     return replace(parse_recipe(data, str(path)), path=str(path))
 
 

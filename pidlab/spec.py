@@ -38,7 +38,6 @@ Schema ``pidlab.coach-spec/1``::
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,11 +45,7 @@ from typing import Any
 import tomli_w
 
 from pidlab.errors import PidlabError
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from pidlab.tomlfile import parse_toml, read_toml
 
 SPEC_SCHEMA = "pidlab.coach-spec/1"
 ACTIONS = ("reverse", "direct")
@@ -477,11 +472,7 @@ def loads_spec(text: str, where: str = "spec") -> CoachSpec:
     ------
     SpecError
     """
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise SpecError(f"{where}: not valid TOML: {exc}") from exc
-    return parse_spec(data, where)
+    return parse_spec(parse_toml(text, where, SpecError), where)
 
 
 def load_spec(path: str | Path) -> CoachSpec:
@@ -492,12 +483,7 @@ def load_spec(path: str | Path) -> CoachSpec:
     SpecError
         Unreadable file, invalid TOML or an invalid field.
     """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise SpecError(f"cannot read coach spec {str(path)!r}: {exc.strerror}") from exc
-    return loads_spec(text, str(path))
+    return parse_spec(read_toml(path, "coach spec", SpecError), str(path))
 
 
 def save_spec(spec: CoachSpec, path: str | Path) -> Path:

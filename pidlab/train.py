@@ -1,4 +1,4 @@
-"""Coached training with Stable-Baselines3: run directories, logs, evaluation, checkpoints, resume.
+"""Coached training with Stable-Baselines3: logs, agent-alone evaluation, checkpoints, resume.
 
 :func:`train` trains one agent from a recipe (``coach/``) with or without a coach spec
 (``tuning/``). The coach runs inside :class:`pidlab.coaching.CoachingWrapper`, so the SB3
@@ -15,9 +15,9 @@ A run directory holds::
     tb/                  TensorBoard: pidlab's scalars (x = env steps), tb/sb3: SB3's (x = agent steps)
     checkpoints/<env steps>/   model.zip, vecnormalize.pkl, replay_buffer.pkl (SAC), state.json
     final_model.zip      (and final_vecnormalize.pkl) when the budget is spent
-    summary.json         totals, final evaluation, throughput
+    summary.json         totals, final evaluation, wall time
 
-Resume (:func:`train` with ``resume=True``) continues from the newest complete checkpoint: the
+(:mod:`pidlab.rundir` writes and reads these files.) :func:`resume` continues from the newest complete checkpoint: the
 CSV files are cut back to the rows that checkpoint had recorded (so no episode is lost or
 logged twice), the model, normalization statistics and replay buffer are reloaded, and the
 envs start fresh episodes. Episodes in progress at the checkpoint are not logged (their env
@@ -26,9 +26,6 @@ steps stay counted). SIGINT/SIGTERM stop at the next step with a checkpoint.
 
 from __future__ import annotations
 
-import csv
-import hashlib
-import io
 import shutil
 import signal
 import sys
@@ -44,47 +41,34 @@ import numpy as np
 import tomli_w
 
 from pidlab.coaching import CoachingWrapper
-from pidlab.errors import PidlabError
 from pidlab.evaluation import AgentEvaluation, evaluate_agent, sb3_policy
-from pidlab.recipe import Recipe, parse_recipe, recipe_to_dict
+from pidlab.recipe import Recipe
+from pidlab.rundir import (
+    EPISODE_COLUMNS,
+    EVALUATION_COLUMNS,
+    CsvLog,
+    RunDirError,
+    config_dict,
+    evaluated_at,
+    latest_checkpoint,
+    load_run_config,
+    prepare_run_dir,
+    truncate_csv,
+)
 from pidlab.runinfo import (
     atomic_write_bytes,
     atomic_write_text,
     git_state,
-    package_versions,
     read_json,
     write_json,
 )
-from pidlab.spec import CoachSpec, dumps_spec, loads_spec
+from pidlab.spec import CoachSpec
 
 if sys.version_info >= (3, 11):
-    import tomllib
+    pass
 else:  # pragma: no cover
-    import tomli as tomllib
+    pass
 
-EPISODE_COLUMNS = (
-    "episode",
-    "env_steps_so_far",
-    "agent_steps_so_far",
-    "agent_steps",
-    "coach_steps",
-    "interventions",
-    "agent_return",
-    "total_return",
-    "terminated",
-    "env_index",
-)
-EVALUATION_COLUMNS = (
-    "env_steps_so_far",
-    "agent_steps_so_far",
-    "episodes_so_far",
-    "mean_return",
-    "std_return",
-    "min_return",
-    "max_return",
-    "mean_length",
-    "returns",
-)
 ACTIVATION_CLASSES = {
     "tanh": "Tanh",
     "relu": "ReLU",
@@ -93,10 +77,6 @@ ACTIVATION_CLASSES = {
     "gelu": "GELU",
     "silu": "SiLU",
 }
-
-
-class RunDirError(PidlabError):
-    """A run directory that cannot be used as asked (exists already, not a run, mismatched resume)."""
 
 
 @dataclass
@@ -233,118 +213,6 @@ def _algorithm_class(algo: str) -> Any:
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
-# --------------------------------------------------------------------------- run directory
-
-
-def _csv_text(columns: tuple[str, ...], rows: list[list[str]]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(columns)
-    w.writerows(rows)
-    return buf.getvalue()
-
-
-def read_csv_rows(path: Path) -> list[dict[str, str]]:
-    """Rows of a run's CSV file as dicts (header keys)."""
-    if not path.exists():
-        return []
-    with open(path, newline="", encoding="utf-8") as fh:
-        return list(csv.DictReader(fh))
-
-
-def _truncate_csv(path: Path, columns: tuple[str, ...], keep: int) -> None:
-    rows: list[list[str]] = []
-    if path.exists():
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.reader(fh)
-            next(reader, None)
-            for row in reader:
-                if len(rows) >= keep:
-                    break
-                if len(row) == len(columns):
-                    rows.append(row)
-    if len(rows) < keep:
-        raise RunDirError(f"{path}: holds {len(rows)} complete rows, the checkpoint recorded {keep}")
-    atomic_write_text(path, _csv_text(columns, rows))
-
-
-def _fmt(value: Any) -> str:
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, bool):
-        return str(int(value))
-    return str(value)
-
-
-class _CsvLog:
-    """Append-only CSV with a flush per row (the checkpoint fsyncs)."""
-
-    def __init__(self, path: Path, columns: tuple[str, ...]) -> None:
-        if not path.exists():
-            atomic_write_text(path, _csv_text(columns, []))
-        self.fh = open(path, "a", newline="", encoding="utf-8")
-        self.writer = csv.writer(self.fh, lineterminator="\n")
-
-    def write(self, row: list[Any]) -> None:
-        self.writer.writerow([_fmt(v) for v in row])
-        self.fh.flush()
-
-    def sync(self) -> None:
-        import os
-
-        self.fh.flush()
-        os.fsync(self.fh.fileno())
-
-    def close(self) -> None:
-        self.fh.close()
-
-
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    """The newest complete checkpoint folder (one with ``state.json``), or None."""
-    folder = run_dir / "checkpoints"
-    if not folder.is_dir():
-        return None
-    done = sorted(p for p in folder.iterdir() if p.is_dir() and (p / "state.json").exists())
-    return done[-1] if done else None
-
-
-def spec_digest(spec: CoachSpec) -> str:
-    """SHA-256 of the spec's canonical text (what a run was coached by)."""
-    return hashlib.sha256(dumps_spec(spec).encode("utf-8")).hexdigest()
-
-
-def _config_dict(recipe: Recipe, spec: CoachSpec | None, coach_source: str | None) -> dict[str, Any]:
-    coach: dict[str, Any] = {"name": "none"}
-    if spec is not None:
-        coach = {"name": spec.name, "source": coach_source or "", "sha256": spec_digest(spec)}
-    return {
-        "schema": "pidlab.run-config/1",
-        "env_id": recipe.env_id,
-        "recipe_source": recipe.path or "",
-        "coach": coach,
-        "recipe": recipe_to_dict(recipe),
-    }
-
-
-def load_run_config(run_dir: str | Path) -> tuple[Recipe, CoachSpec | None, dict[str, Any]]:
-    """The resolved recipe and coach spec a run directory was started with.
-
-    Raises
-    ------
-    RunDirError
-        Not a run directory.
-    """
-    run_dir = Path(run_dir)
-    path = run_dir / "config.toml"
-    if not path.exists():
-        raise RunDirError(f"{run_dir}: not a pidlab run directory (no config.toml)")
-    config = tomllib.loads(path.read_text(encoding="utf-8"))
-    recipe = parse_recipe(config["recipe"], f"{path}:recipe")
-    spec_path = run_dir / "coach.toml"
-    spec = loads_spec(spec_path.read_text(encoding="utf-8"), str(spec_path)) if spec_path.exists() else None
-    return recipe, spec, config
-
-
 # --------------------------------------------------------------------------- the callback
 
 
@@ -421,8 +289,8 @@ class _Trainer:
     def open_logs(self, purge_env_step: int | None, purge_agent_step: int | None) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
-        self.episodes_log = _CsvLog(self.run_dir / "episodes.csv", EPISODE_COLUMNS)
-        self.evaluations_log = _CsvLog(self.run_dir / "evaluations.csv", EVALUATION_COLUMNS)
+        self.episodes_log = CsvLog(self.run_dir / "episodes.csv", EPISODE_COLUMNS)
+        self.evaluations_log = CsvLog(self.run_dir / "evaluations.csv", EVALUATION_COLUMNS)
         self.tb = SummaryWriter(str(self.run_dir / "tb"), purge_step=purge_env_step)
         from stable_baselines3.common.logger import Logger, TensorBoardOutputFormat
 
@@ -581,38 +449,6 @@ class _Trainer:
         self.bar.update(min(c.env_steps, self.recipe.steps) - self.bar.n)
 
 
-def default_run_dir(recipe: Recipe, spec: CoachSpec | None, root: str | Path = "runs") -> Path:
-    """``runs/<env>/<coach>-<algo>-seed<seed>``."""
-    coach = spec.name if spec is not None else "none"
-    return Path(root) / recipe.env_id / f"{coach}-{recipe.algo}-seed{recipe.seed}"
-
-
-def _prepare_new(run_dir: Path, recipe: Recipe, spec: CoachSpec | None, coach_source: str | None,
-                 argv: list[str] | None) -> None:  # fmt: skip
-    if run_dir.exists() and any(run_dir.iterdir()):
-        raise RunDirError(
-            f"{run_dir} exists and is not empty; resume it with --resume {run_dir}, or choose --run-dir"
-        )
-    run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(run_dir / "config.toml", tomli_w.dumps(_config_dict(recipe, spec, coach_source)))
-    if spec is not None:
-        atomic_write_text(run_dir / "coach.toml", dumps_spec(spec))
-    write_json(
-        run_dir / "run.json",
-        {
-            "seed": recipe.seed,
-            "env_id": recipe.env_id,
-            "coach": spec.name if spec is not None else "none",
-            "algo": recipe.algo,
-            "command": argv if argv is not None else sys.argv,
-            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "versions": package_versions(),
-            "git": git_state(),
-            "resumes": [],
-        },
-    )
-
-
 def _run_summary(trainer: _Trainer, completed: bool, wall_s: float) -> dict[str, Any]:
     c = trainer.counters
     ev = trainer.last_evaluation
@@ -669,7 +505,8 @@ def train(
         ``run_dir`` exists and is not empty.
     """
     run_dir = Path(run_dir)
-    _prepare_new(run_dir, recipe, spec, coach_source, argv)
+    EnvFactory(recipe.env_id, spec, recipe)().close()  # a coach that cannot run fails here, before any file
+    prepare_run_dir(run_dir, recipe, spec, coach_source, argv)
     return _run(recipe, spec, run_dir, None, progress_bar)
 
 
@@ -715,8 +552,8 @@ def resume(
     state = read_json(checkpoint / "state.json") if checkpoint else None
     if state is not None and steps is not None and steps < int(state["env_steps"]):
         raise RunDirError(f"--steps {steps}: the run has already done {state['env_steps']} env steps")
-    _truncate_csv(run_dir / "episodes.csv", EPISODE_COLUMNS, int(state["episodes"]) if state else 0)
-    _truncate_csv(run_dir / "evaluations.csv", EVALUATION_COLUMNS, int(state["evaluations"]) if state else 0)
+    truncate_csv(run_dir / "episodes.csv", EPISODE_COLUMNS, int(state["episodes"]) if state else 0)
+    truncate_csv(run_dir / "evaluations.csv", EVALUATION_COLUMNS, int(state["evaluations"]) if state else 0)
     info = read_json(run_dir / "run.json")
     info.setdefault("resumes", []).append({
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -727,7 +564,7 @@ def resume(
     })  # fmt: skip
     write_json(run_dir / "run.json", info)
     coach = config.get("coach", {})
-    atomic_write_text(run_dir / "config.toml", tomli_w.dumps(_config_dict(recipe, spec, coach.get("source"))))
+    atomic_write_text(run_dir / "config.toml", tomli_w.dumps(config_dict(recipe, spec, coach.get("source"))))
     summary_path.unlink(missing_ok=True)
     return _run(recipe, spec, run_dir, (checkpoint, state) if checkpoint and state else None, progress_bar)
 
@@ -798,7 +635,7 @@ def _run(
                 stopped = stop.requested
         completed = not stopped and c.env_steps >= recipe.steps
         if completed:
-            if not _evaluated_now(run_dir, c.env_steps):
+            if not evaluated_at(run_dir, c.env_steps):
                 trainer.evaluate()
             _save_final(trainer)
         trainer.checkpoint()
@@ -810,11 +647,6 @@ def _run(
         )  # fmt: skip
     finally:
         trainer.close()
-
-
-def _evaluated_now(run_dir: Path, env_steps: int) -> bool:
-    rows = read_csv_rows(run_dir / "evaluations.csv")
-    return bool(rows) and int(rows[-1]["env_steps_so_far"]) == env_steps
 
 
 def _save_final(trainer: _Trainer) -> None:

@@ -17,8 +17,9 @@ import pytest
 import tomli_w
 
 from pidlab.recipe import load_recipe, parse_recipe
+from pidlab.rundir import read_csv_rows
 from pidlab.spec import load_spec
-from pidlab.train import read_csv_rows, resume, train
+from pidlab.train import resume, train
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -206,8 +207,16 @@ def test_sigterm_stops_with_a_checkpoint_and_resumes(tmp_path):
     assert not summary["completed"]
     stop_state = json.loads(next((run / "checkpoints").glob("*/state.json")).read_text())
     assert stop_state["episodes"] == len(rows(run))  # the stop checkpoint keeps every logged episode
+    twin = tmp_path / "twin"
+    import shutil
+
+    shutil.copytree(run, twin)
     result = resume(run, progress_bar=False)
     assert result.completed and result.env_steps >= 8000
+    again = resume(twin, progress_bar=False)  # the same checkpoint resumed twice: the same continuation
+    for name in ("episodes.csv", "evaluations.csv"):
+        assert (run / name).read_bytes() == (twin / name).read_bytes()
+    assert again.env_steps == result.env_steps
 
 
 def test_sac_resume_keeps_the_replay_buffer(tmp_path, ip_spec):
@@ -248,6 +257,7 @@ def test_subproc_vec_env_counts_every_env(tmp_path, ip_spec):
         (["--coach", "none", "--recipe", str(ROOT / "coach" / "Hopper-v5.toml")], "the recipe is for Hopper-v5"),
         (["--coach", "none", "--recipe", "/nonexistent.toml"], "cannot read recipe"),
         ([], "--coach: required"),
+        (["--coach", "paper"], "the spec has no [bounds.box]; run `pidlab bounds SPEC --write`"),
         (["--resume", "/nonexistent-run"], "not a pidlab run directory"),
     ],
 )
