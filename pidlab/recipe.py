@@ -72,6 +72,7 @@ RECIPE_SCHEMA = "pidlab.recipe/1"
 ALGOS = ("ppo", "sac")
 VEC_ENVS = ("dummy", "subproc")
 ACTIVATIONS = ("tanh", "relu", "elu", "leaky_relu", "gelu", "silu")
+LINEAR_SCHEDULES = ("learning_rate", "clip_range")  # may be "lin_<x>": x * remaining progress (the zoo's)
 # SB3 constructor arguments that pidlab sets itself
 _RESERVED = {"self", "policy", "env", "seed", "device", "verbose", "tensorboard_log", "_init_setup_model"}
 
@@ -238,9 +239,10 @@ def _check_algorithm(algo: str, table: dict[str, Any], where: str) -> tuple[dict
             f"{where}: unknown {algo.upper()} argument(s) {sorted(unknown)}; "
             f"allowed: {', '.join(sorted(allowed))}"
         )
-    lr = kwargs.get("learning_rate")
-    if isinstance(lr, str) and not (lr.startswith("lin_") and _is_number(lr[4:])):
-        raise RecipeError(f"{where}.learning_rate = {lr!r}: expected a number or 'lin_<number>'")
+    for key in LINEAR_SCHEDULES:
+        value = kwargs.get(key)
+        if isinstance(value, str) and not (value.startswith("lin_") and _is_number(value[4:])):
+            raise RecipeError(f"{where}.{key} = {value!r}: expected a number or 'lin_<number>'")
     pk = kwargs.get("policy_kwargs", {})
     if not isinstance(pk, dict):
         raise RecipeError(f"{where}.policy_kwargs: expected a table")

@@ -17,11 +17,11 @@ A run directory holds::
     final_model.zip      (and final_vecnormalize.pkl) when the budget is spent
     summary.json         totals, final evaluation, wall time
 
-(:mod:`pidlab.rundir` writes and reads these files.) :func:`resume` continues from the newest complete checkpoint: the
-CSV files are cut back to the rows that checkpoint had recorded (so no episode is lost or
-logged twice), the model, normalization statistics and replay buffer are reloaded, and the
-envs start fresh episodes. Episodes in progress at the checkpoint are not logged (their env
-steps stay counted). SIGINT/SIGTERM stop at the next step with a checkpoint.
+:mod:`pidlab.rundir` writes and reads these files. :func:`resume` continues from the newest
+complete checkpoint: the CSV files are cut back to the rows that checkpoint had recorded (so no
+episode is lost or logged twice), the model, normalization statistics and replay buffer are
+reloaded, and the envs start fresh episodes. Episodes in progress at the checkpoint are not
+logged (their env steps stay counted). SIGINT/SIGTERM stop at the next step with a checkpoint.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ import tomli_w
 
 from pidlab.coaching import CoachingWrapper
 from pidlab.evaluation import AgentEvaluation, evaluate_agent, sb3_policy
-from pidlab.recipe import Recipe
+from pidlab.recipe import LINEAR_SCHEDULES, Recipe
 from pidlab.rundir import (
     EPISODE_COLUMNS,
     EVALUATION_COLUMNS,
@@ -63,11 +63,6 @@ from pidlab.runinfo import (
     write_json,
 )
 from pidlab.spec import CoachSpec
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
 
 ACTIVATION_CLASSES = {
     "tanh": "Tanh",
@@ -180,12 +175,8 @@ def sb3_arguments(recipe: Recipe) -> dict[str, Any]:
     import torch.nn as nn
 
     kwargs = recipe.hyperparameters
-    lr = kwargs.get("learning_rate")
-    if isinstance(lr, str):
-        start = float(lr[4:])
-        kwargs["learning_rate"] = _Linear(start)
-    for key in ("clip_range",):
-        if isinstance(kwargs.get(key), str):
+    for key in LINEAR_SCHEDULES:
+        if isinstance(kwargs.get(key), str):  # "lin_<x>", checked by the recipe parser
             kwargs[key] = _Linear(float(kwargs[key][4:]))
     if isinstance(kwargs.get("train_freq"), list):
         kwargs["train_freq"] = tuple(kwargs["train_freq"])
@@ -233,6 +224,12 @@ class _Stop:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
+        print(
+            f"\npidlab: {signal.Signals(signum).name}: stopping at the next step with a checkpoint "
+            "(send it again to stop at once)",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def __exit__(self, *exc: Any) -> None:
         for sig, old in self._old.items():

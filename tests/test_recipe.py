@@ -62,6 +62,7 @@ def base() -> dict:
         ({"vec_env": "ray"}, "vec_env = 'ray': expected one of dummy, subproc"),
         ({"ppo": {"n_stepz": 3}}, "unknown PPO argument(s) ['n_stepz']"),
         ({"ppo": {"learning_rate": "fast"}}, "learning_rate = 'fast'"),
+        ({"ppo": {"clip_range": "lin_x"}}, "clip_range = 'lin_x': expected a number or 'lin_<number>'"),
         ({"ppo": {"policy_kwargs": {"activation_fn": "sigmoid"}}}, "activation_fn = 'sigmoid'"),
         ({"coaching": {"mode": "always"}}, "coaching.mode = 'always': expected one of takeover, nudge"),
         ({"coaching": {"region": "ball"}}, "coaching.region = 'ball'"),
