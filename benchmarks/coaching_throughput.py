@@ -85,41 +85,48 @@ def spread(runs: list[dict], key: str) -> str:
     return f"{min(rates):.0f}-{max(rates):.0f}"
 
 
-def step_cost_us(make, steps: int = 20000, repeats: int = 5) -> float:
-    """Best-of-repeats wall time of one ``env.step`` (with resets), microseconds."""
-    env = make()
+def _time_env(env, actions: np.ndarray, seed: int) -> float:
+    env.reset(seed=seed)
+    t = time.perf_counter()
+    for a in actions:
+        _, _, te, tr, _ = env.step(a)
+        if te or tr:
+            env.reset()
+    return (time.perf_counter() - t) / len(actions) * 1e6
+
+
+def _time_coach(env, coach: Coach, steps: int, seed: int) -> float:
+    obs, _ = env.reset(seed=seed)
+    coach.reset(obs)
+    t = time.perf_counter()
+    for _ in range(steps):
+        obs, _, te, tr, _ = env.step(coach.act(obs))
+        if te or tr:
+            obs, _ = env.reset()
+            coach.reset(obs)
+    return (time.perf_counter() - t) / steps * 1e6
+
+
+def step_costs_us(stacks: dict, spec, loaded, steps: int = 1000, rounds: int = 60) -> dict[str, list[float]]:
+    """Microseconds per step through each env stack, and per coach step, in paired rounds.
+
+    In each round every stack runs the same ``steps`` random actions from the same reset seed,
+    one after the other, so a difference to ``bare`` within a round is paired: slow phases of
+    a shared machine hit both sides.
+    """
+    envs = {name: make() for name, make in stacks.items()}
+    first = next(iter(envs.values()))
     rng = np.random.default_rng(0)
-    actions = rng.uniform(-1, 1, (steps, *env.action_space.shape)) * env.action_space.high
-    best = float("inf")
-    for _ in range(repeats):
-        env.reset(seed=0)
-        t = time.perf_counter()
-        for a in actions:
-            _, _, te, tr, _ = env.step(a)
-            if te or tr:
-                env.reset()
-        best = min(best, time.perf_counter() - t)
-    env.close()
-    return best / steps * 1e6
-
-
-def coach_step_us(spec, loaded, steps: int = 20000, repeats: int = 5) -> float:
-    """Best-of-repeats wall time of one coach step (``coach.act`` + ``env.step``), microseconds."""
-    env = gym.make(spec.env_id)
-    coach = Coach(spec, loaded)
-    best = float("inf")
-    for _ in range(repeats):
-        obs, _ = env.reset(seed=0)
-        coach.reset(obs)
-        t = time.perf_counter()
-        for _ in range(steps):
-            obs, _, te, tr, _ = env.step(coach.act(obs))
-            if te or tr:
-                obs, _ = env.reset()
-                coach.reset(obs)
-        best = min(best, time.perf_counter() - t)
-    env.close()
-    return best / steps * 1e6
+    actions = rng.uniform(-1, 1, (steps, *first.action_space.shape)) * first.action_space.high
+    coach_env, coach = gym.make(spec.env_id), Coach(spec, loaded)
+    out: dict[str, list[float]] = {name: [] for name in [*envs, "coach"]}
+    for r in range(rounds):
+        for name, env in envs.items():
+            out[name].append(_time_env(env, actions, r))
+        out["coach"].append(_time_coach(coach_env, coach, steps, r))
+    for env in [*envs.values(), coach_env]:
+        env.close()
+    return out
 
 
 def main() -> None:
@@ -139,12 +146,17 @@ def main() -> None:
         wide_box = {v: [-1e9, 1e9] for v in (spec.bounds or {}).get("box", {})}
         never = dataclasses.replace(spec, bounds={"method": "benchmark: never triggers", "box": wide_box})
         loaded = load_model(env_id)
-        bare_us = step_cost_us(lambda e=env_id: _bare(e))
-        none_us = step_cost_us(lambda e=env_id: Monitor(CoachingWrapper(gym.make(e), None)))
-        never_us = step_cost_us(
-            lambda e=env_id, s=never, m=loaded: Monitor(CoachingWrapper(gym.make(e), s, loaded=m))
+        us = step_costs_us(
+            {
+                "bare": lambda e=env_id: _bare(e),
+                "none": lambda e=env_id: Monitor(CoachingWrapper(gym.make(e), None)),
+                "never": lambda e=env_id, s=never, m=loaded: Monitor(
+                    CoachingWrapper(gym.make(e), s, loaded=m)
+                ),
+            },
+            spec,
+            loaded,
         )
-        coach_us = coach_step_us(spec, loaded)
         configs = {
             "bare": (None, "bare"),
             "uncoached": (None, "wrapper"),
@@ -168,14 +180,22 @@ def main() -> None:
                 f"{100 * share:.1f} | {env_rate / base:.3f} |"
             )
         train_us = 1e6 / base  # one bare PPO training step (env step + policy + amortized updates)
-        for name, us in (("bare env step", bare_us), ("uncoached (wrapper, no coach)", none_us),
-                         ("coached, never triggers (trigger test every step)", never_us),
-                         ("one coach step (coach.act + env.step)", coach_us)):  # fmt: skip
-            extra = "" if name.startswith("bare") or name.startswith("one") else f"{us - bare_us:+.1f}"
-            share_train = "" if not extra else f"{100 * (us - bare_us) / train_us:+.2f} %"
-            lines_m.append(f"| {env_id} | {name} | {us:.1f} | {extra} | {share_train} |")
+        bare_us = statistics.median(us["bare"])
+        lines_m.append(f"| {env_id} | bare env step | {bare_us:.1f} | | |")
+        for key, name in (("none", "uncoached (wrapper, no coach)"),
+                          ("never", "coached, never triggers (trigger test every step)")):  # fmt: skip
+            diff = [a - b for a, b in zip(us[key], us["bare"], strict=True)]
+            med = statistics.median(diff)
+            q1, q3 = np.percentile(diff, [25, 75])
+            lines_m.append(
+                f"| {env_id} | {name} | {statistics.median(us[key]):.1f} | "
+                f"{med:+.1f} ({q1:+.1f} to {q3:+.1f}) | {100 * med / train_us:+.2f} % |"
+            )
         lines_m.append(
-            f"| {env_id} | one PPO training step, bare (1 / median env steps/s) | {train_us:.0f} | | |"
+            f"| {env_id} | one coach step (coach.act + env.step) | {statistics.median(us['coach']):.1f} | | |"
+        )
+        lines_m.append(
+            f"| {env_id} | one PPO training step, bare (1 / median env steps/s below) | {train_us:.0f} | | |"
         )
         vec_configs = {
             "1 env": (1, False),
@@ -209,11 +229,13 @@ PPO with each env's recipe hyperparameters trains for {args.steps:,} agent steps
 
 ## The cost of the coaching machinery, per step
 
-Wall time of one `env.step` through each env stack (20,000 steps with uniformly random actions,
-best of 5), and what the difference to the bare env is as a share of one bare PPO training step
-(the "cost" the 5 % goal is about). These are tight: the best of 5 repeats of 20,000 steps.
+Wall time of one `env.step` through each env stack: 60 rounds, in each of which every stack runs
+the same 1,000 uniformly random actions (with resets) from the same seed, one after the other.
+"extra" is the median over rounds of the paired difference to the bare env (interquartile range
+in brackets), and its share of one bare PPO training step is the cost the 5 % goal is about.
+Single timings on this shared machine wander by tens of percent; paired medians are far steadier.
 
-| env | what | us per step | extra us | share of a PPO training step |
+| env | what | us per step (median) | extra us per step | share of a PPO training step |
 |---|---|---:|---:|---:|
 {chr(10).join(lines_m)}
 
