@@ -280,6 +280,12 @@ class _Trainer:
     stop: _Stop | None = None
     last_evaluation: AgentEvaluation | None = None
     bar: Any = None
+    episodes_log: Any = None  # set by open_logs, like the four below
+    evaluations_log: Any = None
+    tb: Any = None
+    sb3_logger: Any = None
+    eval_env: Any = None
+    moving: bool = False
     _progress_tick: int = -1
 
     # -- setup
@@ -304,18 +310,10 @@ class _Trainer:
         self.moving = _schedules_move(self.recipe, self.spec)
 
     def close(self) -> None:
-        for name in ("episodes_log", "evaluations_log"):
-            log = getattr(self, name, None)
-            if log is not None:
-                log.close()
-        if getattr(self, "tb", None) is not None:
-            self.tb.close()
-        if getattr(self, "sb3_logger", None) is not None:
-            self.sb3_logger.close()
-        if getattr(self, "eval_env", None) is not None:
-            self.eval_env.close()
-        if self.venv is not None:
-            self.venv.close()
+        for closable in (self.episodes_log, self.evaluations_log, self.tb, self.sb3_logger, self.eval_env,
+                         self.venv):  # fmt: skip
+            if closable is not None:
+                closable.close()
 
     # -- SB3 hooks
     def on_start(self) -> None:
@@ -403,9 +401,9 @@ class _Trainer:
             self._progress_tick = tick
             self.venv.env_method("set_progress", tick / 1000)
 
-    def maybe_checkpoint(self, force: bool = False) -> Path | None:
+    def maybe_checkpoint(self) -> Path | None:
         c = self.counters
-        if not force and (c.env_steps < c.next_checkpoint or c.env_steps == 0):
+        if c.env_steps < c.next_checkpoint or c.env_steps == 0:
             return None
         return self.checkpoint()
 
