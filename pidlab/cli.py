@@ -465,6 +465,95 @@ def train(
         raise typer.Exit(code=130)
 
 
+def _names(text: str, what: str) -> list[str]:
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+@app.command()
+@friendly_errors
+def experiment(
+    envs: Annotated[
+        str,
+        typer.Option(
+            metavar="ENV[,ENV...]", help="Env ids, comma-separated (each needs a recipe in coach/)."
+        ),
+    ] = "InvertedPendulum-v5",
+    conditions: Annotated[
+        str,
+        typer.Option(
+            metavar="NAME[,NAME...]",
+            help="Conditions from the conditions file, comma-separated.",
+        ),
+    ] = "none,paper,pidlab,pidlab-fading",
+    seeds: Annotated[
+        str, typer.Option(metavar="N|A-B|A,B,...", help="Seeds: a count, a range or a list.")
+    ] = "10",
+    out: Annotated[
+        str | None, typer.Option(metavar="DIR", help="Experiment folder (default results/ENVS).")
+    ] = None,
+    conditions_file: Annotated[
+        str | None,
+        typer.Option(
+            "--conditions-file", metavar="FILE", help="Conditions file (default coach/conditions.toml)."
+        ),
+    ] = None,
+    recipe: Annotated[
+        list[str] | None,
+        typer.Option(metavar="FILE", help="A recipe to use instead of coach/ENV.toml (repeatable)."),
+    ] = None,
+    algo: Annotated[
+        str | None, typer.Option(help="ppo or sac for every env (default: each recipe's).")
+    ] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="Budget in env steps for every run (default: each recipe's).")
+    ] = None,
+    backend: Annotated[str, typer.Option(help="process (local pool) or ray.")] = "process",
+    address: Annotated[
+        str | None, typer.Option(metavar="ADDR", help="Ray cluster address (--backend ray); default: local.")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Runs in parallel (default: the machine's cores).")
+    ] = None,
+    report_only: Annotated[
+        bool, typer.Option("--report-only", help="Write the report from the runs in DIR; train nothing.")
+    ] = False,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show progress bars.")] = True,
+) -> None:
+    """Multi-seed coaching experiment: train every (env, condition, seed), then report.
+
+    Killed or interrupted, the same command resumes: finished runs are skipped, unfinished ones
+    continue from their last checkpoint.
+    """
+    from pidlab.experiment import parse_seeds, plan, run_sweep
+
+    env_list = _names(envs, "envs")
+    folder = out or f"results/{'+'.join(env_list)}"
+    p = plan(
+        env_list, _names(conditions, "conditions"), parse_seeds(seeds), folder,
+        conditions_file=conditions_file, recipe_files=recipe or [], algo=algo, steps=steps,
+    )  # fmt: skip
+    failed = 0
+    if not report_only:
+        argv = ["pidlab", *sys.argv[1:]]
+        result = run_sweep(p, backend=backend, workers=workers, address=address, argv=argv,
+                           progress_bar=progress)  # fmt: skip
+        counts = ", ".join(f"{result.count(s)} {s}" for s in ("done", "skipped", "stopped", "failed"))
+        typer.echo(f"runs: {counts} (of {len(p.tasks)})")
+        failed = result.count("failed")
+        if result.interrupted:
+            typer.echo("interrupted: every unfinished run was checkpointed; run the same command to resume",
+                       err=True)  # fmt: skip
+            raise typer.Exit(code=130)
+    elif not (p.out / "experiment.json").exists():
+        _fail(f"--report-only: {p.out} holds no experiment (no experiment.json)")
+    from pidlab.experiment_report import write_report
+
+    report = write_report(p, progress_bar=progress)
+    typer.echo(f"report: {report}")
+    if failed:
+        raise typer.Exit(code=1)
+
+
 def main() -> None:
     """Console entry point."""
     try:
