@@ -1,0 +1,257 @@
+"""Experiments: conditions, planning, bad input, a sweep that is killed and resumed, Ray, the report.
+
+Mechanics, not luck: budgets are a few hundred to a few thousand env steps; nothing asserts that
+an agent learned.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import tomli_w
+
+from pidlab.conditions import ConditionError, load_conditions, parse_conditions, resolve
+from pidlab.experiment import ExperimentError, parse_seeds, plan, run_sweep
+from pidlab.experiment_report import write_report
+from pidlab.recipe import load_recipe
+from pidlab.rundir import read_csv_rows
+from pidlab.runinfo import read_json
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+ROOT = Path(__file__).resolve().parents[1]
+IP = "InvertedPendulum-v5"
+PIDLAB = str(Path(sys.executable).with_name("pidlab"))
+
+
+def tiny_recipe(tmp_path: Path, steps: int = 600, checkpoint: int = 20000, name: str = "tiny.toml") -> Path:
+    data = tomllib.loads((ROOT / "coach" / f"{IP}.toml").read_text())
+    data["steps"] = steps
+    data["evaluation"] = {"every": 300, "episodes": 2, "seed": 123}
+    data["checkpoint"] = {"every": checkpoint}
+    path = tmp_path / name
+    path.write_text(tomli_w.dumps(data))
+    return path
+
+
+def tree_digest(folder: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+# ---------------------------------------------------------------- conditions
+
+
+def test_shipped_conditions_resolve_on_all_four_envs():
+    conditions = load_conditions()
+    assert {"none", "paper", "paper-text", "pidlab", "pidlab-fading"} <= set(conditions)
+    for env in (IP, "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5"):
+        recipe = load_recipe(ROOT / "coach" / f"{env}.toml")
+        for name, cond in conditions.items():
+            r, spec, source = resolve(cond, recipe)
+            assert (spec is None) == (name == "none")
+            assert r.steps == recipe.steps and r.algorithms == recipe.algorithms  # same agent everywhere
+    ip = load_recipe(ROOT / "coach" / f"{IP}.toml")
+    r, spec, _ = resolve(conditions["paper"], ip)
+    assert r.coaching.mode == "nudge" and r.coaching.trigger is not None
+    assert r.coaching.trigger.variable == "hinge_vel" and r.coaching.trigger.high == 0.3
+    assert spec is not None and spec.name == "paper"
+    r, spec, _ = resolve(conditions["paper-text"], ip)
+    assert r.coaching.mode == "takeover" and spec is not None and spec.bounds["box"] == {"hinge_vel": [-0.4, 0.4]}
+    r, spec, _ = resolve(conditions["pidlab-fading"], ip)
+    assert r.coaching.off_after == 0.5 and r.coaching.probability.end == 0.0
+    assert spec is not None and "ellipsoid" in spec.bounds  # the derived bounds are kept
+    walker = load_recipe(ROOT / "coach" / "Walker2d-v5.toml")
+    r, spec, _ = resolve(conditions["paper"], walker)
+    assert r.coaching.mode == "takeover" and spec.bounds["box"] == {"rooty_pos": [-0.7, 0.7]}
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"schema": "x"}, "schema"),
+        ({"schema": "pidlab.conditions/1"}, "no conditions"),
+        ({"schema": "pidlab.conditions/1", "condition": {"a": {"coach": 3}}}, "coach"),
+        ({"schema": "pidlab.conditions/1", "condition": {"a": {"coach": "none", "colour": 1}}}, "colour"),
+        ({"schema": "pidlab.conditions/1", "condition": {"a": {"coach": "x", "bounds": {"v": [1, 0]}}}}, "low < high"),
+    ],
+)
+def test_bad_conditions_files_name_the_field(data, message):
+    with pytest.raises(ConditionError, match=message):
+        parse_conditions(data)
+
+
+def test_a_condition_with_coaching_the_recipe_rejects_fails_on_resolve():
+    conds = parse_conditions(
+        {"schema": "pidlab.conditions/1", "condition": {"odd": {"coach": "pidlab-robust", "coaching": {"mode": "dance"}}}}
+    )
+    with pytest.raises(ConditionError, match="mode"):
+        resolve(conds["odd"], load_recipe(ROOT / "coach" / f"{IP}.toml"))
+
+
+# ---------------------------------------------------------------- planning and bad input
+
+
+def test_seeds_forms_and_errors():
+    assert parse_seeds("3") == (0, 1, 2)
+    assert parse_seeds("2-4") == (2, 3, 4)
+    assert parse_seeds("7,1") == (7, 1)
+    for bad in ("", "0", "a", "1,1", "5-3"):
+        with pytest.raises(ExperimentError):
+            parse_seeds(bad)
+
+
+def test_plan_lists_every_run_with_shared_agent_settings(tmp_path):
+    p = plan([IP], ["none", "paper", "pidlab"], [0, 1], tmp_path / "exp")
+    assert len(p.tasks) == 6
+    assert {(t.condition, t.seed) for t in p.tasks} == {(c, s) for c in ("none", "paper", "pidlab") for s in (0, 1)}
+    agents = {json.dumps(t.recipe["ppo"], sort_keys=True) for t in p.tasks}
+    assert len(agents) == 1
+    assert len({t.digest for t in p.tasks}) == 6
+    assert not (tmp_path / "exp").exists()  # planning writes nothing
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--envs", "Nope-v5"], "unknown env"),
+        (["--conditions", "none,telepathy"], "unknown condition"),
+        (["--seeds", ""], "no seeds"),
+        (["--recipe", "missing.toml"], "no such file"),
+        (["--backend", "slurm"], "--backend"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
+    base = ["--envs", IP, "--conditions", "none", "--seeds", "1", "--out", str(tmp_path / "exp"), "--no-progress"]
+    for i in range(0, len(args), 2):  # the bad option replaces the good one
+        if args[i] in base:
+            j = base.index(args[i])
+            base[j + 1] = args[i + 1]
+        else:
+            base += args[i : i + 2]
+    proc = subprocess.run([PIDLAB, "experiment", *base], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert message in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "exp" / "runs").exists()
+
+
+def test_a_folder_of_another_experiment_is_refused_untouched(tmp_path):
+    recipe = tiny_recipe(tmp_path, steps=300)
+    out = tmp_path / "exp"
+    cmd = [PIDLAB, "experiment", "--envs", IP, "--conditions", "none", "--seeds", "1", "--recipe", str(recipe),
+           "--out", str(out), "--no-progress", "--workers", "1"]
+    first = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    before = tree_digest(out)
+    for change in (["--seeds", "2"], ["--conditions", "none,pidlab"], ["--steps", "400"]):
+        other = list(cmd)
+        if change[0] in other:
+            other[other.index(change[0]) + 1] = change[1]
+        else:
+            other += change
+        proc = subprocess.run(other, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2 and "holds another experiment" in proc.stderr, proc.stderr
+        assert tree_digest(out) == before
+    # a non-empty folder that is no experiment
+    stranger = tmp_path / "stranger"
+    stranger.mkdir()
+    (stranger / "thesis.tex").write_text("precious")
+    cmd[cmd.index("--out") + 1] = str(stranger)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "not empty" in proc.stderr
+    assert [p.name for p in stranger.iterdir()] == ["thesis.tex"]
+
+
+# ---------------------------------------------------------------- sweeps
+
+
+def test_sweep_killed_and_restarted_loses_no_finished_run(tmp_path):
+    """SIGKILL the sweep mid-run; the restart skips finished runs and resumes the unfinished one."""
+    recipe = tiny_recipe(tmp_path, steps=3000, checkpoint=500)
+    out = tmp_path / "exp"
+    cmd = [PIDLAB, "experiment", "--envs", IP, "--conditions", "none,pidlab", "--seeds", "2", "--recipe",
+           str(recipe), "--out", str(out), "--workers", "1", "--no-progress"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    first = out / "runs" / IP / "none" / "seed-0"
+    second = out / "runs" / IP / "none" / "seed-1"
+    deadline = time.time() + 240
+    while time.time() < deadline:
+        if (first / "summary.json").exists() and list((second / "checkpoints").glob("*/state.json")):
+            break
+        assert proc.poll() is None, proc.stderr.read().decode()
+        time.sleep(0.2)
+    else:
+        pytest.fail("the sweep did not get to its second run in time")
+    done_before = (first / "summary.json").read_bytes()
+    os.kill(proc.pid, signal.SIGKILL)  # the parent dies at once; its worker notices and checkpoints
+    proc.wait(timeout=30)
+    restart = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert restart.returncode == 0, restart.stderr
+    assert "4 done" not in restart.stdout and "skipped" in restart.stdout
+    assert (first / "summary.json").read_bytes() == done_before  # finished run untouched
+    info = read_json(second / "run.json")
+    assert len(info.get("resumes", [])) >= 1  # continued from its checkpoint, not restarted
+    for cond in ("none", "pidlab"):
+        for seed in (0, 1):
+            run = out / "runs" / IP / cond / f"seed-{seed}"
+            s = read_json(run / "summary.json")
+            assert s["completed"] and s["env_steps"] >= 3000
+            eps = read_csv_rows(run / "episodes.csv")
+            assert [int(r["episode"]) for r in eps] == list(range(len(eps)))  # no lost or doubled rows
+    record = read_json(out / "experiment.json")
+    assert len(record["resumes"]) == 1
+    assert (out / "report.md").exists() and (out / "report.html").exists()
+
+
+def test_sweep_on_a_local_ray_instance_matches_the_process_pool(tmp_path):
+    pytest.importorskip("ray")
+    recipe = tiny_recipe(tmp_path, steps=400)
+    common = [IP], ["none", "pidlab"], [3]
+    p_ray = plan(*common, tmp_path / "ray", recipe_files=[str(recipe)])
+    p_pool = plan(*common, tmp_path / "pool", recipe_files=[str(recipe)])
+    r = run_sweep(p_ray, backend="ray", workers=2, progress_bar=False)
+    assert r.count("done") == 2 and not r.interrupted
+    assert run_sweep(p_ray, backend="ray", workers=2, progress_bar=False).count("skipped") == 2
+    assert run_sweep(p_pool, backend="process", workers=2, progress_bar=False).count("done") == 2
+    for cond in ("none", "pidlab"):  # same seed, same result, whichever backend ran it
+        a = read_csv_rows(p_ray.out / "runs" / IP / cond / "seed-3" / "episodes.csv")
+        b = read_csv_rows(p_pool.out / "runs" / IP / cond / "seed-3" / "episodes.csv")
+        assert a == b
+    assert read_json(p_ray.out / "experiment.json")["backend"] == "ray"
+
+
+def test_report_tables_and_figures(tmp_path):
+    recipe = tiny_recipe(tmp_path, steps=600)
+    p = plan([IP], ["none", "paper", "pidlab"], [0, 1], tmp_path / "exp", recipe_files=[str(recipe)])
+    assert run_sweep(p, workers=2, progress_bar=False).count("done") == 6
+    report = write_report(p, progress_bar=False)
+    text = report.read_text()
+    for needle in ("## InvertedPendulum-v5", "paper: with coach", "| 5 wins | 100 | 160 | +37.5 % |",
+                   "Honest measures", "Probability of improvement", "stable-baselines3", "coach-dependent"):
+        assert needle in text, needle
+    for fig in ("curves", "table2", "dependence"):
+        png = p.out / "figures" / f"{IP}-{fig}.png"
+        assert png.read_bytes()[:4] == b"\x89PNG" and f"figures/{IP}-{fig}.png" in text
+    html = (p.out / "report.html").read_text()
+    assert "<table>" in html and "<img" in html
+    metrics = read_csv_rows(p.out / "metrics.csv")
+    assert len(metrics) == 6
+    for row in metrics:
+        env_steps, coach = int(row["env_steps"]), int(row["coach_steps"])
+        assert float(row["intervention_rate"]) == pytest.approx(coach / env_steps)
+        assert (coach == 0) == (row["condition"] == "none")

@@ -1,0 +1,107 @@
+"""Learning-speed metrics and rliable-style statistics on hand-made curves with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pidlab.metrics import (
+    episodes_to_average,
+    episodes_to_consecutive_wins,
+    first_reaching,
+    moving_average,
+    run_metrics,
+)
+from pidlab.stats import bootstrap_ci, iqm, probability_of_improvement
+
+
+def test_five_wins_point_is_the_fifth_win_of_the_first_streak():
+    # wins at 3..6 (four), a loss at 7, then wins 8..12: the fifth in a row is episode 12
+    returns = [0, 0, 900, 900, 900, 900, 10, 800, 801, 999, 1000, 850, 900]
+    assert episodes_to_consecutive_wins(returns, 800, 5) == 12
+    assert episodes_to_consecutive_wins(returns, 800, 4) == 6
+    assert episodes_to_consecutive_wins(returns, 1001, 1) is None
+    assert episodes_to_consecutive_wins([], 800, 5) is None
+
+
+def test_target_counts_as_a_win_exactly_at_the_threshold():
+    assert episodes_to_consecutive_wins([800.0] * 5, 800, 5) == 5
+    assert episodes_to_consecutive_wins([799.999] * 5, 800, 5) is None
+
+
+def test_moving_average_needs_a_full_window():
+    # one lucky early episode must not count: the average of a short first window is not used
+    returns = [1000, 0, 0, 0, 1000, 1000, 1000, 1000]
+    assert episodes_to_average(returns, 800, 4) == 8  # mean(1000 x 4) at episode 8
+    assert episodes_to_average(returns, 500, 4) == 6  # mean(0, 0, 1000, 1000) = 500 at episode 6
+    assert episodes_to_average(returns[:3], 0, 4) is None
+    np.testing.assert_allclose(moving_average([2, 4, 6, 8], 2), [2, 3, 5, 7])
+
+
+def test_linear_ramp_crosses_the_average_where_arithmetic_says():
+    returns = np.arange(1, 201) * 10.0  # episode k scores 10 k
+    # mean of episodes k-19..k = 10 (k - 9.5) >= 800  <=>  k >= 89.5
+    assert episodes_to_average(returns, 800, 20) == 90
+    assert episodes_to_consecutive_wins(returns, 800, 5) == 84  # 80..84
+
+
+def test_first_reaching_and_run_metrics_agent_alone():
+    ev_env = [0, 5000, 10000, 15000]
+    ev_agent = [0, 1000, 2500, 6000]
+    means = [20.0, 300.0, 850.0, 1000.0]
+    assert first_reaching(ev_env, means, 800) == 10000
+    m = run_metrics([900.0] * 30, ev_env, ev_agent, means, 15000, 6000, 9000, 800, 5, 20)
+    assert m.env_steps_to_target == 10000 and m.agent_steps_to_target == 2500
+    assert m.episodes_to_wins == 5 and m.episodes_to_average == 20
+    assert m.final_score == 1000.0 and m.intervention_rate == pytest.approx(0.6)
+    assert not m.coach_dependent
+
+
+def test_coach_dependence_is_good_with_the_coach_and_bad_alone():
+    m = run_metrics([950.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200, 800, 5, 20)
+    assert m.coach_dependent and m.env_steps_to_target is None
+    # the same curves without a coach in the loop are not "coach dependence"
+    m0 = run_metrics([950.0] * 40, [0, 5000], [0, 5000], [10.0, 40.0], 5000, 5000, 0, 800, 5, 20)
+    assert not m0.coach_dependent
+
+
+def test_iqm_trims_a_quarter_each_side():
+    assert iqm([1, 2, 3, 4, 100, 5, 6, 7]) == pytest.approx(4.5)
+    assert iqm([3.0]) == 3.0
+    # more than a quarter of the runs never reached: the IQM is "not reached"
+    assert math.isinf(iqm([1, 2, np.inf, np.inf]))
+    np.testing.assert_allclose(iqm(np.arange(8.0).reshape(2, 4), axis=-1), [1.5, 5.5])
+
+
+def test_bootstrap_interval_is_deterministic_and_covers_the_estimate():
+    rng = np.random.default_rng(0)
+    x = rng.normal(10.0, 2.0, 20)
+    a = bootstrap_ci([x], reps=1000, seed=3)
+    b = bootstrap_ci([x], reps=1000, seed=3)
+    assert a == b
+    assert a.low < a.value < a.high
+    assert a.value == pytest.approx(iqm(x))
+    # identical runs: no spread at all
+    c = bootstrap_ci([[5.0] * 10], reps=200)
+    assert (c.low, c.value, c.high) == (5.0, 5.0, 5.0)
+
+
+def test_bootstrap_is_stratified_by_task():
+    # task 0 always 0, task 1 always 100: every stratified resample keeps one of each per pair,
+    # so the mean of a resample is always 50 (an unstratified one would wander)
+    e = bootstrap_ci([[0.0, 0.0], [100.0, 100.0]], statistic=np.mean, reps=500)
+    assert e.low == e.high == 50.0
+
+
+def test_probability_of_improvement_known_cases():
+    assert probability_of_improvement([[5, 6, 7]], [[1, 2, 3]]).value == 1.0
+    assert probability_of_improvement([[1, 2, 3]], [[5, 6, 7]]).value == 0.0
+    # ties count half; infinities (never reached) tie with each other
+    assert probability_of_improvement([[1.0, np.inf]], [[1.0, np.inf]]).value == 0.5
+    # averaged over tasks
+    p = probability_of_improvement([[5.0], [0.0]], [[1.0], [1.0]], reps=50)
+    assert p.value == 0.5
+    # pairs (1,1) tie, (1,3) lose, (2,1) win, (2,3) lose: 1.5 of 4
+    assert probability_of_improvement([[1.0, 2.0]], [[1.0, 3.0]]).value == pytest.approx((0.5 + 1) / 4)
