@@ -178,16 +178,17 @@ def band(rows: np.ndarray, x: np.ndarray, reps: int, seed: int) -> Curve:
     return Curve(x, mid, lo, hi)
 
 
-def _intervention_rows(runs: Sequence[RunData], grid: np.ndarray) -> np.ndarray:
+def _intervention_rows(runs: Sequence[RunData], edges: np.ndarray) -> np.ndarray:
+    """Coach steps / env steps between consecutive ``edges`` (env steps), per run.
+
+    Within an episode the coach's steps are spread evenly (the logs give them per episode).
+    """
     rows = []
     for r in runs:
-        cum_coach = np.cumsum(r.episode_coach_steps)
-        at = _step_curve(r.episode_env_steps, cum_coach, grid)
-        at = np.nan_to_num(at, nan=0.0)
-        d_coach = np.diff(np.concatenate([[0.0], at]))
-        d_env = np.diff(np.concatenate([[0.0], grid]))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rows.append(np.where(d_env > 0, d_coach / d_env, np.nan))
+        x = np.concatenate([[0.0], r.episode_env_steps])
+        y = np.concatenate([[0.0], np.cumsum(r.episode_coach_steps)])
+        at = np.interp(edges, x, y, right=np.nan)
+        rows.append(np.diff(at) / np.diff(edges))
     return np.asarray(rows)
 
 
@@ -224,7 +225,7 @@ def analyze_cell(
     by_steps = np.asarray(
         [_step_curve(r.episode_env_steps, s, step_grid) for r, s in zip(runs, smooth, strict=True)]
     )
-    bins = np.linspace(0, budget, 21)[1:]
+    edges = np.linspace(0, budget, 21)
     return CellResult(
         env_id=env_id,
         condition=condition,
@@ -234,7 +235,7 @@ def analyze_cell(
         eval_curve=band(evals, grid, 500, 1),
         training_curve_episodes=_thin_band(by_episode, episodes_x),
         training_curve_steps=band(by_steps, step_grid, 300, 2),
-        intervention_curve=band(_intervention_rows(runs, bins), bins, 300, 3),
+        intervention_curve=band(_intervention_rows(runs, edges), (edges[1:] + edges[:-1]) / 2, 300, 3),
         improvement=improvement,
     )
 
