@@ -62,7 +62,7 @@ def test_shipped_conditions_resolve_on_all_four_envs():
     for env in (IP, "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5"):
         recipe = load_recipe(ROOT / "coach" / f"{env}.toml")
         for name, cond in conditions.items():
-            r, spec, source = resolve(cond, recipe)
+            r, spec, _source = resolve(cond, recipe)
             assert (spec is None) == (name == "none")
             assert r.steps == recipe.steps and r.algorithms == recipe.algorithms  # same agent everywhere
     ip = load_recipe(ROOT / "coach" / f"{IP}.toml")
