@@ -13,6 +13,6 @@ pidlab analyze tuning/InvertedPendulum-v5.paper.toml --episodes 10 --plots out/I
 pidlab analyze tuning/InvertedPendulum-v5.pidlab-robust.toml --episodes 10 --plots out/InvertedPendulum-v5.pidlab-robust
 
 # A small coaching experiment: 3 seeds x 3 conditions, 20k env steps each, then its report
-# (the full experiments are scripts/experiments.sh). Killed, the same command resumes.
+# (the full experiments are benchmarks/experiments.sh). Killed, the same command resumes.
 pidlab experiment --envs InvertedPendulum-v5 --conditions none,paper,pidlab --seeds 3 --steps 20000 \
     --out out/experiment

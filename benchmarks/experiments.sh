@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The committed coaching experiments (docs/results/): run them, then copy their reports into docs/.
 # Each command resumes when run again (finished runs are skipped). Budgets: see docs/results/README.md.
-#   bash scripts/experiments.sh            # the budgets committed in docs/results/
-#   FULL=1 bash scripts/experiments.sh     # every env at its recipe's full budget and 10 seeds
+#   bash benchmarks/experiments.sh            # the budgets committed in docs/results/
+#   FULL=1 bash benchmarks/experiments.sh     # every env at its recipe's full budget and 10 seeds
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
