@@ -25,7 +25,7 @@ if [ -n "${FULL:-}" ]; then
     for env in InvertedPendulum-v5 InvertedDoublePendulum-v5 Hopper-v5 Walker2d-v5; do run "$env" 10; done
 else
     run InvertedPendulum-v5 10                        # full budget (100k env steps)
-    run InvertedDoublePendulum-v5 5 --steps 100000    # budget cut from 1,000,000
-    run Hopper-v5 3 --steps 25000                     # budget cut from 1,000,000
-    run Walker2d-v5 3 --steps 25000                   # budget cut from 1,000,000
+    run InvertedDoublePendulum-v5 5 --steps 50000     # budget cut from 1,000,000 env steps
+    run Hopper-v5 5 --steps 25000                     # budget cut from 1,000,000 env steps
+    run Walker2d-v5 5 --steps 25000                   # budget cut from 1,000,000 env steps
 fi
