@@ -465,7 +465,7 @@ def train(
         raise typer.Exit(code=130)
 
 
-def _names(text: str, what: str) -> list[str]:
+def _names(text: str) -> list[str]:
     return [v.strip() for v in text.split(",") if v.strip()]
 
 
@@ -526,10 +526,10 @@ def experiment(
     """
     from pidlab.experiment import parse_seeds, plan, run_sweep
 
-    env_list = _names(envs, "envs")
+    env_list = _names(envs)
     folder = out or f"results/{'+'.join(env_list)}"
     p = plan(
-        env_list, _names(conditions, "conditions"), parse_seeds(seeds), folder,
+        env_list, _names(conditions), parse_seeds(seeds), folder,
         conditions_file=conditions_file, recipe_files=recipe or [], algo=algo, steps=steps,
     )  # fmt: skip
     failed = 0

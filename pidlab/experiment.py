@@ -202,7 +202,9 @@ def plan(
             base, spec, source = resolve(cond, recipes[env_id])
             for seed in seeds:
                 recipe = replace(base, seed=int(seed))
+                # what the run does, not where its files came from (a moved clone still resumes)
                 settings = config_dict(recipe, spec, None)
+                settings.pop("recipe_source", None)
                 tasks.append(
                     RunTask(
                         env_id=env_id,
@@ -483,10 +485,10 @@ def run_sweep(
         raise ExperimentError(f"--backend {backend!r}: expected one of {', '.join(BACKENDS)}")
     if address and backend != "ray":
         raise ExperimentError("--address: only with --backend ray")
+    if workers is not None and workers < 1:
+        raise ExperimentError(f"--workers {workers}: expected 1 or more")
     check_out_folder(p)
     workers = workers or os.cpu_count() or 1
-    if workers < 1:
-        raise ExperimentError(f"--workers {workers}: expected 1 or more")
     p.out.mkdir(parents=True, exist_ok=True)
     with _sweep_lock(p.out):
         write_experiment_record(p, argv, backend)
