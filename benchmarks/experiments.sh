@@ -17,6 +17,7 @@ run() {  # run ENV SEEDS [--steps N]: the experiment, then its report copied to 
     if [ -z "${FULL:-}" ]; then
         mkdir -p "docs/results/$env"
         cp -r "$out/report.md" "$out/report.html" "$out/metrics.csv" "$out/summary.csv" "$out/figures" \
+            "$out/experiment.json" \
             "docs/results/$env/"
     fi
 }
