@@ -112,6 +112,7 @@ METRICS: dict[str, tuple[bool, bool]] = {
     "agent_steps_to_target": (True, True),
     "final_score": (False, False),
     "final_training_score": (False, False),
+    "final_coached_score": (False, False),
     "intervention_rate": (True, False),
 }
 
@@ -132,9 +133,10 @@ def load_run(
     ev_env = np.array([float(r["env_steps_so_far"]) for r in evals])
     ev_agent = np.array([float(r["agent_steps_so_far"]) for r in evals])
     ev_mean = np.array([float(r["mean_return"]) for r in evals])
+    coached = np.array([float(r["total_return"]) for r in episodes])
     m = run_metrics(
         returns, ev_env, ev_agent, ev_mean, int(s["env_steps"]), int(s["agent_steps"]), int(s["coach_steps"]),
-        target, consecutive, window,
+        target, consecutive, window, coached,
     )  # fmt: skip
     return RunData(
         env_id=env_id,

@@ -114,7 +114,7 @@ def plot_coach_dependence(analysis: Analysis, env: str) -> plt.Figure:
         if cell is None:
             continue
         c = _color(analysis, cond)
-        xs = [r.metrics.final_training_score for r in cell.runs]
+        xs = [r.metrics.final_coached_score for r in cell.runs]
         ys = [r.metrics.final_score for r in cell.runs]
         a1.scatter(xs, ys, color=c, label=f"{cond}: {cell.coach_dependent}/{len(cell.runs)} coach-dependent",
                    alpha=0.8, s=28)  # fmt: skip
@@ -122,7 +122,7 @@ def plot_coach_dependence(analysis: Analysis, env: str) -> plt.Figure:
             _draw(a2, cell.intervention_curve, cond, c)
     a1.axvline(target, color="k", ls=":", lw=1)
     a1.axhline(target, color="k", ls=":", lw=1)
-    a1.set_xlabel(f"training return, last {analysis.windows[env]} episodes (coach in the loop)")
+    a1.set_xlabel(f"return with the coach, last {analysis.windows[env]} training episodes")
     a1.set_ylabel("final agent-alone score (coach off)")
     a1.set_title("coach dependence: right of the line but below it = scores only with the coach", fontsize=9)
     a1.legend(fontsize=8)

@@ -37,6 +37,7 @@ UNITS = {
     "agent_steps_to_target": "agent steps",
     "final_score": "return",
     "final_training_score": "return",
+    "final_coached_score": "return",
     "intervention_rate": "coach steps / env steps",
 }
 
@@ -184,8 +185,10 @@ def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list
         "quarter of the runs never did. Saving: (without - with) / without, as the paper computes it.",
         "- The honest metrics read the agent alone: deterministic policy, coach off, fixed evaluation "
         "seeds, every `evaluation.every` env steps. Env steps count the coach's steps too.",
-        "- Coach-dependent: the training average over the last window reached the target, the agent "
-        "alone did not. P = probability of improvement over no coach (0.5: no difference).",
+        "- Training return: what the agent was paid on its own steps. Return with the coach: the same "
+        "episodes with the coach's steps' rewards included. Coach-dependent: the return with the coach "
+        "over the last window reached the target, the agent alone did not. "
+        "P = probability of improvement over no coach (0.5: no difference).",
         "",
     ]
     for env in a.envs:
@@ -221,6 +224,7 @@ def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list
                     "agent steps to target",
                     "final agent-alone score",
                     f"training return, last {a.windows[env]} episodes",
+                    "return with the coach, same episodes",
                     "coach-dependent",
                     "intervention rate",
                 ],
@@ -231,6 +235,7 @@ def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list
                         _cell_metric(c, "agent_steps_to_target"),
                         _cell_metric(c, "final_score"),
                         _cell_metric(c, "final_training_score"),
+                        _cell_metric(c, "final_coached_score"),
                         f"{c.coach_dependent}/{len(c.runs)}",
                         _cell_metric(c, "intervention_rate"),
                     ]

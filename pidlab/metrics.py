@@ -101,8 +101,11 @@ class RunMetrics:
         Honest: mean return of the last agent-alone evaluation.
     final_training_score : float
         Mean training return (agent reward, coach-assisted episodes) over the last ``window`` episodes.
+    final_coached_score : float
+        Mean return *with the coach* (every step's reward, the coach's included) over the last
+        ``window`` training episodes: how the agent and its coach score together.
     coach_dependent : bool
-        The agent scores well with its coach (final training average ``>= target``) but not alone
+        The agent scores well with its coach (``final_coached_score >= target``) but not alone
         (final agent-alone score ``< target``).
     intervention_rate : float
         Coach steps / env steps over the whole run.
@@ -116,6 +119,7 @@ class RunMetrics:
     agent_steps_to_target: float | None
     final_score: float
     final_training_score: float
+    final_coached_score: float
     coach_dependent: bool
     intervention_rate: float
     episodes: int
@@ -135,6 +139,7 @@ def run_metrics(
     target: float,
     consecutive: int,
     window: int,
+    coached_returns: Values | None = None,
 ) -> RunMetrics:
     """All metrics of one run from its training returns and its agent-alone evaluations.
 
@@ -150,10 +155,14 @@ def run_metrics(
         The win target.
     consecutive, window : int
         The paper's streak length and moving-average window.
+    coached_returns : sequence of float, optional
+        Per episode, the return with the coach's steps included (default: ``returns``).
     """
     final = float(eval_means[-1]) if len(eval_means) else float("nan")
     tail = np.asarray(returns[-window:], dtype=float)
     training = float(tail.mean()) if tail.size else float("nan")
+    both = np.asarray((returns if coached_returns is None else coached_returns)[-window:], dtype=float)
+    coached = float(both.mean()) if both.size else float("nan")
     return RunMetrics(
         episodes_to_wins=episodes_to_consecutive_wins(returns, target, consecutive),
         episodes_to_average=episodes_to_average(returns, target, window),
@@ -161,7 +170,8 @@ def run_metrics(
         agent_steps_to_target=first_reaching(eval_agent_steps, eval_means, target),
         final_score=final,
         final_training_score=training,
-        coach_dependent=bool(coach_steps > 0 and training >= target and not final >= target),
+        final_coached_score=coached,
+        coach_dependent=bool(coach_steps > 0 and coached >= target and not final >= target),
         intervention_rate=coach_steps / env_steps if env_steps else 0.0,
         episodes=len(returns),
         env_steps=int(env_steps),
