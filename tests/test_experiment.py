@@ -71,7 +71,11 @@ def test_shipped_conditions_resolve_on_all_four_envs():
     assert r.coaching.trigger.variable == "hinge_vel" and r.coaching.trigger.high == 0.3
     assert spec is not None and spec.name == "paper"
     r, spec, _ = resolve(conditions["paper-text"], ip)
-    assert r.coaching.mode == "takeover" and spec is not None and spec.bounds["box"] == {"hinge_vel": [-0.4, 0.4]}
+    assert (
+        r.coaching.mode == "takeover"
+        and spec is not None
+        and spec.bounds["box"] == {"hinge_vel": [-0.4, 0.4]}
+    )
     r, spec, _ = resolve(conditions["pidlab-fading"], ip)
     assert r.coaching.off_after == 0.5 and r.coaching.probability.end == 0.0
     assert spec is not None and "ellipsoid" in spec.bounds  # the derived bounds are kept
@@ -87,7 +91,10 @@ def test_shipped_conditions_resolve_on_all_four_envs():
         ({"schema": "pidlab.conditions/1"}, "no conditions"),
         ({"schema": "pidlab.conditions/1", "condition": {"a": {"coach": 3}}}, "coach"),
         ({"schema": "pidlab.conditions/1", "condition": {"a": {"coach": "none", "colour": 1}}}, "colour"),
-        ({"schema": "pidlab.conditions/1", "condition": {"a": {"coach": "x", "bounds": {"v": [1, 0]}}}}, "low < high"),
+        (
+            {"schema": "pidlab.conditions/1", "condition": {"a": {"coach": "x", "bounds": {"v": [1, 0]}}}},
+            "low < high",
+        ),
     ],
 )
 def test_bad_conditions_files_name_the_field(data, message):
@@ -97,7 +104,10 @@ def test_bad_conditions_files_name_the_field(data, message):
 
 def test_a_condition_with_coaching_the_recipe_rejects_fails_on_resolve():
     conds = parse_conditions(
-        {"schema": "pidlab.conditions/1", "condition": {"odd": {"coach": "pidlab-robust", "coaching": {"mode": "dance"}}}}
+        {
+            "schema": "pidlab.conditions/1",
+            "condition": {"odd": {"coach": "pidlab-robust", "coaching": {"mode": "dance"}}},
+        }
     )
     with pytest.raises(ConditionError, match="mode"):
         resolve(conds["odd"], load_recipe(ROOT / "coach" / f"{IP}.toml"))
@@ -118,7 +128,9 @@ def test_seeds_forms_and_errors():
 def test_plan_lists_every_run_with_shared_agent_settings(tmp_path):
     p = plan([IP], ["none", "paper", "pidlab"], [0, 1], tmp_path / "exp")
     assert len(p.tasks) == 6
-    assert {(t.condition, t.seed) for t in p.tasks} == {(c, s) for c in ("none", "paper", "pidlab") for s in (0, 1)}
+    assert {(t.condition, t.seed) for t in p.tasks} == {
+        (c, s) for c in ("none", "paper", "pidlab") for s in (0, 1)
+    }
     agents = {json.dumps(t.recipe["ppo"], sort_keys=True) for t in p.tasks}
     assert len(agents) == 1
     assert len({t.digest for t in p.tasks}) == 6
@@ -136,7 +148,17 @@ def test_plan_lists_every_run_with_shared_agent_settings(tmp_path):
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
-    base = ["--envs", IP, "--conditions", "none", "--seeds", "1", "--out", str(tmp_path / "exp"), "--no-progress"]
+    base = [
+        "--envs",
+        IP,
+        "--conditions",
+        "none",
+        "--seeds",
+        "1",
+        "--out",
+        str(tmp_path / "exp"),
+        "--no-progress",
+    ]
     for i in range(0, len(args), 2):  # the bad option replaces the good one
         if args[i] in base:
             j = base.index(args[i])
@@ -153,8 +175,23 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
 def test_a_folder_of_another_experiment_is_refused_untouched(tmp_path):
     recipe = tiny_recipe(tmp_path, steps=300)
     out = tmp_path / "exp"
-    cmd = [PIDLAB, "experiment", "--envs", IP, "--conditions", "none", "--seeds", "1", "--recipe", str(recipe),
-           "--out", str(out), "--no-progress", "--workers", "1"]
+    cmd = [
+        PIDLAB,
+        "experiment",
+        "--envs",
+        IP,
+        "--conditions",
+        "none",
+        "--seeds",
+        "1",
+        "--recipe",
+        str(recipe),
+        "--out",
+        str(out),
+        "--no-progress",
+        "--workers",
+        "1",
+    ]
     first = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert first.returncode == 0, first.stderr
     before = tree_digest(out)
@@ -241,8 +278,15 @@ def test_report_tables_and_figures(tmp_path):
     assert run_sweep(p, workers=2, progress_bar=False).count("done") == 6
     report = write_report(p, progress_bar=False)
     text = report.read_text()
-    for needle in ("## InvertedPendulum-v5", "paper: with coach", "| 5 wins | 100 | 160 | +37.5 % |",
-                   "Honest measures", "Probability of improvement", "stable-baselines3", "coach-dependent"):
+    for needle in (
+        "## InvertedPendulum-v5",
+        "paper: with coach",
+        "| 5 wins | 100 | 160 | +37.5 % |",
+        "Honest measures",
+        "Probability of improvement",
+        "stable-baselines3",
+        "coach-dependent",
+    ):
         assert needle in text, needle
     for fig in ("curves", "table2", "dependence"):
         png = p.out / "figures" / f"{IP}-{fig}.png"

@@ -63,7 +63,9 @@ def test_coach_dependence_is_good_with_the_coach_and_bad_alone():
     m = run_metrics([950.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200, 800, 5, 20)
     assert m.coach_dependent and m.env_steps_to_target is None
     # the agent earns little on its own steps, but with the coach's steps the episodes score 1000
-    m = run_metrics([100.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200, 800, 5, 20, [1000.0] * 40)
+    m = run_metrics(
+        [100.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200, 800, 5, 20, [1000.0] * 40
+    )
     assert m.final_training_score == 100.0 and m.final_coached_score == 1000.0 and m.coach_dependent
     # the same curves without a coach in the loop are not "coach dependence"
     m0 = run_metrics([950.0] * 40, [0, 5000], [0, 5000], [10.0, 40.0], 5000, 5000, 0, 800, 5, 20)
