@@ -541,8 +541,10 @@ def experiment(
         typer.echo(f"runs: {counts} (of {len(p.tasks)})")
         failed = result.count("failed")
         if result.interrupted:
-            typer.echo("interrupted: every unfinished run was checkpointed; run the same command to resume",
-                       err=True)  # fmt: skip
+            typer.echo(
+                "interrupted: unfinished runs keep their last checkpoint; run the same command to resume",
+                err=True,
+            )
             raise typer.Exit(code=130)
     elif not (p.out / "experiment.json").exists():
         _fail(f"--report-only: {p.out} holds no experiment (no experiment.json)")

@@ -298,6 +298,7 @@ def finished(run_dir: Path, budget: int) -> bool:
 
 
 STOP_FILE = ".stopping"
+STOP_TIMEOUT_S = 300.0  # how long an interrupted sweep waits for its runs to checkpoint
 
 
 @contextmanager
@@ -348,6 +349,8 @@ def _worker_init() -> None:
     """Pool worker: leave terminal Ctrl-C to the parent, and stop politely if the parent dies."""
     os.setsid()
     parent = os.getppid()
+    # outside a run's training loop (which stops politely), SIGTERM ends the task, not the process
+    signal.signal(signal.SIGTERM, _term_as_interrupt)
 
     def watch() -> None:
         while True:
@@ -375,15 +378,19 @@ def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, 
             for f in done:
                 report(f.result())
     except KeyboardInterrupt:
-        (out / STOP_FILE).touch()
-        for proc in list(getattr(pool, "_processes", {}).values()):
+        (out / STOP_FILE).touch()  # queued runs return at once
+        procs = list(getattr(pool, "_processes", {}).values())
+        for proc in procs:  # running runs stop at their next step with a checkpoint
             try:
                 os.kill(proc.pid, signal.SIGTERM)
             except ProcessLookupError:
                 pass
-        for f in futures:
-            f.cancel()
-        pool.shutdown(wait=True, cancel_futures=True)
+        running = [f for f in futures if not f.cancel()]
+        wait(running, timeout=STOP_TIMEOUT_S)
+        for proc in procs:  # idle now (or stuck): end them rather than wait on the pool
+            if proc.is_alive():
+                proc.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)
         raise
     pool.shutdown(wait=True)
 
