@@ -11,7 +11,7 @@ import csv
 import math
 from pathlib import Path
 
-from pidlab.experiment_report import PAPER_TABLE_II
+from pidlab.experiment_report import PAPER_TABLE_II, format_value
 from pidlab.runinfo import atomic_write_text, read_json
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,20 +26,16 @@ def _num(text: str) -> float:
     return float(text) if text not in ("", "inf") else math.inf
 
 
-def _fmt(v: float, unit: str) -> str:
-    if math.isinf(v):
-        return "not reached"
-    if unit == "coach steps / env steps":
-        return f"{100 * v:.1f} %"
-    return f"{v:,.0f}" if abs(v) >= 100 else f"{v:.1f}"
-
-
 def _cell(row: dict[str, str] | None, to_target: bool = True) -> str:
     if row is None:
         return "-"
     v, lo, hi = _num(row["iqm"]), _num(row["ci_low"]), _num(row["ci_high"])
-    unit = row["unit"]
-    text = "not reached" if math.isinf(v) else f"{_fmt(v, unit)} [{_fmt(lo, unit)}, {_fmt(hi, unit)}]"
+    name = row["metric"]
+    text = (
+        "not reached"
+        if math.isinf(v)
+        else f"{format_value(v, name)} [{format_value(lo, name)}, {format_value(hi, name)}]"
+    )
     if to_target:
         text += f" ({row['reached']}/{row['runs']})"
     return text

@@ -372,13 +372,14 @@ def _resolve_coach(env: str, coach: str) -> tuple[Any, str | None]:
     """``none``, a spec file, or a spec name in ``tuning/`` (``pidlab-robust``)."""
     from pathlib import Path
 
+    from pidlab.conditions import spec_path
     from pidlab.spec import load_spec
 
     if coach == "none":
         return None, None
     path = Path(coach)
     if not path.exists() and path.suffix != ".toml":
-        path = Path(__file__).resolve().parents[1] / "tuning" / f"{env}.{coach}.toml"
+        path = spec_path(env, coach)
     if not path.exists():
         _fail(
             f"--coach {coach!r}: expected none, a coach spec file, or the name of a spec in tuning/ "

@@ -54,7 +54,8 @@ _VERSIONS = (
 )
 
 
-def _fmt(v: float, name: str) -> str:
+def format_value(v: float, name: str) -> str:
+    """A metric's value as the report shows it (``name``: a metric of :data:`METRICS`)."""
     if v == float("inf"):
         return "not reached"
     if name == "intervention_rate":
@@ -67,8 +68,8 @@ def _fmt(v: float, name: str) -> str:
 def _est(e: Estimate, name: str) -> str:
     if e.value == float("inf"):
         return "not reached"
-    high = _fmt(e.high, name) if e.high < float("inf") else "not reached"
-    return f"{_fmt(e.value, name)} [{_fmt(e.low, name)}, {high}]"
+    high = format_value(e.high, name) if e.high < float("inf") else "not reached"
+    return f"{format_value(e.value, name)} [{format_value(e.low, name)}, {high}]"
 
 
 def _cell_metric(cell: CellResult, name: str) -> str:
@@ -141,7 +142,7 @@ def _reading(a: Analysis, env: str) -> list[str]:
             p = cell.improvement[name]
             parts.append(f"{label}: {_verdict(p)} (P = {p.value:.2f} [{p.low:.2f}, {p.high:.2f}])")
         dep = f"{cell.coach_dependent}/{len(cell.runs)} agents coach-dependent"
-        rate = _fmt(cell.metrics["intervention_rate"].estimate.value, "intervention_rate")
+        rate = format_value(cell.metrics["intervention_rate"].estimate.value, "intervention_rate")
         out.append(
             f"**{cond}** vs no coach: " + "; ".join(parts) + f". {dep}; the coach ran {rate} of env steps."
         )
