@@ -20,7 +20,7 @@ import control as ct
 import numpy as np
 
 from pidlab.linearize import Linearization, linearize
-from pidlab.lti import observable_part
+from pidlab.lti import observable_part, siso_disk_margins, siso_frequency_response
 from pidlab.model import LoadedModel
 from pidlab.pid import Coach
 
@@ -267,8 +267,8 @@ def loop_margins(L: ct.StateSpace, actuator: str) -> LoopMargins:
         warnings.simplefilter("ignore")
         gm, pm, sm, wpc, wgc, _ = ct.stability_margins(L, returnall=True)
         omega = _frequency_grid(L)
-        dm, dgm, dpm = ct.disk_margins(L, omega)
-        response = np.asarray(L.frequency_response(omega).complex).ravel()
+        response = siso_frequency_response(L, omega)
+        dm, dgm, dpm = siso_disk_margins(response)
     gm, pm, sm, wpc, wgc = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (gm, pm, sm, wpc, wgc))
     upper = gm[gm > 1.0]
     lower = gm[(gm < 1.0) & (gm > 0.0)]
@@ -282,7 +282,7 @@ def loop_margins(L: ct.StateSpace, actuator: str) -> LoopMargins:
         # phase margin per crossover = angle between L and -1 (python-control's signed value
         # is negative at crossovers in the upper half plane, normal for unstable plants);
         # delay margin = smallest delay whose lag rotates a crossover onto -1
-        ph = np.angle(np.asarray(L.frequency_response(wgc).complex).ravel(), deg=True)
+        ph = np.angle(siso_frequency_response(L, wgc), deg=True)
         distance = 180.0 - np.abs(ph)
         lag = np.mod(ph + 180.0, 360.0)
         k = int(np.argmin(distance))

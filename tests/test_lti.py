@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import control as ct
 import numpy as np
+import pytest
 
-from pidlab.lti import analyze_lti, reachable_dimension
+from pidlab.lti import analyze_lti, reachable_dimension, siso_disk_margins, siso_frequency_response
 
 
 def test_double_integrator():
@@ -57,3 +58,22 @@ def test_pendulum_models(models):
     r = analyze_lti(hopper.sys)
     # rootx is not in the observation: its integrator mode cannot be observed
     assert r.observable_dim == r.n - 1 and not r.detectable
+
+
+def _random_siso(rng: np.random.Generator, n: int, dt: float | None) -> ct.StateSpace:
+    A = rng.standard_normal((n, n)) * 0.5
+    if dt is not None:
+        A = A / (1.2 * max(abs(np.linalg.eigvals(A))))  # well inside the unit circle
+    return ct.ss(A, rng.standard_normal((n, 1)), rng.standard_normal((1, n)), rng.standard_normal((1, 1)), dt)
+
+
+@pytest.mark.parametrize("dt", [None, 0.02])
+def test_fast_frequency_response_and_disk_margins_equal_python_control(dt):
+    rng = np.random.default_rng(3)
+    omega = np.logspace(-2, np.log10(np.pi / 0.02) - 1e-6, 500)
+    for n in (1, 3, 7):
+        sys = _random_siso(rng, n, dt)
+        ours = siso_frequency_response(sys, omega)
+        ref = np.asarray(sys.frequency_response(omega).complex).ravel()
+        assert np.allclose(ours, ref, rtol=1e-10, atol=1e-12)
+        assert np.allclose(siso_disk_margins(ours), ct.disk_margins(sys, omega), rtol=1e-9)
