@@ -328,7 +328,18 @@ def _poles(eigs: np.ndarray, dt: float | None) -> tuple[Pole, ...]:
     return tuple(out)
 
 
-def _closed_loop(plant: ct.StateSpace, coach: ct.StateSpace, loops: list[str]) -> ClosedLoopReport:
+def closed_loop_report(plant: ct.StateSpace, coach: ct.StateSpace, loops: list[str]) -> ClosedLoopReport:
+    """Close ``plant`` with ``coach`` (same time domain): poles, stability, margins per actuator.
+
+    Parameters
+    ----------
+    plant : control.StateSpace
+        Outputs = observation variables, inputs = actuators.
+    coach : control.StateSpace
+        Inputs = observation variables then one ``<loop>_setpoint`` per loop.
+    loops : list of str
+        Loop names, in the coach's setpoint order.
+    """
     discrete = bool(plant.isdtime(strict=True))
     setpoints = [f"{name}_setpoint" for name in loops]
     with warnings.catch_warnings():
@@ -366,6 +377,33 @@ def _settling_time(t: np.ndarray, y: np.ndarray, final: float, band: float) -> f
     return float(t[outside[-1] + 1])
 
 
+def step_response(cl: ct.StateSpace, loop: int, steps: int) -> np.ndarray:
+    """Outputs of the discrete closed loop after a unit step of one loop's setpoint, from rest.
+
+    Parameters
+    ----------
+    cl : control.StateSpace
+        Discrete closed loop from the setpoints (:attr:`ClosedLoopReport.sys`).
+    loop : int
+        Index of the stepped setpoint.
+    steps : int
+
+    Returns
+    -------
+    outputs : ndarray, shape (steps, n_outputs)
+        Observation variables, then actuator commands (deviations).
+    """
+    A, B, C, D = (np.asarray(M, dtype=float) for M in (cl.A, cl.B, cl.C, cl.D))
+    b, d = B[:, loop], D[:, loop]
+    x = np.zeros(A.shape[0])
+    out = np.empty((steps, C.shape[0]))
+    with np.errstate(over="ignore", invalid="ignore"):  # unstable loops grow without bound
+        for k in range(steps):
+            out[k] = C @ x + d
+            x = A @ x + b
+    return out
+
+
 def initial_response(
     cl: ct.StateSpace, plant: ct.StateSpace, signal: int, size: float, steps: int
 ) -> np.ndarray:
@@ -391,9 +429,10 @@ def initial_response(
     return out
 
 
-def _responses(
+def response_metrics(
     report: ClosedLoopReport, coach: Coach, plant: ct.StateSpace, horizon_s: float
 ) -> tuple[ResponseMetrics, ...]:
+    """Step and initial-condition metrics of every loop of the discrete closed loop ``report``."""
     cl = report.sys
     dt = coach.dt
     steps = max(round(horizon_s / dt), 10)
@@ -405,11 +444,9 @@ def _responses(
     out = []
     for j, lp in enumerate(lay.spec.loops):
         sig = lay.observation_names.index(lp.signal)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            resp = ct.forced_response(cl, T=t, U=np.vstack([np.eye(lay.n_loops)[j]] * steps).T)
-        y = np.asarray(resp.outputs)[sig]
-        u = np.asarray(resp.outputs)[nobs:]
+        outputs = step_response(cl, j, steps)
+        y = outputs[:, sig]
+        u = outputs[:, nobs:].T
         final = float(y[-1])
         peak_u = float(np.max(np.abs(u).T / halfwidth)) if u.size else 0.0
         if report.stable and abs(final) > 1e-12:
@@ -462,8 +499,8 @@ def analyze_coach(
     coach_d = coach.linear_model()
     plant_d, removed = observable_part(lin.sysd)
     plant_c, _ = observable_part(lin.sys)
-    discrete = _closed_loop(plant_d, coach_d, loops)
-    continuous = _closed_loop(plant_c, coach_to_continuous(coach_d), loops)
+    discrete = closed_loop_report(plant_d, coach_d, loops)
+    continuous = closed_loop_report(plant_c, coach_to_continuous(coach_d), loops)
     return CoachAnalysis(
         env_id=coach.spec.env_id,
         spec_name=coach.spec.name,
@@ -471,7 +508,7 @@ def analyze_coach(
         linearization=lin,
         discrete=discrete,
         continuous=continuous,
-        responses=_responses(discrete, coach, plant_d, horizon_s),
+        responses=response_metrics(discrete, coach, plant_d, horizon_s),
         plant=plant_d,
         unobservable=removed,
     )

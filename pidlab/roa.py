@@ -56,6 +56,24 @@ METHOD_LYAPUNOV = "lyapunov level set, certified by simulation"
 METHOD_SIMULATION = "simulation: recoverable box over the coached variables (no Lyapunov argument)"
 
 
+Progress = Callable[[str, "float | None"], None]
+"""``progress(stage, fraction)``: what a long estimate is doing; fraction in [0, 1] or None."""
+
+
+def _no_progress(stage: str, fraction: float | None) -> None:
+    return None
+
+
+def _final_tick(report: Progress, samples: int) -> Callable[[int], None]:
+    every = max(1, samples // 50)
+
+    def tick(i: int) -> None:
+        if i % every == 0:
+            report(f"final check ({i}/{samples} samples)", i / samples)
+
+    return tick
+
+
 class RegionError(PidlabError, ValueError):
     """No region of attraction can be given (unstable closed loop, nothing certified)."""
 
@@ -302,12 +320,15 @@ def _check_level(
     rng: np.random.Generator,
     record: list[int] | None = None,
     keep: int = 0,
+    tick: Callable[[int], None] | None = None,
 ) -> tuple[int, int, list[Trajectory]]:
     """(terminated, not converged, kept trajectories) among n samples in {V <= c}."""
     terminated = not_converged = 0
     kept: list[Trajectory] = []
     plant_n = sim.lin.sysd.nstates
-    for y_dev in _sample_ellipsoid(lyap.P_y, c, n, rng):
+    for i, y_dev in enumerate(_sample_ellipsoid(lyap.P_y, c, n, rng)):
+        if tick is not None:
+            tick(i)
         X0 = lyap.to_state @ y_dev
         obs = sim.start(X0[:plant_n])
         v0 = float(X0 @ lyap.P @ X0)
@@ -508,6 +529,7 @@ def estimate_roa(
     bisection_rounds: int = 8,
     keep_trajectories: int = 0,
     record: tuple[str, str] | None = None,
+    progress: Progress | None = None,
 ) -> tuple[RegionOfAttraction, list[Trajectory]]:
     """Estimate and certify the region of attraction of ``spec`` on its env.
 
@@ -526,6 +548,9 @@ def estimate_roa(
         How many final-check trajectories to return (for plots).
     record : (str, str), optional
         Two observation variables to record along those trajectories.
+    progress : callable, optional
+        Called as ``progress(stage, fraction)`` while the estimate runs (``fraction`` in [0, 1],
+        or None where the stage's length is unknown). It may raise to abandon the estimate.
 
     Returns
     -------
@@ -537,6 +562,7 @@ def estimate_roa(
         Unstable closed loop, or nothing certified.
     """
     t0 = time.perf_counter()
+    report = progress if progress is not None else _no_progress
     coach = Coach(spec, loaded)
     analysis = analyze_coach(coach, loaded)
     if loaded.env_id in CONTACT_RICH:
@@ -552,6 +578,7 @@ def estimate_roa(
             keep_trajectories,
             record,
             t0,
+            report,
         )
     lin = analysis.linearization
     sim = _Simulator(spec, loaded, lin)
@@ -559,6 +586,7 @@ def estimate_roa(
     steps = max(1, round(horizon_s / loaded.control_dt))
     opt_steps = max(1, round(OPTIMIZATION_HORIZON_S / loaded.control_dt))
     hi = _termination_cap(lyap, loaded)
+    report("level estimate (CasADi)", None)
     c_opt = optimization_level(
         spec,
         loaded,
@@ -574,8 +602,11 @@ def estimate_roa(
     if not math.isfinite(hi):
         hi = 1e3 * float(np.max(lyap.center**2) + 1.0)
     rng = np.random.default_rng(seed)
+    tried = [0]
 
     def passes(fraction: float) -> bool:
+        tried[0] += 1
+        report(f"bisection on the level ({tried[0]}/{bisection_rounds})", tried[0] / bisection_rounds)
         term, nonconv, _ = _check_level(sim, lyap, fraction * hi, bisection_samples, steps, rng)
         return term + nonconv == 0
 
@@ -591,7 +622,15 @@ def estimate_roa(
     level = lo
     for _ in range(6):
         term, nonconv, kept = _check_level(
-            sim, lyap, level, samples, steps, np.random.default_rng(seed + 1), rec, keep_trajectories
+            sim,
+            lyap,
+            level,
+            samples,
+            steps,
+            np.random.default_rng(seed + 1),
+            rec,
+            keep_trajectories,
+            _final_tick(report, samples),
         )
         if term + nonconv == 0:
             break
@@ -625,6 +664,7 @@ def _recoverable_box(
     keep: int,
     record: tuple[str, str] | None,
     t0: float,
+    report: Progress,
 ) -> tuple[RegionOfAttraction, list[Trajectory]]:
     """Largest box over (torso pitch, pitch rate) from which the coach recovers (simulation)."""
     assert loaded.card is not None
@@ -640,13 +680,19 @@ def _recoverable_box(
     rec = [loaded.card.observation_names.index(v) for v in record] if record else None
 
     def check(
-        scale: float, n: int, rng: np.random.Generator, kept_n: int = 0
+        scale: float,
+        n: int,
+        rng: np.random.Generator,
+        kept_n: int = 0,
+        tick: Callable[[int], None] | None = None,
     ) -> tuple[int, list[Trajectory]]:
         failures = 0
         kept: list[Trajectory] = []
         corners = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float)
         points = np.vstack([corners, rng.uniform(-1, 1, (max(n - 4, 0), 2))])[:n]
-        for p in points:
+        for i, p in enumerate(points):
+            if tick is not None:
+                tick(i)
             x = np.zeros(2 * m.nv)
             x[dof], x[m.nv + dof] = p * shape * scale
             obs = sim.start(x)
@@ -659,7 +705,8 @@ def _recoverable_box(
     rng = np.random.default_rng(seed)
     lo, hi = 0.0, 1.0
     scale = hi
-    for _ in range(bisection_rounds):
+    for r in range(bisection_rounds):
+        report(f"bisection on the box ({r + 1}/{bisection_rounds})", (r + 1) / bisection_rounds)
         if check(scale, bisection_samples, rng)[0] == 0:
             lo = scale
             if scale == hi:
@@ -671,7 +718,9 @@ def _recoverable_box(
         raise RegionError(f"no recoverable set found for {spec.name}: the coach fails from every box tried")
     level = lo
     for _ in range(6):
-        failures, kept = check(level, samples, np.random.default_rng(seed + 1), keep)
+        failures, kept = check(
+            level, samples, np.random.default_rng(seed + 1), keep, _final_tick(report, samples)
+        )
         if failures == 0:
             break
         level *= 0.8

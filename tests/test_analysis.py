@@ -131,3 +131,21 @@ def test_nonlinear_response_matches_linear_prediction(models):
     e1 = _linear_prediction_error(loaded, spec, 0.01)
     assert e1 < 0.05 * 0.01  # within 5 % of the perturbation
     assert e2 / e1 > 2.5  # and the mismatch is nonlinear (second order or higher)
+
+
+def test_step_response_equals_python_control_forced_response(models):
+    import warnings
+
+    from pidlab.analysis import step_response
+
+    loaded = models["InvertedDoublePendulum-v5"]
+    spec = load_spec(TUNING / "InvertedDoublePendulum-v5.pidlab-robust.toml")
+    result = analyze_coach(Coach(spec, loaded), loaded)
+    cl = result.discrete.sys
+    steps = 200
+    t = np.arange(steps) * result.dt
+    for j in range(cl.ninputs):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ref = ct.forced_response(cl, T=t, U=np.vstack([np.eye(cl.ninputs)[j]] * steps).T)
+        assert np.allclose(step_response(cl, j, steps), np.asarray(ref.outputs).T, rtol=1e-9, atol=1e-12)
