@@ -162,13 +162,25 @@ def linearize(
 @friendly_errors
 def tune(
     env: Annotated[str, typer.Argument(metavar="ENV", help="A paper env id, e.g. InvertedPendulum-v5.")],
-    auto: Annotated[bool, typer.Option("--auto", help="Tune automatically (required for now).")] = False,
+    auto: Annotated[bool, typer.Option("--auto", help="Tune automatically and write the spec.")] = False,
+    ui: Annotated[bool, typer.Option("--ui", help="Serve the interactive tuner in the browser.")] = False,
+    spec: Annotated[
+        str | None,
+        typer.Option(help="--ui: the spec to start from (default: tuning/ENV.pidlab-robust.toml)."),
+    ] = None,
+    port: Annotated[int, typer.Option(help="--ui: local port to serve on.")] = 5006,
+    tuning_dir: Annotated[
+        str, typer.Option(help="--ui: where Save writes ENV.NAME.toml and Load looks.")
+    ] = "tuning",
+    animation: Annotated[
+        str, typer.Option(help="--ui: rollout frames: auto, mujoco (offscreen OpenGL) or schematic.")
+    ] = "auto",
     bandwidth: Annotated[float | None, typer.Option(help="Target gain crossover, rad/s.")] = None,
     phase_margin: Annotated[float | None, typer.Option(help="Target phase margin, degrees.")] = None,
     preset: Annotated[str, typer.Option(help="robust or weak.")] = "robust",
     output: Annotated[str | None, typer.Option("-o", "--output", help="Spec file to write (TOML).")] = None,
 ) -> None:
-    """Auto-tune a PID coach for ENV and write its spec."""
+    """Tune a PID coach for ENV: automatically (--auto) or interactively in the browser (--ui)."""
     from rich.progress import Progress
 
     from pidlab.autotune import tune as run_tune
@@ -176,8 +188,11 @@ def tune(
     from pidlab.render import wide_console
     from pidlab.spec import save_spec
 
-    if not auto:
-        _fail("interactive tuning (--ui) is not available yet; use --auto")
+    if auto == ui:
+        _fail("give exactly one of --auto (write a tuned spec) or --ui (interactive tuner in the browser)")
+    if ui:
+        _tune_ui(env, spec, port, tuning_dir, animation)
+        return
     if preset not in ("robust", "weak"):
         _fail(f"--preset {preset!r}: expected robust or weak")
     loaded = load_model(env)
@@ -208,6 +223,34 @@ def tune(
             f"  refined on the real env: mean return {result.refined_return:.1f} on tuning seeds 1000-1002"
         )
     con.print(f"wrote {path}")
+
+
+def _tune_ui(env: str, spec_file: str | None, port: int, tuning_dir: str, animation: str) -> None:
+    from pathlib import Path
+
+    from pidlab.app.serve import check_port, serve_tuner
+    from pidlab.conditions import spec_path
+    from pidlab.model import load_model
+    from pidlab.spec import load_spec, validate_against
+
+    if animation not in ("auto", "mujoco", "schematic"):
+        _fail(f"--animation {animation!r}: expected auto, mujoco or schematic")
+    loaded = load_model(env)
+    if loaded.card is None:
+        _fail(f"{env}: the tuner needs a model card (one of the paper envs)")
+    path = Path(spec_file) if spec_file else spec_path(env, "pidlab-robust")
+    if not path.is_file():
+        _fail(f"--spec {path}: no such file; give a coach spec, or make one with pidlab tune {env} --auto")
+    coach = load_spec(path)
+    if coach.env_id != env:
+        _fail(f"--spec {path}: a coach for {coach.env_id}, not {env}")
+    assert loaded.card is not None
+    validate_against(coach, loaded.card.observation_names, loaded.input_names, where=str(path))
+    folder = Path(tuning_dir)
+    if folder.exists() and not folder.is_dir():
+        _fail(f"--tuning-dir {folder}: not a folder")
+    check_port(port)
+    serve_tuner(coach, str(path), folder, port, animation=animation, announce=typer.echo)
 
 
 @app.command()

@@ -1,0 +1,398 @@
+"""The tuner's slow parts, run in worker processes so the page never freezes.
+
+A :class:`JobRunner` owns a small pool of spawned worker processes (lowered priority, so the
+server process that answers slider moves keeps a core) and runs at most one job of each
+*kind* at a time: submitting a new ``roa`` job abandons the running one (its progress
+callback raises at the next report) and drops a queued one. The app polls
+:meth:`JobRunner.poll` from its event loop and receives :class:`JobUpdate` records: progress
+while a job runs, then its result or a one-line error.
+
+The job functions (:func:`roa_preview`, :func:`rollout_preview`, :func:`autotune_job`,
+:func:`bounds_job`) are plain functions of picklable arguments returning frozen dataclasses;
+they can be called directly (tests do) with ``progress=None``.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import logging
+import multiprocessing as mp
+import os
+import queue as queue_mod
+import traceback
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pidlab.errors import PidlabError
+from pidlab.spec import CoachSpec
+
+log = logging.getLogger("pidlab.app")
+
+Progress = Callable[[str, "float | None"], None]
+
+ROA_PREVIEW_SAMPLES = 200
+"""Simulated initial states in the live region-of-attraction preview (``pidlab bounds`` uses 1000)."""
+
+ROA_PREVIEW_TRAJECTORIES = 40
+ROLLOUT_EPISODES = 5
+BOUNDS_SAMPLES = 1000
+
+
+class JobCancelled(Exception):
+    """Raised inside a worker when its job was superseded."""
+
+
+# --------------------------------------------------------------------------------------------
+# Job functions (run in the workers)
+
+
+@functools.lru_cache(maxsize=4)
+def _model(env_id: str) -> Any:
+    from pidlab.model import load_model
+
+    return load_model(env_id)
+
+
+def _quiet(progress: Progress | None) -> Progress:
+    return progress if progress is not None else (lambda stage, fraction: None)
+
+
+@dataclass(frozen=True)
+class RoaPreview:
+    """A region-of-attraction estimate with trajectories recorded in two variables.
+
+    Attributes
+    ----------
+    roa : pidlab.roa.RegionOfAttraction
+    variables : (str, str)
+        The slice's variables.
+    paths : tuple of ndarray, shape (steps, 2)
+    recovered : tuple of bool
+    """
+
+    roa: Any
+    variables: tuple[str, str]
+    paths: tuple[np.ndarray, ...]
+    recovered: tuple[bool, ...]
+
+
+def slice_variables(spec: CoachSpec) -> tuple[str, str]:
+    """The two variables of the ROA slice: the first loop's signal and its rate signal."""
+    lp = spec.loops[0]
+    return lp.signal, lp.rate_signal or lp.signal
+
+
+def roa_preview(
+    spec: CoachSpec, samples: int = ROA_PREVIEW_SAMPLES, progress: Progress | None = None
+) -> RoaPreview:
+    """Estimate the region of attraction of ``spec`` with a preview budget, keeping trajectories."""
+    from pidlab.roa import estimate_roa
+
+    loaded = _model(spec.env_id)
+    variables = slice_variables(spec)
+    roa, kept = estimate_roa(
+        spec,
+        loaded,
+        samples=samples,
+        bisection_samples=30,
+        keep_trajectories=ROA_PREVIEW_TRAJECTORIES,
+        record=variables,
+        progress=_quiet(progress),
+    )
+    return RoaPreview(
+        roa=roa,
+        variables=variables,
+        paths=tuple(np.asarray(k.path, dtype=float) for k in kept),
+        recovered=tuple(bool(k.recovered) for k in kept),
+    )
+
+
+@dataclass(frozen=True)
+class RolloutPreview:
+    """The coach alone on the real env: its score and an animation of one episode.
+
+    Attributes
+    ----------
+    mean, std : float
+        Return over :attr:`episodes` seeded episodes (seeds 0..episodes-1).
+    episodes : int
+    mean_length : float
+        Env steps per episode.
+    causes : dict of str to int
+        How the episodes ended.
+    gif : bytes
+        Animated GIF of the episode with seed 0.
+    backend, note : str
+        How the frames were drawn (``mujoco`` or ``schematic``) and why.
+    """
+
+    mean: float
+    std: float
+    episodes: int
+    mean_length: float
+    causes: dict[str, int]
+    gif: bytes
+    backend: str
+    note: str
+
+
+def rollout_preview(
+    spec: CoachSpec,
+    episodes: int = ROLLOUT_EPISODES,
+    backend: str = "auto",
+    progress: Progress | None = None,
+) -> RolloutPreview:
+    """Score the coach alone and draw an animation of its first episode."""
+    from pidlab.animation import frames_to_gif, record_rollout, render_frames
+    from pidlab.rollout import coach_alone
+
+    report = _quiet(progress)
+    loaded = _model(spec.env_id)
+    returns, lengths, causes = [], [], {}
+    for i in range(episodes):
+        report(f"episode {i + 1}/{episodes}", i / (episodes + 1))
+        ep = coach_alone(spec, loaded, episodes=1, seed0=i).episodes[0]
+        returns.append(ep.episode_return)
+        lengths.append(ep.length)
+        causes[ep.cause] = causes.get(ep.cause, 0) + 1
+    report("drawing the rollout", episodes / (episodes + 1))
+    rollout = record_rollout(spec, loaded, seed=0)
+    frames = render_frames(loaded, rollout.qpos, backend=backend)
+    return RolloutPreview(
+        mean=float(np.mean(returns)),
+        std=float(np.std(returns)),
+        episodes=episodes,
+        mean_length=float(np.mean(lengths)),
+        causes=causes,
+        gif=frames_to_gif(frames),
+        backend=frames.backend,
+        note=frames.note,
+    )
+
+
+def autotune_job(env_id: str, bandwidth: float, phase_margin: float, progress: Progress | None = None) -> Any:
+    """Run :func:`pidlab.autotune.tune` (robust preset) for the asked crossover and phase margin."""
+    from pidlab.autotune import tune
+
+    report = _quiet(progress)
+    budget = 400
+
+    def count(n: int) -> None:
+        report(f"auto-tuning ({n} evaluations)", min(n / budget, 1.0))
+
+    return tune(
+        _model(env_id),
+        bandwidth=bandwidth,
+        phase_margin=phase_margin,
+        preset="robust",
+        max_evaluations=budget,
+        progress=count,
+    )
+
+
+@dataclass(frozen=True)
+class BoundsResult:
+    """Certified region and the critical bounds derived from it."""
+
+    roa: Any
+    bounds: Any
+    variables: tuple[str, str]
+
+
+def bounds_job(
+    spec: CoachSpec, samples: int = BOUNDS_SAMPLES, progress: Progress | None = None
+) -> BoundsResult:
+    """What ``pidlab bounds SPEC`` does: certify the region with ``samples`` states, derive bounds."""
+    from pidlab.bounds import derive_bounds
+    from pidlab.roa import estimate_roa
+
+    report = _quiet(progress)
+    loaded = _model(spec.env_id)
+    roa, _ = estimate_roa(spec, loaded, samples=samples, progress=report)
+    report("one-step check of the bounds", None)
+    crit = derive_bounds(roa, spec, loaded)
+    return BoundsResult(roa=roa, bounds=crit, variables=slice_variables(spec))
+
+
+JOBS: dict[str, Callable[..., Any]] = {
+    "roa": roa_preview,
+    "rollout": rollout_preview,
+    "autotune": autotune_job,
+    "bounds": bounds_job,
+}
+
+
+# --------------------------------------------------------------------------------------------
+# Worker side
+
+
+def _init_worker() -> None:
+    # headless offscreen rendering; must be set before mujoco is imported in this process
+    if not os.environ.get("DISPLAY"):
+        os.environ.setdefault("MUJOCO_GL", "egl")
+    try:
+        os.nice(10)  # the server process answers slider moves first
+    except OSError:  # pragma: no cover
+        pass
+
+
+def _run(
+    job_id: int, kind: str, args: tuple[Any, ...], kwargs: dict[str, Any], updates: Any, cancel: Any
+) -> Any:
+    def progress(stage: str, fraction: float | None) -> None:
+        if cancel.is_set():
+            raise JobCancelled
+        updates.put((job_id, stage, fraction))
+
+    try:
+        return ("ok", JOBS[kind](*args, progress=progress, **kwargs))
+    except JobCancelled:
+        return ("cancelled", None)
+    except PidlabError as exc:
+        return ("error", str(exc))
+    except Exception as exc:  # a bug: keep the worker and the page alive, log the traceback
+        return ("crash", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+
+
+# --------------------------------------------------------------------------------------------
+# Server side
+
+
+@dataclass
+class Job:
+    """One submitted job, as the server sees it."""
+
+    id: int
+    kind: str
+    future: Future[Any]
+    cancel: Any
+    stage: str = "queued"
+    fraction: float | None = 0.0
+
+
+@dataclass(frozen=True)
+class JobUpdate:
+    """What happened to a job since the last poll.
+
+    Attributes
+    ----------
+    job_id : int
+    kind : str
+    state : {"running", "done", "error", "cancelled"}
+    stage : str
+        Progress text (running) or the error message (error).
+    fraction : float or None
+    result : object
+        The job function's return value (done).
+    """
+
+    job_id: int
+    kind: str
+    state: str
+    stage: str = ""
+    fraction: float | None = None
+    result: Any = None
+
+
+@dataclass
+class JobRunner:
+    """A pool of worker processes running at most one job per kind at a time."""
+
+    workers: int = 2
+    _next: Any = field(default_factory=lambda: itertools.count(1))
+    _jobs: dict[str, Job] = field(default_factory=dict)
+    _pool: ProcessPoolExecutor | None = None
+    _manager: Any = None
+    _updates: Any = None
+
+    def _start(self) -> None:
+        if self._pool is None:
+            ctx = mp.get_context("spawn")
+            self._manager = ctx.Manager()
+            self._updates = self._manager.Queue()
+            self._pool = ProcessPoolExecutor(
+                max_workers=self.workers, mp_context=ctx, initializer=_init_worker
+            )
+
+    def submit(self, kind: str, *args: Any, **kwargs: Any) -> int:
+        """Start a ``kind`` job (a key of :data:`JOBS`), abandoning the running one of that kind.
+
+        Returns
+        -------
+        int
+            The job's id; its updates carry it.
+        """
+        self._start()
+        assert self._pool is not None and self._manager is not None
+        self.cancel(kind)
+        job_id = next(self._next)
+        cancel = self._manager.Event()
+        future = self._pool.submit(_run, job_id, kind, args, kwargs, self._updates, cancel)
+        self._jobs[kind] = Job(job_id, kind, future, cancel)
+        return job_id
+
+    def cancel(self, kind: str) -> None:
+        """Abandon the job of ``kind``, if any (a queued one never starts)."""
+        old = self._jobs.pop(kind, None)
+        if old is not None:
+            old.cancel.set()
+            old.future.cancel()
+
+    def running(self, kind: str) -> bool:
+        """Whether a job of ``kind`` is queued or running."""
+        return kind in self._jobs
+
+    def poll(self) -> list[JobUpdate]:
+        """Progress and results since the last call (never blocks)."""
+        if self._pool is None:
+            return []
+        latest: dict[int, tuple[str, float | None]] = {}
+        while True:
+            try:
+                job_id, stage, fraction = self._updates.get_nowait()
+            except queue_mod.Empty:
+                break
+            except (EOFError, OSError):  # the manager went away (shutdown)
+                return []
+            latest[job_id] = (stage, fraction)
+        out = []
+        for kind, job in list(self._jobs.items()):
+            if job.id in latest:
+                job.stage, job.fraction = latest[job.id]
+                out.append(JobUpdate(job.id, kind, "running", job.stage, job.fraction))
+            if not job.future.done():
+                continue
+            del self._jobs[kind]
+            if job.future.cancelled():
+                out.append(JobUpdate(job.id, kind, "cancelled"))
+                continue
+            try:
+                status, value = job.future.result()
+            except Exception as exc:  # the worker process died
+                status, value = "crash", f"{type(exc).__name__}: {exc}"
+            if status == "ok":
+                out.append(JobUpdate(job.id, kind, "done", result=value))
+            elif status == "cancelled":
+                out.append(JobUpdate(job.id, kind, "cancelled"))
+            else:
+                if status == "crash":
+                    log.error("%s job failed:\n%s", kind, value)
+                    value = f"internal error in the {kind} job: {str(value).splitlines()[0]}"
+                out.append(JobUpdate(job.id, kind, "error", stage=str(value)))
+        return out
+
+    def shutdown(self) -> None:
+        """Abandon every job and stop the workers."""
+        for kind in list(self._jobs):
+            self.cancel(kind)
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+        if self._manager is not None:
+            self._manager.shutdown()
+            self._manager = None

@@ -1,0 +1,67 @@
+"""Serve the tuner on a local port (``pidlab tune ENV --ui``)."""
+
+from __future__ import annotations
+
+import logging
+import socket
+from pathlib import Path
+from typing import Any
+
+from pidlab.errors import PidlabError
+from pidlab.spec import CoachSpec
+
+
+def check_port(port: int) -> None:
+    """Raise :class:`PidlabError` unless ``port`` can be bound on 127.0.0.1."""
+    if not 0 < port < 65536:
+        raise PidlabError(f"--port {port}: expected a TCP port between 1 and 65535")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise PidlabError(
+                f"--port {port}: cannot listen there ({exc.strerror}); pick another port"
+            ) from None
+
+
+def serve_tuner(
+    spec: CoachSpec,
+    source: str,
+    tuning_dir: Path,
+    port: int,
+    animation: str = "auto",
+    announce: Any = print,
+) -> None:
+    """Serve the tuner for ``spec`` until interrupted (Ctrl-C).
+
+    Every browser session gets its own :class:`pidlab.app.tuner.Tuner`; the worker pool that
+    runs the slow parts is shared and stopped on exit.
+    """
+    import panel as pn
+
+    from pidlab.app.jobs import JobRunner
+    from pidlab.app.tuner import Tuner
+
+    check_port(port)
+    logging.getLogger("pidlab.app").addHandler(logging.StreamHandler())
+    runner = JobRunner()
+
+    def page() -> Any:
+        return Tuner(spec, source, tuning_dir, runner=runner, animation=animation).panel()
+
+    url = f"http://localhost:{port}/"
+    announce(f"pidlab tuner for {spec.env_id} at {url} (Ctrl-C to stop)")
+    try:
+        pn.serve(
+            {"/": page},
+            port=port,
+            address="127.0.0.1",
+            websocket_origin=[f"localhost:{port}", f"127.0.0.1:{port}"],
+            show=False,
+            title=f"pidlab tuner: {spec.env_id}",
+            threaded=False,
+            print=False,
+        )
+    finally:
+        runner.shutdown()

@@ -1,0 +1,773 @@
+"""The tuner's page: widgets, layout and the callbacks that tie them to the computations.
+
+One :class:`Tuner` per browser session (or notebook cell). The linear views are recomputed
+in the widget callback itself (tens of milliseconds on the pendulums); everything slow goes to
+a :class:`pidlab.app.jobs.JobRunner` and comes back through a periodic poll, so the page never
+waits for it.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import panel as pn
+
+from pidlab import __version__
+from pidlab.app import figures as F
+from pidlab.app.jobs import JobRunner, JobUpdate, slice_variables
+from pidlab.app.live import (
+    FIELD_LABELS,
+    FIELD_LIMITS,
+    GAIN_FIELDS,
+    MARGIN_COLUMNS,
+    LinearViews,
+    check_field,
+    check_name,
+    linear_views,
+    margins_rows,
+    scaled_bounds,
+    tuner_context,
+    with_loop_value,
+)
+from pidlab.errors import PidlabError
+from pidlab.model import load_model
+from pidlab.spec import CoachSpec, dumps_spec, load_spec, loads_spec, save_spec, validate_against
+
+POLL_MS = 150
+"""Period of the poll that collects background results, ms."""
+
+DEBOUNCE_S = 0.4
+"""Slow jobs start this long after the last change (a slider drag is many changes)."""
+
+SLOW_KINDS = ("roa", "rollout")
+
+CSS = """
+.pidlab-msg { color: #c92a2a; font-size: 0.9em; }
+.pidlab-ok { color: #2b8a3e; font-size: 0.9em; }
+table.pidlab-table { border-collapse: collapse; font-size: 0.85em; }
+table.pidlab-table th, table.pidlab-table td { border: 1px solid #ddd; padding: 3px 6px; text-align: right; }
+table.pidlab-table th { background: #f3f3f3; }
+table.pidlab-table td.bad { color: #c92a2a; font-weight: bold; }
+"""
+
+
+def _html(object: str = "", **kw: Any) -> Any:
+    """An HTML pane that carries the tuner's style sheet (panes live in their own shadow DOM)."""
+    return pn.pane.HTML(object, stylesheets=[CSS], **kw)
+
+
+def _fmt(v: float, digits: int = 3) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "—"
+    if math.isinf(v):
+        return "∞" if v > 0 else "-∞"
+    return f"{v:.{digits}g}"
+
+
+def _gains_only(spec: CoachSpec) -> CoachSpec:
+    return replace(spec, name="", description="", provenance={}, bounds=None)
+
+
+def _slider_range(value: float, field: str) -> tuple[float, float]:
+    lo, hi = FIELD_LIMITS[field]
+    if field == "tf":
+        return 0.0, max(0.2, 3.0 * value)
+    if value == 0.0:
+        return -1.0, 1.0
+    a, b = sorted((0.0, 3.0 * value))
+    return max(lo, a), min(hi, b)
+
+
+class Tuner:
+    """The interactive tuner for one env.
+
+    Parameters
+    ----------
+    spec : CoachSpec
+        The coach to start from (its ``[bounds]`` are taken as valid for its gains).
+    source : str
+        Where the spec came from (shown on the page).
+    tuning_dir : Path
+        Where *Save* writes ``ENV.NAME.toml`` and *Load* looks for specs.
+    runner : JobRunner, optional
+        Shared worker pool; default: a new one.
+    animation : {"auto", "mujoco", "schematic"}
+        How rollout frames are drawn.
+    """
+
+    def __init__(
+        self,
+        spec: CoachSpec,
+        source: str,
+        tuning_dir: Path,
+        runner: JobRunner | None = None,
+        animation: str = "auto",
+    ) -> None:
+        self.loaded = load_model(spec.env_id)
+        self.ctx = tuner_context(self.loaded)
+        self.env_id = spec.env_id
+        self.tuning_dir = Path(tuning_dir)
+        self.runner = runner or JobRunner()
+        self.animation = animation
+        self.source = source
+        self.variables = slice_variables(spec)
+        self.sources = F.make_sources()
+        self._guard = False
+        self._attached = False  # True once the page is live (the first poll)
+        self._invalid: set[str] = set()
+        self._slow_due: float | None = None
+        self._views: LinearViews | None = None
+        self._roa_preview: Any = None
+        self._bounds_job_spec: CoachSpec | None = None
+        self._build_widgets()
+        self._adopt(spec, source)
+
+    # ------------------------------------------------------------------ widgets and layout
+
+    def _build_widgets(self) -> None:
+        self.title = _html(sizing_mode="stretch_width")
+        self.loop_select = pn.widgets.Select(name="Loop", options=[], css_classes=["pidlab-loop"])
+        self.loop_select.param.watch(self._on_loop, "value")
+        self.sliders: dict[str, Any] = {}
+        self.inputs: dict[str, Any] = {}
+        self.messages: dict[str, Any] = {}
+        for f in GAIN_FIELDS:
+            s = pn.widgets.FloatSlider(
+                name=FIELD_LABELS[f],
+                start=0.0,
+                end=1.0,
+                step=0.01,
+                value=0.0,
+                css_classes=[f"pidlab-slider-{f}"],
+                sizing_mode="stretch_width",
+            )
+            s.param.watch(lambda ev, f=f: self._on_slider(f, ev.new), "value")
+            t = pn.widgets.TextInput(
+                name=f"{FIELD_LABELS[f]} value", width=130, css_classes=[f"pidlab-input-{f}"]
+            )
+            t.param.watch(lambda ev, f=f: self._on_text(f, ev.new), "value")
+            self.sliders[f], self.inputs[f] = s, t
+            self.messages[f] = _html("", css_classes=[f"pidlab-msg-{f}"], sizing_mode="stretch_width")
+        self.response_time = pn.widgets.FloatSlider(
+            name="Response time (s)",
+            start=0.01,
+            end=1.0,
+            step=0.01,
+            value=0.1,
+            css_classes=["pidlab-response-time"],
+        )
+        self.robustness = pn.widgets.FloatSlider(
+            name="Robustness", start=0.0, end=1.0, step=0.05, value=0.67, css_classes=["pidlab-robustness"]
+        )
+        self.targets = _html("")
+        self.response_time.param.watch(lambda ev: self._autotune(), "value_throttled")
+        self.robustness.param.watch(lambda ev: self._autotune(), "value_throttled")
+        self.robustness.param.watch(lambda ev: self._show_targets(), "value")
+        self.response_time.param.watch(lambda ev: self._show_targets(), "value")
+        self.scale = pn.widgets.FloatSlider(
+            name="Critical-bound scale",
+            start=0.25,
+            end=3.0,
+            step=0.05,
+            value=1.0,
+            css_classes=["pidlab-scale"],
+        )
+        self.scale.param.watch(lambda ev: self._draw_bounds(), "value")
+        self.autotune_button = pn.widgets.Button(
+            name="Auto-tune", button_type="primary", css_classes=["pidlab-autotune"]
+        )
+        self.autotune_button.on_click(lambda ev: self._autotune())
+        self.bounds_button = pn.widgets.Button(
+            name="Derive bounds", button_type="primary", css_classes=["pidlab-derive"]
+        )
+        self.bounds_button.on_click(lambda ev: self._derive_bounds())
+        self.name_input = pn.widgets.TextInput(name="Spec name", width=200, css_classes=["pidlab-name"])
+        self.name_msg = _html("", css_classes=["pidlab-msg-name"])
+        self.overwrite = pn.widgets.Checkbox(name="overwrite an existing file", value=False)
+        self.save_button = pn.widgets.Button(
+            name="Save to tuning/", button_type="success", css_classes=["pidlab-save"]
+        )
+        self.save_button.on_click(lambda ev: self._save())
+        self.load_select = pn.widgets.Select(name="Spec file", options=[], css_classes=["pidlab-load-select"])
+        self.load_button = pn.widgets.Button(name="Load", css_classes=["pidlab-load"])
+        self.load_button.on_click(lambda ev: self._load())
+        self.file_msg = _html("", css_classes=["pidlab-file-msg"], sizing_mode="stretch_width")
+        self.margins = _html("", css_classes=["pidlab-margins"], sizing_mode="stretch_width")
+        self.summary = _html("", css_classes=["pidlab-summary"], sizing_mode="stretch_width")
+        self.bounds_info = _html("", css_classes=["pidlab-bounds"], sizing_mode="stretch_width")
+        self.status: dict[str, Any] = {}
+        self.progress: dict[str, Any] = {}
+        for kind in ("roa", "rollout", "autotune", "bounds"):
+            self.status[kind] = _html(
+                "", css_classes=[f"pidlab-status-{kind}"], sizing_mode="stretch_width"
+            )
+            self.progress[kind] = pn.indicators.Progress(
+                value=0, max=100, width=220, visible=False, css_classes=[f"pidlab-progress-{kind}"]
+            )
+        self.score = _html("", css_classes=["pidlab-score"], sizing_mode="stretch_width")
+        self.animation_pane = _html("", css_classes=["pidlab-animation"], min_height=250)
+        s = self.sources
+        self.bode_mag, self.bode_phase = F.bode_figures(s)
+        self.nyquist = F.nyquist_figure(s)
+        self.step_fig, self.initial_fig = F.response_figures(s)
+        self.pz = F.pole_zero_figure(s)
+        self.roa_fig = F.roa_figure(s, self.variables, self.ctx.units)
+
+    def panel(self) -> Any:
+        """The page, and the periodic poll that feeds it background results."""
+        pn.state.add_periodic_callback(self._poll, period=POLL_MS)
+        gains = []
+        for f in GAIN_FIELDS:
+            gains.append(pn.Row(self.sliders[f], self.inputs[f], sizing_mode="stretch_width"))
+            gains.append(self.messages[f])
+        controls = pn.Column(
+            "### Coach",
+            self.loop_select,
+            *gains,
+            "### Automatic tuning",
+            self.response_time,
+            self.robustness,
+            self.targets,
+            pn.Row(self.autotune_button, self.progress["autotune"]),
+            self.status["autotune"],
+            "### Critical bounds",
+            self.scale,
+            pn.Row(self.bounds_button, self.progress["bounds"]),
+            self.status["bounds"],
+            self.bounds_info,
+            "### Spec file",
+            self.name_input,
+            self.name_msg,
+            self.overwrite,
+            self.save_button,
+            pn.Row(self.load_select, self.load_button),
+            self.file_msg,
+            width=400,
+        )
+        views = pn.Column(
+            self.title,
+            pn.Row(
+                pn.Column(
+                    pn.pane.Bokeh(self.bode_mag), pn.pane.Bokeh(self.bode_phase), sizing_mode="stretch_width"
+                ),
+                pn.pane.Bokeh(self.nyquist, sizing_mode="stretch_width"),
+                sizing_mode="stretch_width",
+            ),
+            pn.Row(
+                pn.pane.Bokeh(self.step_fig, sizing_mode="stretch_width"),
+                pn.pane.Bokeh(self.initial_fig, sizing_mode="stretch_width"),
+                pn.pane.Bokeh(self.pz, sizing_mode="stretch_width"),
+                sizing_mode="stretch_width",
+            ),
+            "#### Stability margins (discrete loop, broken at each actuator)",
+            self.margins,
+            self.summary,
+            pn.Row(
+                pn.Column(
+                    pn.Row(self.progress["roa"], self.status["roa"]),
+                    pn.pane.Bokeh(self.roa_fig, sizing_mode="stretch_width"),
+                    sizing_mode="stretch_width",
+                ),
+                pn.Column(
+                    "#### The coach alone on the real env",
+                    pn.Row(self.progress["rollout"], self.status["rollout"]),
+                    self.score,
+                    self.animation_pane,
+                    sizing_mode="stretch_width",
+                ),
+                sizing_mode="stretch_width",
+            ),
+            sizing_mode="stretch_width",
+        )
+        return pn.Row(
+            controls,
+            views,
+            sizing_mode="stretch_width",
+        )
+
+    # ------------------------------------------------------------------ state
+
+    def _push(self, draw: Any) -> None:
+        """Run ``draw`` (which writes to Bokeh models directly) under the document's lock.
+
+        Panel updates its own widgets safely from any callback; plain Bokeh models (the plots'
+        data sources) must be changed while the server holds the document lock, which a
+        next-tick callback does. Outside a server (a notebook) it runs at once.
+        """
+        doc = pn.state.curdoc
+        if self._attached and doc is not None and getattr(doc, "session_context", None) is not None:
+            doc.add_next_tick_callback(draw)
+        else:
+            draw()
+
+    def _adopt(self, spec: CoachSpec, source: str) -> None:
+        """Make ``spec`` the current coach (after start, load or auto-tune)."""
+        self.spec = spec
+        self.source = source
+        self.origin = spec
+        self.base_bounds = spec.bounds
+        self._bounds_gains = _gains_only(spec) if spec.bounds else None
+        self._guard = True
+        try:
+            names = [lp.name for lp in spec.loops]
+            self.loop_select.options = names
+            if self.loop_select.value not in names:
+                self.loop_select.value = names[0]
+            self.scale.value = 1.0
+            self.name_input.value = spec.name
+            bw = spec.provenance.get("asked_bandwidth_rad_s")
+            pm = spec.provenance.get("asked_phase_margin_deg")
+            self._set_targets(bw, pm)
+        finally:
+            self._guard = False
+        self._sync_fields()
+        self._refresh_files()
+        self._refresh_linear()
+        if self._views is not None and (bw is None or pm is None):
+            m = self._views.loop_margins
+            if m is not None:
+                self._guard = True
+                try:
+                    self._set_targets(m.bandwidth if math.isfinite(m.bandwidth) else None, m.phase_margin_deg)
+                finally:
+                    self._guard = False
+        self._show_targets()
+        self.title.object = (
+            f"<h2>{html.escape(self.env_id)} — coach <code>{html.escape(spec.name)}</code></h2>"
+            f"<div>from {html.escape(source)}</div>"
+        )
+        self._draw_bounds()
+        self._schedule_slow()
+
+    def _set_targets(self, bandwidth: float | None, phase_margin: float | None) -> None:
+        if bandwidth and math.isfinite(bandwidth) and bandwidth > 0:
+            tau = 1.0 / bandwidth
+            self.response_time.start = round(tau / 5.0, 4)
+            self.response_time.end = round(tau * 5.0, 4)
+            self.response_time.step = round(tau / 50.0, 5)
+            self.response_time.value = round(tau, 4)
+        if phase_margin is not None and math.isfinite(phase_margin):
+            self.robustness.value = round(min(max((phase_margin - 30.0) / 45.0, 0.0), 1.0), 2)
+
+    def _asked(self) -> tuple[float, float]:
+        """(crossover rad/s, phase margin deg) asked by the pidtune-style sliders."""
+        return 1.0 / self.response_time.value, 30.0 + 45.0 * self.robustness.value
+
+    def _show_targets(self) -> None:
+        bw, pm = self._asked()
+        self.targets.object = f"asks: gain crossover {bw:.3g} rad/s, phase margin {pm:.0f} deg"
+
+    @property
+    def loop(self) -> str:
+        return str(self.loop_select.value)
+
+    def _sync_fields(self) -> None:
+        """Sliders and inputs show the current loop's values; messages cleared."""
+        lp = self.spec.loop(self.loop)
+        self._guard = True
+        try:
+            for f in GAIN_FIELDS:
+                v = float(getattr(lp, f))
+                lo, hi = _slider_range(v, f)
+                s = self.sliders[f]
+                s.start, s.end = lo, hi
+                s.step = (hi - lo) / 500.0
+                s.value = v
+                self.inputs[f].value = f"{v:.6g}"
+                self.messages[f].object = ""
+            self._invalid.clear()
+        finally:
+            self._guard = False
+
+    def _bounds_valid(self) -> bool:
+        return self._bounds_gains is not None and self._bounds_gains == _gains_only(self.spec)
+
+    # ------------------------------------------------------------------ callbacks
+
+    def _on_loop(self, event: Any) -> None:
+        if self._guard:
+            return
+        self._sync_fields()
+        self._refresh_linear()
+
+    def _on_slider(self, field: str, value: float) -> None:
+        if self._guard:
+            return
+        self._guard = True
+        try:
+            self.inputs[field].value = f"{value:.6g}"
+        finally:
+            self._guard = False
+        self.messages[field].object = ""
+        self._invalid.discard(field)
+        self._apply(field, float(value))
+
+    def _on_text(self, field: str, text: str) -> None:
+        if self._guard:
+            return
+        check = check_field(field, text)
+        if not check.ok:
+            self._invalid.add(field)
+            self.messages[field].object = f"<span class='pidlab-msg'>{html.escape(check.message)}</span>"
+            return
+        self._invalid.discard(field)
+        value = float(check.value)  # type: ignore[arg-type]
+        self.messages[field].object = ""
+        s = self.sliders[field]
+        self._guard = True
+        try:
+            if not s.start <= value <= s.end:
+                lo, hi = _slider_range(value, field)
+                s.start, s.end = min(lo, s.start, value), max(hi, s.end, value)
+                s.step = (s.end - s.start) / 500.0
+            s.value = value
+        finally:
+            self._guard = False
+        self._apply(field, value)
+
+    def _apply(self, field: str, value: float) -> None:
+        self.spec = with_loop_value(self.spec, self.loop, field, value)
+        self._refresh_linear(field)
+        self._draw_bounds()
+        self._schedule_slow()
+
+    # ------------------------------------------------------------------ linear views
+
+    def _refresh_linear(self, field: str | None = None) -> None:
+        v = linear_views(self.ctx, self.spec, self.loop)
+        self._views = v
+        s = self.sources
+        mag, ph, marks = F.bode_data(v)
+        nyq, nyq_marks = F.nyquist_data(v)
+        step, initial = F.response_data(v)
+        poles, zeros = F.pole_zero_data(v)
+        title = f"Bode: |L| at actuator {v.actuator} (loop {v.loop})"
+
+        def draw() -> None:
+            s.bode_mag.data, s.bode_phase.data, s.bode_markers.data = mag, ph, marks
+            s.nyquist.data, s.nyquist_markers.data = nyq, nyq_marks
+            s.step.data, s.initial.data = step, initial
+            s.poles.data, s.zeros.data = poles, zeros
+            self.bode_mag.title.text = title
+
+        self._push(draw)
+        self.margins.object = self._margins_html(v)
+        self.summary.object = self._summary_html(v)
+        if field is not None:
+            if not v.stable:
+                self.messages[field].object = (
+                    "<span class='pidlab-msg'>"
+                    f"{html.escape(FIELD_LABELS[field])}: closed loop unstable with this value (spectral radius "
+                    f"{v.spectral_radius:.4f} &gt; 1); saving is disabled until it is stable</span>"
+                )
+            else:
+                self.messages[field].object = ""
+
+    @staticmethod
+    def _margins_html(v: LinearViews) -> str:
+        head = "".join(f"<th>{html.escape(label)}</th>" for _, label in MARGIN_COLUMNS)
+        body = []
+        for row in margins_rows(v):
+            cells = []
+            for key, _ in MARGIN_COLUMNS:
+                val = row[key]
+                if key == "actuator":
+                    cells.append(f"<td style='text-align:left'>{html.escape(val)}</td>")
+                    continue
+                bad = (
+                    (key == "pm_deg" and val < 30)
+                    or (key == "gm_db" and val < 6)
+                    or (key == "ms_db" and val > 6)
+                )
+                digits = 2 if key == "disk_alpha" else 3
+                cells.append(f"<td class='{'bad' if bad else ''}'>{_fmt(val, digits)}</td>")
+            body.append(f"<tr>{''.join(cells)}</tr>")
+        return (
+            f"<table class='pidlab-table' id='margins-table'><thead><tr>{head}</tr></thead>"
+            f"<tbody>{''.join(body)}</tbody></table>"
+        )
+
+    def _summary_html(self, v: LinearViews) -> str:
+        state = (
+            "<span class='pidlab-ok'>stable</span>"
+            if v.stable
+            else "<span class='pidlab-msg'>UNSTABLE</span>"
+        )
+        parts = [
+            f"Closed loop (discrete, dt = {self.ctx.dt * 1000:.0f} ms): {state}, spectral radius "
+            f"{v.spectral_radius:.5f}; update computed in {v.elapsed_s * 1000:.0f} ms."
+        ]
+        for m in v.metrics:
+            if m.kind == "step":
+                parts.append(
+                    f"Step ({html.escape(m.loop)}): overshoot {_fmt(m.overshoot_pct)} %, rise {_fmt(m.rise_time_s)} s, "
+                    f"settling (2 %) {_fmt(m.settling_time_s)} s, peak command {_fmt(m.peak_control)} of the range."
+                )
+            else:
+                parts.append(
+                    f"Initial deviation {m.size:g} of {html.escape(m.signal)}: excursion {_fmt(m.overshoot_pct)} %, "
+                    f"settling (2 %) {_fmt(m.settling_time_s)} s, peak command {_fmt(m.peak_control)} of the range."
+                )
+        return "<div id='closed-loop-summary'>" + "<br>".join(parts) + "</div>"
+
+    # ------------------------------------------------------------------ bounds
+
+    def _current_bounds(self) -> dict[str, Any] | None:
+        if not self._bounds_valid():
+            return None
+        return scaled_bounds(self.base_bounds, float(self.scale.value))
+
+    def _draw_bounds(self) -> None:
+        b = self._current_bounds()
+        box, ellipse = F.bounds_data(b, self.variables)
+
+        def draw() -> None:
+            self.sources.bounds_box.data, self.sources.bounds_ellipse.data = box, ellipse
+
+        self._push(draw)
+        if self.base_bounds and not self._bounds_valid():
+            self.bounds_info.object = (
+                "<span class='pidlab-msg'>The gains changed since the bounds were derived: they are not "
+                "certified for these gains and will not be saved. Press <b>Derive bounds</b>.</span>"
+            )
+            return
+        if not b:
+            self.bounds_info.object = "No critical bounds yet: press <b>Derive bounds</b>."
+            return
+        rows = []
+        for name, (lo, hi) in b.get("box", {}).items():
+            unit = self.ctx.units.get(name, "")
+            rows.append(
+                f"<tr><td style='text-align:left'>{html.escape(name)}</td><td>{lo:.4g}</td><td>{hi:.4g}</td>"
+                f"<td>{html.escape(unit)}</td></tr>"
+            )
+        note = ""
+        if self.scale.value > 1.0:
+            note = "<br><span class='pidlab-msg'>scale &gt; 1: the region extends beyond the certified set</span>"
+        e = b.get("ellipsoid")
+        ell = f"ellipsoid V &le; rho c with c = {e['level']:.4g}, rho = {e['rho']:.4g}; " if e else ""
+        self.bounds_info.object = (
+            f"<div id='bounds-table'>{ell}method: {html.escape(str(b.get('method', '')))}"
+            "<table class='pidlab-table'><tr><th>variable</th><th>low</th><th>high</th><th>unit</th></tr>"
+            f"{''.join(rows)}</table>{note}</div>"
+        )
+
+    def _derive_bounds(self) -> None:
+        if self._views is not None and not self._views.stable:
+            self.status[
+                "bounds"
+            ].object = "<span class='pidlab-msg'>closed loop unstable: no region to certify</span>"
+            return
+        self._bounds_job_spec = self.spec
+        self.runner.submit("bounds", self.spec)
+        self._running("bounds", "starting", 0.0)
+
+    # ------------------------------------------------------------------ slow jobs
+
+    def _schedule_slow(self) -> None:
+        for kind in SLOW_KINDS:
+            self.runner.cancel(kind)
+            self.status[kind].object = "<i>waiting for the gains to settle…</i>"
+        self._slow_due = time.monotonic() + DEBOUNCE_S
+
+    def _start_slow(self) -> None:
+        self._slow_due = None
+        if self._views is not None and not self._views.stable:
+            for kind in SLOW_KINDS:
+                self.status[
+                    kind
+                ].object = "<span class='pidlab-msg'>closed loop unstable: not simulated</span>"
+                self.progress[kind].visible = False
+            return
+        self.runner.submit("roa", self.spec)
+        self._running("roa", "starting", 0.0)
+        self.runner.submit("rollout", self.spec, backend=self.animation)
+        self._running("rollout", "starting", 0.0)
+
+    def _autotune(self) -> None:
+        if self._guard:
+            return
+        bw, pm = self._asked()
+        self.runner.submit("autotune", self.env_id, bw, pm)
+        self._running("autotune", "starting", 0.0)
+
+    def _running(self, kind: str, stage: str, fraction: float | None) -> None:
+        bar = self.progress[kind]
+        bar.visible = True
+        if fraction is None:
+            bar.active, bar.value = True, -1
+        else:
+            bar.active, bar.value = False, int(100 * fraction)
+        self.status[kind].object = f"<i>{html.escape(stage)}…</i>"
+
+    def _poll(self) -> None:
+        self._attached = True
+        if self._slow_due is not None and time.monotonic() >= self._slow_due:
+            self._start_slow()
+        for u in self.runner.poll():
+            self._update(u)
+
+    def _update(self, u: JobUpdate) -> None:
+        kind = u.kind
+        if u.state == "running":
+            self._running(kind, u.stage, u.fraction)
+            return
+        self.progress[kind].visible = False
+        if u.state == "cancelled":
+            return
+        if u.state == "error":
+            self.status[kind].object = f"<span class='pidlab-msg'>{html.escape(u.stage)}</span>"
+            return
+        r = u.result
+        if kind == "roa":
+            self._roa_preview = r
+            boundary, paths = F.roa_data(r)
+
+            def draw() -> None:
+                self.sources.roa_set.data, self.sources.roa_paths.data = boundary, paths
+
+            self._push(draw)
+            ok = sum(r.recovered)
+            self.status["roa"].object = (
+                f"preview: {html.escape(r.roa.method)}; level {r.roa.level:.4g}, {r.roa.check.samples} samples, "
+                f"{r.roa.check.failures} failures; {ok}/{len(r.recovered)} trajectories shown recovered "
+                f"({r.roa.elapsed_s:.1f} s)"
+            )
+        elif kind == "rollout":
+            causes = ", ".join(f"{n} × {html.escape(c)}" for c, n in r.causes.items())
+            self.score.object = (
+                f"<div id='coach-score'>mean return <b>{r.mean:.1f}</b> ± {r.std:.1f} over {r.episodes} episodes "
+                f"(seeds 0-{r.episodes - 1}); mean length {r.mean_length:.0f} steps; ended by: {causes}</div>"
+            )
+            data = base64.b64encode(r.gif).decode("ascii")
+            self.animation_pane.object = (
+                f"<img id='rollout-animation' data-backend='{r.backend}' src='data:image/gif;base64,{data}' "
+                f"style='max-width:100%'><div style='font-size:0.8em'>episode seed 0 · {html.escape(r.note)}</div>"
+            )
+            self.status["rollout"].object = ""
+        elif kind == "autotune":
+            tuned = r.spec
+            self._adopt(
+                tuned, f"auto-tune (asked {r.asked_bandwidth:.3g} rad/s, {r.asked_phase_margin:.0f} deg)"
+            )
+            self.status["autotune"].object = (
+                f"achieved: crossover {r.achieved_bandwidth:.3g} rad/s, phase margin {r.achieved_phase_margin:.1f} "
+                f"deg, Ms {r.achieved_ms:.3g} ({r.evaluations} evaluations)"
+            )
+        elif kind == "bounds":
+            job_spec = self._bounds_job_spec
+            if job_spec is None or _gains_only(job_spec) != _gains_only(self.spec):
+                self.status["bounds"].object = (
+                    "<span class='pidlab-msg'>bounds were derived for gains that have changed since; "
+                    "press Derive bounds again</span>"
+                )
+                return
+            self.base_bounds = r.bounds.to_table()
+            self._bounds_gains = _gains_only(self.spec)
+            self._guard = True
+            try:
+                self.scale.value = 1.0
+            finally:
+                self._guard = False
+            self._draw_bounds()
+            chk = r.roa.check
+            self.status["bounds"].object = (
+                f"certified: level {r.roa.level:.4g}, {chk.samples} samples, {chk.failures} failures "
+                f"(failure probability &lt; {chk.failure_bound_95:.3g} at 95 %)"
+            )
+
+    # ------------------------------------------------------------------ files
+
+    def _spec_files(self) -> list[str]:
+        if not self.tuning_dir.is_dir():
+            return []
+        return sorted(p.name for p in self.tuning_dir.glob(f"{self.env_id}.*.toml"))
+
+    def _refresh_files(self) -> None:
+        files = self._spec_files()
+        self.load_select.options = files
+        if files and self.load_select.value not in files:
+            self.load_select.value = files[0]
+
+    def spec_to_save(self, name: str) -> CoachSpec:
+        """The spec *Save* writes: current gains, valid (scaled) bounds, honest provenance."""
+        spec = replace(self.spec, name=name, bounds=self._current_bounds())
+        if _gains_only(self.spec) != _gains_only(self.origin):
+            v = self._views
+            assert v is not None
+            prov: dict[str, Any] = {
+                "tool": f"pidlab {__version__} tune --ui",
+                "date": _dt.date.today().isoformat(),
+                "edited_from": self.origin.name,
+            }
+            crossovers = [m.bandwidth for m in v.margins if m.crossovers]
+            if crossovers:
+                prov["achieved_bandwidth_rad_s"] = float(max(crossovers))
+            prov["achieved_phase_margin_deg"] = float(min(m.phase_margin_deg for m in v.margins))
+            prov["achieved_ms"] = float(max(m.ms for m in v.margins))
+            prov["closed_loop_spectral_radius"] = float(v.spectral_radius)
+            spec = replace(
+                spec, provenance=prov, description=f"{self.origin.description} Edited in the tuner.".strip()
+            )
+        return spec
+
+    def _save(self) -> None:
+        name = self.name_input.value.strip()
+        check = check_name(name)
+        if not check.ok:
+            self.name_msg.object = f"<span class='pidlab-msg'>{html.escape(check.message)}</span>"
+            return
+        self.name_msg.object = ""
+        bad = sorted(self._invalid)
+        if self._views is None or not self._views.stable:
+            self.file_msg.object = "<span class='pidlab-msg'>not saved: the closed loop is unstable</span>"
+            return
+        spec = self.spec_to_save(name)
+        text = dumps_spec(spec)
+        try:
+            again = loads_spec(text, "tuner")
+            validate_against(again, self.loaded.card.observation_names, self.loaded.input_names)  # type: ignore[union-attr]
+        except PidlabError as exc:
+            self.file_msg.object = f"<span class='pidlab-msg'>not saved: {html.escape(str(exc))}</span>"
+            return
+        path = self.tuning_dir / f"{self.env_id}.{name}.toml"
+        if path.exists() and not self.overwrite.value and path.read_text() != text:
+            self.file_msg.object = (
+                f"<span class='pidlab-msg'>{html.escape(str(path))} exists; tick "
+                "'overwrite an existing file' to replace it</span>"
+            )
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_spec(spec, path)
+        note = " (without bounds: none valid for these gains)" if spec.bounds is None else ""
+        ignored = f"; fields with errors kept their last valid value: {', '.join(bad)}" if bad else ""
+        self.file_msg.object = f"<span class='pidlab-ok'>saved {html.escape(str(path))}{note}{ignored}</span>"
+        self.origin = spec
+        self._refresh_files()
+        self.load_select.value = path.name
+
+    def _load(self) -> None:
+        name = self.load_select.value
+        if not name:
+            self.file_msg.object = (
+                f"<span class='pidlab-msg'>no spec files for {self.env_id} in {self.tuning_dir}</span>"
+            )
+            return
+        path = self.tuning_dir / name
+        try:
+            spec = load_spec(path)
+            if spec.env_id != self.env_id:
+                raise PidlabError(f"{path} is a coach for {spec.env_id}, not {self.env_id}")
+            validate_against(spec, self.loaded.card.observation_names, self.loaded.input_names)  # type: ignore[union-attr]
+        except PidlabError as exc:
+            self.file_msg.object = f"<span class='pidlab-msg'>not loaded: {html.escape(str(exc))}</span>"
+            return
+        self._adopt(spec, str(path))
+        self.file_msg.object = f"<span class='pidlab-ok'>loaded {html.escape(str(path))}</span>"
