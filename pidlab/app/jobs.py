@@ -301,11 +301,15 @@ class JobUpdate:
 
 @dataclass
 class JobRunner:
-    """A pool of worker processes running at most one job per kind at a time."""
+    """A pool of worker processes running at most one job per (owner, kind) at a time.
+
+    The owner is a tuner session: sessions sharing a runner do not abandon each other's jobs.
+    """
 
     workers: int = 2
     _next: Any = field(default_factory=lambda: itertools.count(1))
-    _jobs: dict[str, Job] = field(default_factory=dict)
+    _jobs: dict[tuple[str, str], Job] = field(default_factory=dict)
+    _latest: dict[int, tuple[str, float | None]] = field(default_factory=dict)
     _pool: ProcessPoolExecutor | None = None
     _manager: Any = None
     _updates: Any = None
@@ -319,8 +323,8 @@ class JobRunner:
                 max_workers=self.workers, mp_context=ctx, initializer=_init_worker
             )
 
-    def submit(self, kind: str, *args: Any, **kwargs: Any) -> int:
-        """Start a ``kind`` job (a key of :data:`JOBS`), abandoning the running one of that kind.
+    def submit(self, owner: str, kind: str, *args: Any, **kwargs: Any) -> int:
+        """Start a ``kind`` job (a key of :data:`JOBS`) for ``owner``, abandoning its previous one.
 
         Returns
         -------
@@ -329,29 +333,28 @@ class JobRunner:
         """
         self._start()
         assert self._pool is not None and self._manager is not None
-        self.cancel(kind)
+        self.cancel(owner, kind)
         job_id = next(self._next)
         cancel = self._manager.Event()
         future = self._pool.submit(_run, job_id, kind, args, kwargs, self._updates, cancel)
-        self._jobs[kind] = Job(job_id, kind, future, cancel)
+        self._jobs[(owner, kind)] = Job(job_id, kind, future, cancel)
         return job_id
 
-    def cancel(self, kind: str) -> None:
-        """Abandon the job of ``kind``, if any (a queued one never starts)."""
-        old = self._jobs.pop(kind, None)
-        if old is not None:
+    def cancel(self, owner: str, kind: str | None = None) -> None:
+        """Abandon ``owner``'s job of ``kind`` (every kind: None); a queued one never starts."""
+        for key in [k for k in self._jobs if k[0] == owner and kind in (None, k[1])]:
+            old = self._jobs.pop(key)
             old.cancel.set()
             old.future.cancel()
 
-    def running(self, kind: str) -> bool:
-        """Whether a job of ``kind`` is queued or running."""
-        return kind in self._jobs
+    def running(self, owner: str, kind: str) -> bool:
+        """Whether ``owner`` has a job of ``kind`` queued or running."""
+        return (owner, kind) in self._jobs
 
-    def poll(self) -> list[JobUpdate]:
-        """Progress and results since the last call (never blocks)."""
+    def poll(self, owner: str) -> list[JobUpdate]:
+        """``owner``'s progress and results since its last call (never blocks)."""
         if self._pool is None:
             return []
-        latest: dict[int, tuple[str, float | None]] = {}
         while True:
             try:
                 job_id, stage, fraction = self._updates.get_nowait()
@@ -359,15 +362,17 @@ class JobRunner:
                 break
             except (EOFError, OSError):  # the manager went away (shutdown)
                 return []
-            latest[job_id] = (stage, fraction)
+            self._latest[job_id] = (stage, fraction)
         out = []
-        for kind, job in list(self._jobs.items()):
-            if job.id in latest:
-                job.stage, job.fraction = latest[job.id]
+        for (who, kind), job in list(self._jobs.items()):
+            if who != owner:
+                continue
+            if job.id in self._latest:
+                job.stage, job.fraction = self._latest.pop(job.id)
                 out.append(JobUpdate(job.id, kind, "running", job.stage, job.fraction))
             if not job.future.done():
                 continue
-            del self._jobs[kind]
+            del self._jobs[(who, kind)]
             if job.future.cancelled():
                 out.append(JobUpdate(job.id, kind, "cancelled"))
                 continue
@@ -388,8 +393,8 @@ class JobRunner:
 
     def shutdown(self) -> None:
         """Abandon every job and stop the workers."""
-        for kind in list(self._jobs):
-            self.cancel(kind)
+        for owner, kind in list(self._jobs):
+            self.cancel(owner, kind)
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None

@@ -13,6 +13,7 @@ import datetime as _dt
 import html
 import math
 import time
+import uuid
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -119,6 +120,7 @@ class Tuner:
         self.source = source
         self.variables = slice_variables(spec)
         self.sources = F.make_sources()
+        self.owner = uuid.uuid4().hex
         self._guard = False
         self._attached = False  # True once the page is live (the first poll)
         self._invalid: set[str] = set()
@@ -223,6 +225,8 @@ class Tuner:
     def panel(self) -> Any:
         """The page, and the periodic poll that feeds it background results."""
         pn.state.add_periodic_callback(self._poll, period=POLL_MS)
+        if pn.state.curdoc is not None and getattr(pn.state.curdoc, "session_context", None) is not None:
+            pn.state.on_session_destroyed(lambda ctx: self.runner.cancel(self.owner))
         gains = []
         for f in GAIN_FIELDS:
             gains.append(pn.Row(self.sliders[f], self.inputs[f], sizing_mode="stretch_width"))
@@ -566,14 +570,14 @@ class Tuner:
             ].object = "<span class='pidlab-msg'>closed loop unstable: no region to certify</span>"
             return
         self._bounds_job_spec = self.spec
-        self.runner.submit("bounds", self.spec)
+        self.runner.submit(self.owner, "bounds", self.spec)
         self._running("bounds", "starting", 0.0)
 
     # ------------------------------------------------------------------ slow jobs
 
     def _schedule_slow(self) -> None:
         for kind in SLOW_KINDS:
-            self.runner.cancel(kind)
+            self.runner.cancel(self.owner, kind)
             self.status[kind].object = "<i>waiting for the gains to settle…</i>"
         self._slow_due = time.monotonic() + DEBOUNCE_S
 
@@ -586,16 +590,16 @@ class Tuner:
                 ].object = "<span class='pidlab-msg'>closed loop unstable: not simulated</span>"
                 self.progress[kind].visible = False
             return
-        self.runner.submit("roa", self.spec)
+        self.runner.submit(self.owner, "roa", self.spec)
         self._running("roa", "starting", 0.0)
-        self.runner.submit("rollout", self.spec, backend=self.animation)
+        self.runner.submit(self.owner, "rollout", self.spec, backend=self.animation)
         self._running("rollout", "starting", 0.0)
 
     def _autotune(self) -> None:
         if self._guard:
             return
         bw, pm = self._asked()
-        self.runner.submit("autotune", self.env_id, bw, pm)
+        self.runner.submit(self.owner, "autotune", self.env_id, bw, pm)
         self._running("autotune", "starting", 0.0)
 
     def _running(self, kind: str, stage: str, fraction: float | None) -> None:
@@ -611,7 +615,7 @@ class Tuner:
         self._attached = True
         if self._slow_due is not None and time.monotonic() >= self._slow_due:
             self._start_slow()
-        for u in self.runner.poll():
+        for u in self.runner.poll(self.owner):
             self._update(u)
 
     def _update(self, u: JobUpdate) -> None:

@@ -1,0 +1,327 @@
+"""The tuner in a real browser: Debian's Chromium driven by Playwright, against `pidlab tune --ui`.
+
+One server (the real CLI, in a subprocess) for the module; every test opens its own page, so
+it gets its own tuner session. The server writes specs into a temporary tuning folder.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from pidlab.spec import load_spec
+
+ROOT = Path(__file__).resolve().parents[1]
+SPEC = ROOT / "tuning" / "InvertedPendulum-v5.pidlab-robust.toml"
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
+
+# finds an element by CSS selector through every shadow root (Bokeh widgets live in shadow DOM)
+DEEP = """
+window.__deep = (sel, root = document) => {
+  const hit = root.querySelector(sel);
+  if (hit) return hit;
+  for (const el of root.querySelectorAll('*')) {
+    if (el.shadowRoot) { const f = window.__deep(sel, el.shadowRoot); if (f) return f; }
+  }
+  return null;
+};
+// visible text of an element, including its own shadow root (Panel panes render there)
+window.__text = (sel) => {
+  const e = window.__deep(sel);
+  if (!e) return null;
+  const parts = [e.innerText || ''];
+  if (e.shadowRoot) {
+    for (const c of e.shadowRoot.children) {
+      if (c.tagName !== 'STYLE' && c.tagName !== 'LINK') parts.push(c.innerText || c.textContent || '');
+    }
+  }
+  return parts.join(' ');
+};
+window.__input = (host) => {
+  const h = window.__deep(host);
+  return h && h.shadowRoot ? h.shadowRoot.querySelector('input') : null;
+};
+window.__source = (name) => Bokeh.documents[0].get_model_by_name(name).data;
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"{CHROMIUM} is missing: the test setup (scripts/test.sh) installs Debian's chromium")
+    tuning = tmp_path_factory.mktemp("tuning")
+    port = _free_port()
+    log = open(tuning.parent / "server.log", "w")
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "pidlab",
+            "tune",
+            "InvertedPendulum-v5",
+            "--ui",
+            "--spec",
+            str(SPEC),
+            "--tuning-dir",
+            str(tuning),
+            "--port",
+            str(port),
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        cwd=tuning.parent,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    url = f"http://localhost:{port}/"
+    deadline = time.monotonic() + 90
+    while True:
+        try:
+            with urllib.request.urlopen(url, timeout=5) as r:
+                if r.status == 200:
+                    break
+        except OSError:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            pytest.fail(f"tuner server did not start:\n{(tuning.parent / 'server.log').read_text()[-3000:]}")
+        time.sleep(0.5)
+    yield url, tuning, tuning.parent / "server.log"
+    proc.terminate()
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:  # pragma: no cover
+        proc.kill()
+    log.close()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def page(browser, server):
+    url, _, log = server
+    context = browser.new_context(viewport={"width": 1600, "height": 1300})
+    context.add_init_script(DEEP)
+    pg = context.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto(url)
+    pg.wait_for_selector("#margins-table", timeout=60_000)
+    yield pg
+    context.close()
+    assert not errors, f"JavaScript errors on the page: {errors}"
+    assert "Traceback" not in log.read_text(), "the server logged a traceback"
+
+
+def _text(pg, selector: str) -> str:
+    return str(pg.evaluate("(sel) => window.__text(sel)", selector) or "")
+
+
+def _table(pg) -> str:
+    return _text(pg, "#margins-table")
+
+
+def _source(pg, name: str, column: str) -> list[float]:
+    return pg.evaluate(f"() => Array.from(window.__source('{name}')['{column}'])")
+
+
+def _field(pg, field: str):
+    return pg.locator(f".pidlab-input-{field} input")
+
+
+def _message(pg, field: str) -> str:
+    return _text(pg, f".pidlab-msg-{field}").strip()
+
+
+def _move_slider(pg, field: str, presses: int = 5, key: str = "ArrowRight") -> None:
+    handle = pg.locator(f".pidlab-slider-{field} .noUi-handle")
+    handle.focus()
+    for _ in range(presses):
+        pg.keyboard.press(key)
+
+
+def _wait_changed(pg, selector: str, before: str, timeout: float = 10_000) -> None:
+    pg.wait_for_function(
+        "([sel, before]) => window.__text(sel) !== null && window.__text(sel) !== before",
+        arg=[selector, before],
+        timeout=timeout,
+    )
+
+
+def _type(pg, field: str, text: str) -> None:
+    box = _field(pg, field)
+    box.fill(text)
+    box.press("Enter")
+
+
+def _click(pg, css: str) -> None:
+    pg.locator(f"{css} button").click()
+
+
+def test_slider_changes_margins_table_and_redraws_plots(page):
+    pg = page
+    table0 = _table(pg)
+    bode0 = _source(pg, "bode-mag", "db")
+    step0 = _source(pg, "step", "y")
+    poles0 = _source(pg, "poles", "re")
+    shot0 = pg.locator(".bk-Figure").first.screenshot()
+    kp0 = float(_field(pg, "kp").input_value())
+    _move_slider(pg, "kp", presses=8)
+    _wait_changed(pg, "#margins-table", _table(pg))
+    # the numeric field follows the slider, and the loop got stiffer
+    kp1 = float(_field(pg, "kp").input_value())
+    assert kp1 > kp0
+    assert _table(pg) != table0
+    pg.wait_for_function("(b) => window.__source('bode-mag').db[0] !== b", arg=bode0[0], timeout=5000)
+    assert _source(pg, "bode-mag", "db") != bode0
+    assert _source(pg, "step", "y") != step0
+    assert _source(pg, "poles", "re") != poles0
+    pg.wait_for_timeout(300)  # let the canvas repaint
+    assert pg.locator(".bk-Figure").first.screenshot() != shot0
+
+
+def test_background_views_arrive_with_progress(page):
+    pg = page
+    pg.wait_for_selector("#rollout-animation", timeout=120_000)
+    assert pg.locator("#rollout-animation").get_attribute("data-backend") in ("mujoco", "schematic")
+    score = _text(pg, "#coach-score")
+    assert "mean return 1000.0" in score  # the robust coach balances all 5 episodes
+    pg.wait_for_function("() => window.__source('roa-paths').xs.length > 0", timeout=120_000)
+    status = _text(pg, ".pidlab-status-roa")
+    assert "preview" in status and "failures" in status
+    # a change starts the slow views again: a visible waiting/progress state, then new results
+    _move_slider(pg, "kd", presses=3)
+    pg.wait_for_function(
+        "() => /waiting|starting|bisection|final check|level estimate/.test(window.__text('.pidlab-status-roa'))",
+        timeout=5000,
+    )
+    pg.wait_for_function("() => /preview/.test(window.__text('.pidlab-status-roa'))", timeout=120_000)
+
+
+def test_save_then_load_back_identical(page, server):
+    pg = page
+    _, tuning, _ = server
+    name = pg.locator(".pidlab-name input")
+    name.fill("uitest")
+    name.press("Enter")
+    _click(pg, ".pidlab-save")
+    pg.wait_for_function("() => (window.__text('.pidlab-file-msg') || '').includes('saved')", timeout=10_000)
+    path = tuning / "InvertedPendulum-v5.uitest.toml"
+    saved = path.read_bytes()
+    # unchanged gains: the starting spec under a new name, bounds and provenance kept
+    assert load_spec(path) == replace(load_spec(SPEC), name="uitest")
+    kp_saved = _field(pg, "kp").input_value()
+    # change a gain, then load the file back
+    table = _table(pg)
+    _move_slider(pg, "kp", presses=10)
+    _wait_changed(pg, "#margins-table", table)
+    assert _field(pg, "kp").input_value() != kp_saved
+    pg.locator(".pidlab-load-select select").select_option("InvertedPendulum-v5.uitest.toml")
+    _click(pg, ".pidlab-load")
+    pg.wait_for_function("() => (window.__text('.pidlab-file-msg') || '').includes('loaded')", timeout=10_000)
+    pg.wait_for_function("(v) => window.__input('.pidlab-input-kp').value === v", arg=kp_saved, timeout=5000)
+    # saving what was loaded writes the same bytes
+    _click(pg, ".pidlab-save")
+    pg.wait_for_function("() => (window.__text('.pidlab-file-msg') || '').includes('saved')", timeout=10_000)
+    assert path.read_bytes() == saved
+    # an edited coach is saved without the bounds (not certified for it) and says it was edited
+    _type(pg, "kd", "1.1")
+    name.fill("uitest-edited")
+    name.press("Enter")
+    _click(pg, ".pidlab-save")
+    edited = tuning / "InvertedPendulum-v5.uitest-edited.toml"
+    pg.wait_for_function(
+        "() => (window.__text('.pidlab-file-msg') || '').includes('uitest-edited')", timeout=10_000
+    )
+    spec = load_spec(edited)
+    assert spec.loop("pole").kd == 1.1 and spec.bounds is None
+    assert "--ui" in spec.provenance["tool"] and spec.provenance["edited_from"] == "uitest"
+
+
+def test_bad_input_shows_a_message_and_writes_nothing(page, server):
+    pg = page
+    _, tuning, _ = server
+    table = _table(pg)
+    _type(pg, "kp", "abc")
+    pg.wait_for_selector(".pidlab-msg-kp .pidlab-msg", timeout=5000)
+    assert "is not a number" in _message(pg, "kp")
+    _type(pg, "tf", "-0.5")
+    pg.wait_for_selector(".pidlab-msg-tf .pidlab-msg", timeout=5000)
+    assert "out of range" in _message(pg, "tf")
+    _type(pg, "kd", "1e9")
+    pg.wait_for_selector(".pidlab-msg-kd .pidlab-msg", timeout=5000)
+    assert "out of range" in _message(pg, "kd")
+    assert _table(pg) == table  # rejected values change nothing
+    # an unstable coach is shown (that is the point of a tuner) but never saved
+    _type(pg, "kp", "-1")
+    pg.wait_for_function(
+        "() => (window.__text('.pidlab-msg-kp') || '').includes('unstable')", timeout=5000
+    )
+    assert "UNSTABLE" in _text(pg, "#closed-loop-summary")
+    name = pg.locator(".pidlab-name input")
+    name.fill("unstable")
+    name.press("Enter")
+    _click(pg, ".pidlab-save")
+    pg.wait_for_function("() => (window.__text('.pidlab-file-msg') || '').includes('not saved')", timeout=5000)
+    assert not (tuning / "InvertedPendulum-v5.unstable.toml").exists()
+    name.fill("../escape")
+    name.press("Enter")
+    _click(pg, ".pidlab-save")
+    pg.wait_for_selector(".pidlab-msg-name .pidlab-msg", timeout=5000)
+    assert not list(tuning.parent.glob("*escape*"))
+    # a valid value clears the message and the page still answers
+    _type(pg, "kp", "5")
+    pg.wait_for_function("() => !(window.__text('.pidlab-msg-kp') || '').trim()", timeout=5000)
+    assert "stable" in _text(pg, "#closed-loop-summary")
+
+
+def test_autotune_and_derive_bounds_buttons(page):
+    pg = page
+    kp0 = _field(pg, "kp").input_value()
+    # ask for a slower loop, then auto-tune
+    handle = pg.locator(".pidlab-response-time .noUi-handle")
+    handle.focus()
+    for _ in range(10):
+        pg.keyboard.press("ArrowRight")
+    _click(pg, ".pidlab-autotune")
+    pg.wait_for_function(
+        "() => (window.__text('.pidlab-status-autotune') || '').includes('achieved')", timeout=120_000
+    )
+    assert _field(pg, "kp").input_value() != kp0
+    # the tuned coach has no bounds yet; derive them
+    _click(pg, ".pidlab-derive")
+    pg.wait_for_function(
+        "() => (window.__text('.pidlab-status-bounds') || '').includes('certified')", timeout=240_000
+    )
+    assert "hinge_pos" in _text(pg, "#bounds-table")
+    box0 = _source(pg, "bounds-box", "x")
+    assert len(box0) == 5
+    handle = pg.locator(".pidlab-scale .noUi-handle")
+    handle.focus()
+    for _ in range(4):
+        pg.keyboard.press("ArrowRight")
+    pg.wait_for_function("(b) => window.__source('bounds-box').x[1] !== b", arg=box0[1], timeout=5000)
+    box1 = _source(pg, "bounds-box", "x")
+    assert box1[1] - box1[0] > box0[1] - box0[0]
