@@ -175,6 +175,9 @@ def tune(
     animation: Annotated[
         str, typer.Option(help="--ui: rollout frames: auto, mujoco (offscreen OpenGL) or schematic.")
     ] = "auto",
+    bounds_samples: Annotated[
+        int, typer.Option(help="--ui: simulated states certifying the region behind Derive bounds.")
+    ] = 1000,
     bandwidth: Annotated[float | None, typer.Option(help="Target gain crossover, rad/s.")] = None,
     phase_margin: Annotated[float | None, typer.Option(help="Target phase margin, degrees.")] = None,
     preset: Annotated[str, typer.Option(help="robust or weak.")] = "robust",
@@ -191,7 +194,7 @@ def tune(
     if auto == ui:
         _fail("give exactly one of --auto (write a tuned spec) or --ui (interactive tuner in the browser)")
     if ui:
-        _tune_ui(env, spec, port, tuning_dir, animation)
+        _tune_ui(env, spec, port, tuning_dir, animation, bounds_samples)
         return
     if preset not in ("robust", "weak"):
         _fail(f"--preset {preset!r}: expected robust or weak")
@@ -225,7 +228,9 @@ def tune(
     con.print(f"wrote {path}")
 
 
-def _tune_ui(env: str, spec_file: str | None, port: int, tuning_dir: str, animation: str) -> None:
+def _tune_ui(
+    env: str, spec_file: str | None, port: int, tuning_dir: str, animation: str, bounds_samples: int
+) -> None:
     from pathlib import Path
 
     from pidlab.app.serve import check_port, serve_tuner
@@ -235,6 +240,8 @@ def _tune_ui(env: str, spec_file: str | None, port: int, tuning_dir: str, animat
 
     if animation not in ("auto", "mujoco", "schematic"):
         _fail(f"--animation {animation!r}: expected auto, mujoco or schematic")
+    if bounds_samples < 1:
+        _fail(f"--bounds-samples {bounds_samples}: expected a positive number")
     loaded = load_model(env)
     if loaded.card is None:
         _fail(f"{env}: the tuner needs a model card (one of the paper envs)")
@@ -250,7 +257,15 @@ def _tune_ui(env: str, spec_file: str | None, port: int, tuning_dir: str, animat
     if folder.exists() and not folder.is_dir():
         _fail(f"--tuning-dir {folder}: not a folder")
     check_port(port)
-    serve_tuner(coach, str(path), folder, port, animation=animation, announce=typer.echo)
+    serve_tuner(
+        coach,
+        str(path),
+        folder,
+        port,
+        animation=animation,
+        bounds_samples=bounds_samples,
+        announce=typer.echo,
+    )
 
 
 @app.command()

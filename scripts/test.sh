@@ -3,6 +3,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+bash scripts/browser.sh
 export PATH="$PWD/.venv/bin:$PATH"
 ruff check pidlab tests benchmarks
 mypy pidlab

@@ -81,6 +81,8 @@ def server(tmp_path_factory):
             str(tuning),
             "--port",
             str(port),
+            "--bounds-samples",
+            "200",
         ],
         stdout=log,
         stderr=subprocess.STDOUT,
@@ -276,15 +278,15 @@ def test_bad_input_shows_a_message_and_writes_nothing(page, server):
     assert _table(pg) == table  # rejected values change nothing
     # an unstable coach is shown (that is the point of a tuner) but never saved
     _type(pg, "kp", "-1")
-    pg.wait_for_function(
-        "() => (window.__text('.pidlab-msg-kp') || '').includes('unstable')", timeout=5000
-    )
+    pg.wait_for_function("() => (window.__text('.pidlab-msg-kp') || '').includes('unstable')", timeout=5000)
     assert "UNSTABLE" in _text(pg, "#closed-loop-summary")
     name = pg.locator(".pidlab-name input")
     name.fill("unstable")
     name.press("Enter")
     _click(pg, ".pidlab-save")
-    pg.wait_for_function("() => (window.__text('.pidlab-file-msg') || '').includes('not saved')", timeout=5000)
+    pg.wait_for_function(
+        "() => (window.__text('.pidlab-file-msg') || '').includes('not saved')", timeout=5000
+    )
     assert not (tuning / "InvertedPendulum-v5.unstable.toml").exists()
     name.fill("../escape")
     name.press("Enter")

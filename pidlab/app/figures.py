@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from bokeh.models import ColumnDataSource, Range1d, Span
+from bokeh.models import ColumnDataSource
+from bokeh.models.annotations import Span
 from bokeh.plotting import figure
 
 from pidlab.app.live import LinearViews
@@ -81,7 +82,7 @@ def _fig(title: str, x_label: str, y_label: str, **kw: Any) -> Any:
         height=kw.pop("height", 260),
         **kw,
     )
-    f.title.text_font_size = "11pt"
+    f.title.text_font_size = "11pt"  # type: ignore[union-attr]
     f.toolbar.logo = None
     return f
 
@@ -287,8 +288,3 @@ def bounds_data(
         idx = (e["variables"].index(x), e["variables"].index(y))
         ellipse = ellipse_slice(np.asarray(e["shape"]), np.asarray(e["center"]), e["level"] * e["rho"], idx)
     return box, ellipse
-
-
-def fix_range(f: Any, lo: float, hi: float) -> None:
-    """Set a figure's y range (used to keep divergent responses readable)."""
-    f.y_range = Range1d(lo, hi)

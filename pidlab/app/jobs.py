@@ -153,7 +153,9 @@ def rollout_preview(
 
     report = _quiet(progress)
     loaded = _model(spec.env_id)
-    returns, lengths, causes = [], [], {}
+    returns: list[float] = []
+    lengths: list[int] = []
+    causes: dict[str, int] = {}
     for i in range(episodes):
         report(f"episode {i + 1}/{episodes}", i / (episodes + 1))
         ep = coach_alone(spec, loaded, episodes=1, seed0=i).episodes[0]

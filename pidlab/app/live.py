@@ -152,7 +152,8 @@ def with_loop_value(spec: CoachSpec, loop: str, field: str, value: float) -> Coa
     """A copy of ``spec`` with ``field`` of loop ``loop`` set to ``value``."""
     if field not in GAIN_FIELDS:
         raise ValueError(f"field {field!r}; expected one of {', '.join(GAIN_FIELDS)}")
-    loops = tuple(replace(lp, **{field: value}) if lp.name == loop else lp for lp in spec.loops)
+    change: dict[str, Any] = {field: float(value)}
+    loops = tuple(replace(lp, **change) if lp.name == loop else lp for lp in spec.loops)
     spec.loop(loop)  # raises SpecError for an unknown loop
     return replace(spec, loops=loops)
 

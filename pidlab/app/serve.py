@@ -31,6 +31,7 @@ def serve_tuner(
     tuning_dir: Path,
     port: int,
     animation: str = "auto",
+    bounds_samples: int = 1000,
     announce: Any = print,
 ) -> None:
     """Serve the tuner for ``spec`` until interrupted (Ctrl-C).
@@ -48,7 +49,9 @@ def serve_tuner(
     runner = JobRunner()
 
     def page() -> Any:
-        return Tuner(spec, source, tuning_dir, runner=runner, animation=animation).panel()
+        return Tuner(
+            spec, source, tuning_dir, runner=runner, animation=animation, bounds_samples=bounds_samples
+        ).panel()
 
     url = f"http://localhost:{port}/"
     announce(f"pidlab tuner for {spec.env_id} at {url} (Ctrl-C to stop)")

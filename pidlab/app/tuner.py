@@ -64,6 +64,10 @@ def _html(object: str = "", **kw: Any) -> Any:
     return pn.pane.HTML(object, stylesheets=[CSS], **kw)
 
 
+def _value(widget: Any) -> float:
+    return float(widget.value)
+
+
 def _fmt(v: float, digits: int = 3) -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return "—"
@@ -101,6 +105,9 @@ class Tuner:
         Shared worker pool; default: a new one.
     animation : {"auto", "mujoco", "schematic"}
         How rollout frames are drawn.
+    bounds_samples : int
+        Simulated initial states that certify the region behind *Derive bounds* (as
+        ``pidlab bounds --samples``).
     """
 
     def __init__(
@@ -110,6 +117,7 @@ class Tuner:
         tuning_dir: Path,
         runner: JobRunner | None = None,
         animation: str = "auto",
+        bounds_samples: int = 1000,
     ) -> None:
         self.loaded = load_model(spec.env_id)
         self.ctx = tuner_context(self.loaded)
@@ -117,6 +125,7 @@ class Tuner:
         self.tuning_dir = Path(tuning_dir)
         self.runner = runner or JobRunner()
         self.animation = animation
+        self.bounds_samples = bounds_samples
         self.source = source
         self.variables = slice_variables(spec)
         self.sources = F.make_sources()
@@ -207,20 +216,18 @@ class Tuner:
         self.status: dict[str, Any] = {}
         self.progress: dict[str, Any] = {}
         for kind in ("roa", "rollout", "autotune", "bounds"):
-            self.status[kind] = _html(
-                "", css_classes=[f"pidlab-status-{kind}"], sizing_mode="stretch_width"
-            )
+            self.status[kind] = _html("", css_classes=[f"pidlab-status-{kind}"], sizing_mode="stretch_width")
             self.progress[kind] = pn.indicators.Progress(
                 value=0, max=100, width=220, visible=False, css_classes=[f"pidlab-progress-{kind}"]
             )
         self.score = _html("", css_classes=["pidlab-score"], sizing_mode="stretch_width")
         self.animation_pane = _html("", css_classes=["pidlab-animation"], min_height=250)
-        s = self.sources
-        self.bode_mag, self.bode_phase = F.bode_figures(s)
-        self.nyquist = F.nyquist_figure(s)
-        self.step_fig, self.initial_fig = F.response_figures(s)
-        self.pz = F.pole_zero_figure(s)
-        self.roa_fig = F.roa_figure(s, self.variables, self.ctx.units)
+        src = self.sources
+        self.bode_mag, self.bode_phase = F.bode_figures(src)
+        self.nyquist = F.nyquist_figure(src)
+        self.step_fig, self.initial_fig = F.response_figures(src)
+        self.pz = F.pole_zero_figure(src)
+        self.roa_fig = F.roa_figure(src, self.variables, self.ctx.units)
 
     def panel(self) -> Any:
         """The page, and the periodic poll that feeds it background results."""
@@ -362,7 +369,7 @@ class Tuner:
 
     def _asked(self) -> tuple[float, float]:
         """(crossover rad/s, phase margin deg) asked by the pidtune-style sliders."""
-        return 1.0 / self.response_time.value, 30.0 + 45.0 * self.robustness.value
+        return 1.0 / _value(self.response_time), 30.0 + 45.0 * _value(self.robustness)
 
     def _show_targets(self) -> None:
         bw, pm = self._asked()
@@ -370,6 +377,7 @@ class Tuner:
 
     @property
     def loop(self) -> str:
+        """The loop being tuned."""
         return str(self.loop_select.value)
 
     def _sync_fields(self) -> None:
@@ -468,7 +476,8 @@ class Tuner:
             if not v.stable:
                 self.messages[field].object = (
                     "<span class='pidlab-msg'>"
-                    f"{html.escape(FIELD_LABELS[field])}: closed loop unstable with this value (spectral radius "
+                    f"{html.escape(FIELD_LABELS[field])}: closed loop unstable with this value "
+                    "(spectral radius "
                     f"{v.spectral_radius:.4f} &gt; 1); saving is disabled until it is stable</span>"
                 )
             else:
@@ -511,13 +520,17 @@ class Tuner:
         for m in v.metrics:
             if m.kind == "step":
                 parts.append(
-                    f"Step ({html.escape(m.loop)}): overshoot {_fmt(m.overshoot_pct)} %, rise {_fmt(m.rise_time_s)} s, "
-                    f"settling (2 %) {_fmt(m.settling_time_s)} s, peak command {_fmt(m.peak_control)} of the range."
+                    f"Step ({html.escape(m.loop)}): overshoot {_fmt(m.overshoot_pct)} %, rise "
+                    f"{_fmt(m.rise_time_s)} s, "
+                    f"settling (2 %) {_fmt(m.settling_time_s)} s, peak command {_fmt(m.peak_control)} "
+                    "of the range."
                 )
             else:
                 parts.append(
-                    f"Initial deviation {m.size:g} of {html.escape(m.signal)}: excursion {_fmt(m.overshoot_pct)} %, "
-                    f"settling (2 %) {_fmt(m.settling_time_s)} s, peak command {_fmt(m.peak_control)} of the range."
+                    f"Initial deviation {m.size:g} of {html.escape(m.signal)}: excursion "
+                    f"{_fmt(m.overshoot_pct)} %, "
+                    f"settling (2 %) {_fmt(m.settling_time_s)} s, peak command {_fmt(m.peak_control)} "
+                    "of the range."
                 )
         return "<div id='closed-loop-summary'>" + "<br>".join(parts) + "</div>"
 
@@ -526,7 +539,7 @@ class Tuner:
     def _current_bounds(self) -> dict[str, Any] | None:
         if not self._bounds_valid():
             return None
-        return scaled_bounds(self.base_bounds, float(self.scale.value))
+        return scaled_bounds(self.base_bounds, _value(self.scale))
 
     def _draw_bounds(self) -> None:
         b = self._current_bounds()
@@ -553,8 +566,11 @@ class Tuner:
                 f"<td>{html.escape(unit)}</td></tr>"
             )
         note = ""
-        if self.scale.value > 1.0:
-            note = "<br><span class='pidlab-msg'>scale &gt; 1: the region extends beyond the certified set</span>"
+        if _value(self.scale) > 1.0:
+            note = (
+                "<br><span class='pidlab-msg'>scale &gt; 1: the region extends beyond the certified "
+                "set</span>"
+            )
         e = b.get("ellipsoid")
         ell = f"ellipsoid V &le; rho c with c = {e['level']:.4g}, rho = {e['rho']:.4g}; " if e else ""
         self.bounds_info.object = (
@@ -570,7 +586,7 @@ class Tuner:
             ].object = "<span class='pidlab-msg'>closed loop unstable: no region to certify</span>"
             return
         self._bounds_job_spec = self.spec
-        self.runner.submit(self.owner, "bounds", self.spec)
+        self.runner.submit(self.owner, "bounds", self.spec, samples=self.bounds_samples)
         self._running("bounds", "starting", 0.0)
 
     # ------------------------------------------------------------------ slow jobs
@@ -640,20 +656,23 @@ class Tuner:
             self._push(draw)
             ok = sum(r.recovered)
             self.status["roa"].object = (
-                f"preview: {html.escape(r.roa.method)}; level {r.roa.level:.4g}, {r.roa.check.samples} samples, "
+                f"preview: {html.escape(r.roa.method)}; level {r.roa.level:.4g}, {r.roa.check.samples} "
+                "samples, "
                 f"{r.roa.check.failures} failures; {ok}/{len(r.recovered)} trajectories shown recovered "
                 f"({r.roa.elapsed_s:.1f} s)"
             )
         elif kind == "rollout":
             causes = ", ".join(f"{n} × {html.escape(c)}" for c, n in r.causes.items())
             self.score.object = (
-                f"<div id='coach-score'>mean return <b>{r.mean:.1f}</b> ± {r.std:.1f} over {r.episodes} episodes "
+                f"<div id='coach-score'>mean return <b>{r.mean:.1f}</b> ± {r.std:.1f} over {r.episodes} "
+                "episodes "
                 f"(seeds 0-{r.episodes - 1}); mean length {r.mean_length:.0f} steps; ended by: {causes}</div>"
             )
             data = base64.b64encode(r.gif).decode("ascii")
             self.animation_pane.object = (
                 f"<img id='rollout-animation' data-backend='{r.backend}' src='data:image/gif;base64,{data}' "
-                f"style='max-width:100%'><div style='font-size:0.8em'>episode seed 0 · {html.escape(r.note)}</div>"
+                "style='max-width:100%'><div style='font-size:0.8em'>episode seed 0 · "
+                f"{html.escape(r.note)}</div>"
             )
             self.status["rollout"].object = ""
         elif kind == "autotune":
@@ -662,7 +681,8 @@ class Tuner:
                 tuned, f"auto-tune (asked {r.asked_bandwidth:.3g} rad/s, {r.asked_phase_margin:.0f} deg)"
             )
             self.status["autotune"].object = (
-                f"achieved: crossover {r.achieved_bandwidth:.3g} rad/s, phase margin {r.achieved_phase_margin:.1f} "
+                f"achieved: crossover {r.achieved_bandwidth:.3g} rad/s, phase margin "
+                f"{r.achieved_phase_margin:.1f} "
                 f"deg, Ms {r.achieved_ms:.3g} ({r.evaluations} evaluations)"
             )
         elif kind == "bounds":
@@ -723,7 +743,7 @@ class Tuner:
         return spec
 
     def _save(self) -> None:
-        name = self.name_input.value.strip()
+        name = str(self.name_input.value or "").strip()
         check = check_name(name)
         if not check.ok:
             self.name_msg.object = f"<span class='pidlab-msg'>{html.escape(check.message)}</span>"
