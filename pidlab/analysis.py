@@ -14,6 +14,7 @@ sensitivity peak ``Ms = 1 / min|1 + L|``, and crossover frequencies.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import control as ct
@@ -261,6 +262,65 @@ def _frequency_grid(L: ct.StateSpace) -> np.ndarray:
     return np.logspace(-3, 4, 3000)
 
 
+CROSSOVER_TOL = 1e-3
+"""Relative tolerance for accepting a crossover: ``||L| - 1|`` (gain), ``|Im L| / |L|`` (phase)."""
+
+
+def _refine(f: Callable[[float], float], a: float, b: float) -> float:
+    """Root of ``f`` between log-frequencies ``a`` and ``b`` (bisection, to 1e-12 relative)."""
+    fa = f(a)
+    for _ in range(60):
+        m = 0.5 * (a + b)
+        fm = f(m)
+        if (fm > 0) == (fa > 0):
+            a, fa = m, fm
+        else:
+            b = m
+    return float(np.exp(0.5 * (a + b)))
+
+
+def _true_gain_crossovers(
+    L: ct.StateSpace, wgc: np.ndarray, omega: np.ndarray, response: np.ndarray
+) -> np.ndarray:
+    """Gain crossovers where ``|L| = 1`` really holds.
+
+    ``control.stability_margins`` finds crossovers as polynomial roots; with a pole on the unit
+    circle (a cart position loop: z = 1) it can return frequencies where ``|L|`` is far from 1
+    (seen: 4 dB on InvertedPendulum). Those are dropped, and crossovers seen on the dense grid
+    but missing from python-control's list are added (refined by bisection).
+    """
+    keep: list[float] = []
+    for w in sorted(float(v) for v in wgc):
+        near_one = abs(abs(siso_frequency_response(L, np.array([w]))[0]) - 1.0) < CROSSOVER_TOL
+        if near_one and all(abs(w - k) > 1e-4 * w for k in keep):
+            keep.append(w)
+    with np.errstate(divide="ignore"):
+        logmag = np.log(np.abs(response))
+    idx = np.nonzero(np.diff(np.sign(logmag)) != 0)[0]
+
+    def f(x: float) -> float:
+        return float(np.log(abs(siso_frequency_response(L, np.array([np.exp(x)]))[0])))
+
+    for i in idx:
+        if not (np.isfinite(logmag[i]) and np.isfinite(logmag[i + 1])):
+            continue
+        w = _refine(f, float(np.log(omega[i])), float(np.log(omega[i + 1])))
+        if all(abs(w - k) > 1e-4 * w for k in keep):
+            keep.append(w)
+    return np.array(sorted(keep))
+
+
+def _true_phase_crossovers(
+    L: ct.StateSpace, gm: np.ndarray, wpc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Phase crossovers of python-control where ``L`` is really on the negative real axis."""
+    if not wpc.size:
+        return gm, wpc
+    r = siso_frequency_response(L, wpc)
+    ok = (r.real < 0) & (np.abs(r.imag) <= CROSSOVER_TOL * np.abs(r))
+    return gm[ok], wpc[ok]
+
+
 def loop_margins(L: ct.StateSpace, actuator: str) -> LoopMargins:
     """Margins of a SISO loop transfer function (negative-feedback convention)."""
     with warnings.catch_warnings():
@@ -270,6 +330,8 @@ def loop_margins(L: ct.StateSpace, actuator: str) -> LoopMargins:
         response = siso_frequency_response(L, omega)
         dm, dgm, dpm = siso_disk_margins(response)
     gm, pm, sm, wpc, wgc = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (gm, pm, sm, wpc, wgc))
+    gm, wpc = _true_phase_crossovers(L, gm, wpc)
+    wgc = _true_gain_crossovers(L, wgc, omega, response)
     upper = gm[gm > 1.0]
     lower = gm[(gm < 1.0) & (gm > 0.0)]
     if upper.size:
@@ -430,9 +492,16 @@ def initial_response(
 
 
 def response_metrics(
-    report: ClosedLoopReport, coach: Coach, plant: ct.StateSpace, horizon_s: float
+    report: ClosedLoopReport,
+    coach: Coach,
+    plant: ct.StateSpace,
+    horizon_s: float,
+    loops: tuple[str, ...] | None = None,
 ) -> tuple[ResponseMetrics, ...]:
-    """Step and initial-condition metrics of every loop of the discrete closed loop ``report``."""
+    """Step and initial-condition metrics of the discrete closed loop ``report``.
+
+    ``loops``: the loops to report (default: every loop).
+    """
     cl = report.sys
     dt = coach.dt
     steps = max(round(horizon_s / dt), 10)
@@ -443,6 +512,8 @@ def response_metrics(
     nobs = len(lay.observation_names)
     out = []
     for j, lp in enumerate(lay.spec.loops):
+        if loops is not None and lp.name not in loops:
+            continue
         sig = lay.observation_names.index(lp.signal)
         outputs = step_response(cl, j, steps)
         y = outputs[:, sig]
@@ -463,6 +534,8 @@ def response_metrics(
         out.append(ResponseMetrics("step", lp.name, lp.signal, float(over), settle, rise, peak_u, 1.0))
     # initial deviation of each loop's signal, everything else at the operating point
     for lp in lay.spec.loops:
+        if loops is not None and lp.name not in loops:
+            continue
         sig = lay.observation_names.index(lp.signal)
         size = 0.05
         outputs = initial_response(cl, plant, sig, size, steps)

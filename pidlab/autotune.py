@@ -239,20 +239,16 @@ def _fast_loop_figures(
     signed phase margin can be negative at a crossover of a stable loop; the distance cannot).
     """
     from pidlab.analysis import hand_closed_loop, loop_at_actuator
+    from pidlab.lti import siso_frequency_response
 
     Acl = hand_closed_loop(plant, coach)
     rho = float(np.max(np.abs(np.linalg.eigvals(Acl)))) if Acl.size else 0.0
-    dt = float(plant.dt)
-    z = np.exp(1j * omega * dt)
     wc_max, pm_min, ms_max = -math.inf, math.inf, 0.0
     D = np.asarray(coach.D)
     for i in range(plant.ninputs):
         if not np.any(D[i]) and not np.any(np.asarray(coach.C)[i]):
             continue
-        L = loop_at_actuator(plant, coach, i)
-        A, B, C = np.asarray(L.A), np.asarray(L.B), np.asarray(L.C)
-        n = A.shape[0]
-        resp = np.array([(C @ np.linalg.solve(zk * np.eye(n) - A, B))[0, 0] for zk in z])
+        resp = siso_frequency_response(loop_at_actuator(plant, coach, i), omega)
         ms_max = max(ms_max, float(np.max(1.0 / np.abs(1.0 + resp))))
         mag = np.abs(resp)
         cross = np.nonzero((mag[:-1] - 1.0) * (mag[1:] - 1.0) < 0)[0]

@@ -271,8 +271,18 @@ def siso_frequency_response(sys: ct.StateSpace, omega: np.ndarray) -> np.ndarray
     if n == 0:
         return np.full(w.shape, complex(D[0, 0]))
     M = z[:, None, None] * np.eye(n)[None] - A[None]
+    rhs = np.broadcast_to(B[None].astype(complex), (len(w), n, 1))
     with np.errstate(all="ignore"):
-        x = np.linalg.solve(M, np.broadcast_to(B[None].astype(complex), (len(w), n, 1)))
+        try:
+            x = np.linalg.solve(M, rhs)
+        except np.linalg.LinAlgError:  # a frequency exactly on a pole: infinite there
+            out = np.empty(len(w), dtype=complex)
+            for k in range(len(w)):
+                try:
+                    out[k] = (C @ np.linalg.solve(M[k], rhs[k]))[0, 0] + D[0, 0]
+                except np.linalg.LinAlgError:
+                    out[k] = complex(np.inf, 0.0)
+            return out
     return (C[None] @ x)[:, 0, 0] + D[0, 0]
 
 

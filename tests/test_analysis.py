@@ -149,3 +149,41 @@ def test_step_response_equals_python_control_forced_response(models):
             warnings.simplefilter("ignore")
             ref = ct.forced_response(cl, T=t, U=np.vstack([np.eye(cl.ninputs)[j]] * steps).T)
         assert np.allclose(step_response(cl, j, steps), np.asarray(ref.outputs).T, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("env", "name"),
+    [
+        ("InvertedPendulum-v5", "pidlab-robust"),
+        ("Hopper-v5", "paper"),
+        ("Walker2d-v5", "pidlab-robust"),
+        ("Walker2d-v5", "pidlab-weak"),
+    ],
+)
+def test_gain_crossovers_are_real_crossovers(models, env, name):
+    """python-control's polynomial method returns spurious crossovers on these discrete loops
+    (e.g. 0.093 rad/s where |L| = 4 dB on InvertedPendulum, and misses the real one of
+    Walker2d's ankle loop at 2.5 rad/s); every reported crossover must have |L| = 1, and every
+    crossing of |L| = 1 seen on a dense grid must be reported."""
+    from pidlab.analysis import _frequency_grid, loop_at_actuator
+    from pidlab.lti import siso_frequency_response
+
+    loaded = models[env]
+    spec = load_spec(TUNING / f"{env}.{name}.toml")
+    coach = Coach(spec, loaded)
+    result = analyze_coach(coach, loaded)
+    coach_d = coach.linear_model()
+    for m in result.discrete.margins:
+        i = list(result.plant.input_labels).index(m.actuator)
+        L = loop_at_actuator(result.plant, coach_d, i)
+        if m.crossovers:
+            mags = np.abs(siso_frequency_response(L, np.array(m.crossovers)))
+            assert np.allclose(mags, 1.0, atol=1e-3), (m.actuator, m.crossovers, mags)
+            ph = np.angle(siso_frequency_response(L, np.array(m.crossovers)), deg=True)
+            assert m.phase_margin_deg == pytest.approx(float(np.min(180 - np.abs(ph))))
+        omega = np.logspace(np.log10(_frequency_grid(L)[0]), np.log10(_frequency_grid(L)[-1]), 20000)
+        mag = np.abs(siso_frequency_response(L, omega))
+        for k in np.nonzero(np.diff(np.sign(mag - 1.0)) != 0)[0]:
+            assert any(abs(w - omega[k]) <= 0.01 * omega[k] for w in m.crossovers), (m.actuator, omega[k])
+    if env == "InvertedPendulum-v5":
+        assert result.discrete.margins[0].phase_margin_deg == pytest.approx(59.73, abs=0.01)

@@ -6,109 +6,28 @@ it gets its own tuner session. The server writes specs into a temporary tuning f
 
 from __future__ import annotations
 
-import os
-import socket
-import subprocess
-import sys
-import time
-import urllib.request
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
+from pidlab.app.browser import CHROMIUM, CHROMIUM_ARGS, PAGE_JS, free_port, start_server, stop_server
 from pidlab.spec import load_spec
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = ROOT / "tuning" / "InvertedPendulum-v5.pidlab-robust.toml"
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
-
-# finds an element by CSS selector through every shadow root (Bokeh widgets live in shadow DOM)
-DEEP = """
-window.__deep = (sel, root = document) => {
-  const hit = root.querySelector(sel);
-  if (hit) return hit;
-  for (const el of root.querySelectorAll('*')) {
-    if (el.shadowRoot) { const f = window.__deep(sel, el.shadowRoot); if (f) return f; }
-  }
-  return null;
-};
-// visible text of an element, including its own shadow root (Panel panes render there)
-window.__text = (sel) => {
-  const e = window.__deep(sel);
-  if (!e) return null;
-  const parts = [e.innerText || ''];
-  if (e.shadowRoot) {
-    for (const c of e.shadowRoot.children) {
-      if (c.tagName !== 'STYLE' && c.tagName !== 'LINK') parts.push(c.innerText || c.textContent || '');
-    }
-  }
-  return parts.join(' ');
-};
-window.__input = (host) => {
-  const h = window.__deep(host);
-  return h && h.shadowRoot ? h.shadowRoot.querySelector('input') : null;
-};
-window.__source = (name) => Bokeh.documents[0].get_model_by_name(name).data;
-"""
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     if not Path(CHROMIUM).exists():
-        pytest.fail(f"{CHROMIUM} is missing: the test setup (scripts/test.sh) installs Debian's chromium")
+        pytest.fail(f"{CHROMIUM} is missing: the test setup (scripts/browser.sh) installs Debian's chromium")
     tuning = tmp_path_factory.mktemp("tuning")
-    port = _free_port()
-    log = open(tuning.parent / "server.log", "w")
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "pidlab",
-            "tune",
-            "InvertedPendulum-v5",
-            "--ui",
-            "--spec",
-            str(SPEC),
-            "--tuning-dir",
-            str(tuning),
-            "--port",
-            str(port),
-            "--bounds-samples",
-            "200",
-        ],
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        cwd=tuning.parent,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    url = f"http://localhost:{port}/"
-    deadline = time.monotonic() + 90
-    while True:
-        try:
-            with urllib.request.urlopen(url, timeout=5) as r:
-                if r.status == 200:
-                    break
-        except OSError:
-            pass
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            pytest.fail(f"tuner server did not start:\n{(tuning.parent / 'server.log').read_text()[-3000:]}")
-        time.sleep(0.5)
-    yield url, tuning, tuning.parent / "server.log"
-    proc.terminate()
-    try:
-        proc.wait(timeout=20)
-    except subprocess.TimeoutExpired:  # pragma: no cover
-        proc.kill()
-    log.close()
+    log = tuning.parent / "server.log"
+    port = free_port()
+    proc = start_server("InvertedPendulum-v5", SPEC, tuning, port, extra=["--bounds-samples", "200"], log=log)
+    yield f"http://localhost:{port}/", tuning, log
+    stop_server(proc)
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +35,7 @@ def browser():
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         yield b
         b.close()
 
@@ -125,7 +44,7 @@ def browser():
 def page(browser, server):
     url, _, log = server
     context = browser.new_context(viewport={"width": 1600, "height": 1300})
-    context.add_init_script(DEEP)
+    context.add_init_script(PAGE_JS)
     pg = context.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))

@@ -278,7 +278,7 @@ def linear_views(ctx: TunerContext, spec: CoachSpec, loop: str) -> LinearViews:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         zeros = np.asarray(ct.zeros(sub), dtype=complex)
-    metrics = tuple(m for m in response_metrics(report, coach, plant, RESPONSE_HORIZON_S) if m.loop == loop)
+    metrics = response_metrics(report, coach, plant, RESPONSE_HORIZON_S, loops=(loop,))
     return LinearViews(
         loop=loop,
         actuator=actuator,

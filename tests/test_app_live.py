@@ -1,0 +1,225 @@
+"""The tuner's computations without a browser: live views, form checks, bounds scaling, jobs, CLI."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pidlab.analysis import analyze_coach
+from pidlab.app.jobs import JobRunner, roa_preview, rollout_preview
+from pidlab.app.live import (
+    check_field,
+    check_name,
+    linear_views,
+    loop_actuator,
+    scaled_bounds,
+    tuner_context,
+    with_loop_value,
+)
+from pidlab.pid import Coach
+from pidlab.spec import load_spec
+
+ROOT = Path(__file__).resolve().parents[1]
+TUNING = ROOT / "tuning"
+
+
+@pytest.fixture(scope="module")
+def ip(models):
+    loaded = models["InvertedPendulum-v5"]
+    return loaded, tuner_context(loaded), load_spec(TUNING / "InvertedPendulum-v5.pidlab-robust.toml")
+
+
+def test_live_views_agree_with_pidlab_analyze(ip):
+    loaded, ctx, spec = ip
+    v = linear_views(ctx, spec, "pole")
+    ref = analyze_coach(Coach(spec, loaded), loaded)
+    assert v.margins == ref.discrete.margins
+    assert v.stable == ref.discrete.stable
+    assert np.allclose(
+        sorted(abs(p.value) for p in v.poles), sorted(abs(p.value) for p in ref.discrete.poles)
+    )
+    assert {m.kind for m in v.metrics} == {"step", "initial"}
+    assert all(m.loop == "pole" for m in v.metrics)
+    assert v.actuator == "slide" and v.loop_margins is not None
+    # the phase margin marked on the Bode plot is where |L| crosses 0 dB
+    m = v.loop_margins
+    k = int(np.argmin(np.abs(v.omega - m.gain_crossover)))
+    assert abs(v.magnitude_db[k]) < 0.5
+    assert v.initial[0] == pytest.approx(0.05)  # the initial deviation of the loop's signal
+    assert v.step.shape == v.t.shape == v.step_u.shape
+
+
+def test_live_views_follow_the_gains(ip):
+    _, ctx, spec = ip
+    stiff = with_loop_value(spec, "pole", "kp", 2 * spec.loop("pole").kp)
+    assert stiff.loop("pole").kp == 2 * spec.loop("pole").kp and stiff.loop("cart") == spec.loop("cart")
+    a, b = linear_views(ctx, spec, "pole"), linear_views(ctx, stiff, "pole")
+    assert a.margins != b.margins and not np.allclose(a.response, b.response)
+    unstable = with_loop_value(spec, "pole", "kp", -1.0)
+    u = linear_views(ctx, unstable, "pole")
+    assert not u.stable and u.spectral_radius > 1
+    # the cart loop drives the same actuator: same loop transfer, centred on another signal
+    c = linear_views(ctx, spec, "cart")
+    assert c.actuator == "slide" and np.allclose(c.response, a.response)
+    assert c.metrics[0].signal == "slider_pos"
+
+
+def test_live_views_are_fast_enough_to_follow_a_slider(ip):
+    """Not a timing assertion: the compute time is reported on the page; here only its order."""
+    _, ctx, spec = ip
+    v = min((linear_views(ctx, spec, "pole") for _ in range(3)), key=lambda x: x.elapsed_s)
+    assert v.elapsed_s < 2.0  # loose: CI machines are shared; docs/tuner.md has the measured figure
+
+
+@pytest.mark.parametrize(
+    ("field", "text", "ok", "words"),
+    [
+        ("kp", "4.5", True, ""),
+        ("kp", " -2e-3 ", True, ""),
+        ("kp", "abc", False, "is not a number"),
+        ("kp", "", False, "empty"),
+        ("kp", "nan", False, "not finite"),
+        ("kd", "inf", False, "not finite"),
+        ("ki", "1e9", False, "out of range"),
+        ("tf", "-0.1", False, "out of range"),
+        ("tf", "0", True, ""),
+    ],
+)
+def test_check_field(field, text, ok, words):
+    c = check_field(field, text)
+    assert c.ok is ok
+    assert words in c.message
+    if not ok:
+        assert "expected" in c.message and "\n" not in c.message
+
+
+def test_check_name():
+    assert check_name("my-coach_2.v1").ok
+    for bad in ("", "../x", "a/b", "-x", "x" * 65, "a b"):
+        assert not check_name(bad).ok
+
+
+def test_scaled_bounds(ip):
+    _, _, spec = ip
+    b = spec.bounds
+    assert scaled_bounds(b, 1.0) is b
+    s2 = scaled_bounds(b, 2.0)
+    assert s2 is not None
+    for name, (lo, hi) in b["box"].items():
+        lo2, hi2 = s2["box"][name]
+        assert hi2 - lo2 == pytest.approx(2 * (hi - lo)) and lo2 + hi2 == pytest.approx(lo + hi)
+    assert s2["ellipsoid"]["rho"] == pytest.approx(4 * b["ellipsoid"]["rho"])
+    assert s2["provenance"]["scale"] == 2.0
+    assert b["ellipsoid"]["rho"] == spec.bounds["ellipsoid"]["rho"]  # the input is not changed
+    assert scaled_bounds(s2, 0.5)["provenance"]["scale"] == 1.0
+
+
+def test_loop_actuator_follows_weights(models):
+    spec = load_spec(TUNING / "Walker2d-v5.pidlab-robust.toml")
+    for lp in spec.loops:
+        act = loop_actuator(spec, lp.name)
+        assert act in dict(lp.actuators)
+        assert abs(dict(lp.actuators)[act]) == max(abs(w) for _, w in lp.actuators)
+
+
+def test_preview_jobs_called_directly(ip):
+    _, _, spec = ip
+    stages: list[str] = []
+    r = roa_preview(spec, samples=40, progress=lambda s, f: stages.append(s))
+    assert r.roa.check.samples == 40 and r.roa.check.failures == 0
+    assert r.variables == ("hinge_pos", "hinge_vel") and len(r.paths) == len(r.recovered) > 0
+    assert all(p.shape[1] == 2 for p in r.paths)
+    assert any("bisection" in s for s in stages) and any("final check" in s for s in stages)
+    roll = rollout_preview(spec, episodes=2, backend="schematic")
+    assert roll.mean == pytest.approx(1000.0) and roll.episodes == 2 and roll.causes == {"time limit": 2}
+    assert roll.gif[:6] == b"GIF89a" and roll.backend == "schematic"
+
+
+def test_job_runner_progress_results_cancellation_and_owners(ip):
+    _, _, spec = ip
+    runner = JobRunner(workers=2)
+    try:
+        first = runner.submit("a", "roa", spec, samples=400)
+        # a second roa job of the same owner abandons the first; another owner's job is independent
+        time.sleep(1.0)
+        second = runner.submit("a", "roa", spec, samples=30)
+        other = runner.submit("b", "rollout", spec, episodes=1, backend="schematic")
+        assert first != second != other
+        seen: dict[str, list] = {"a": [], "b": []}
+        deadline = time.monotonic() + 180
+        while (runner.running("a", "roa") or runner.running("b", "rollout")) and time.monotonic() < deadline:
+            for owner in ("a", "b"):
+                seen[owner] += runner.poll(owner)
+            time.sleep(0.1)
+        for owner in ("a", "b"):
+            seen[owner] += runner.poll(owner)
+        done_a = [u for u in seen["a"] if u.state == "done"]
+        assert [u.job_id for u in done_a] == [second]  # the abandoned job never reports a result
+        assert done_a[0].result.roa.check.samples == 30
+        assert all(u.job_id != first for u in seen["a"] if u.state == "done")
+        assert any(u.state == "running" and u.fraction is not None for u in seen["a"])
+        done_b = [u for u in seen["b"] if u.state == "done"]
+        assert [u.job_id for u in done_b] == [other] and done_b[0].result.episodes == 1
+        # a bad-input error comes back as one line, not a crash
+        unstable = with_loop_value(spec, "pole", "kp", -1.0)
+        runner.submit("a", "roa", unstable, samples=10)
+        updates = []
+        deadline = time.monotonic() + 60
+        while runner.running("a", "roa") and time.monotonic() < deadline:
+            updates += runner.poll("a")
+            time.sleep(0.1)
+        updates += runner.poll("a")
+        errors = [u for u in updates if u.state == "error"]
+        assert len(errors) == 1 and "\n" not in errors[0].stage
+    finally:
+        runner.shutdown()
+
+
+def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "pidlab", *args], capture_output=True, text=True, timeout=120, cwd=cwd
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--ui", "--auto"], "exactly one of --auto"),
+        (["--ui", "--spec", "nope.toml"], "no such file"),
+        (["--ui", "--spec", str(TUNING / "Hopper-v5.paper.toml")], "a coach for Hopper-v5"),
+        (["--ui", "--port", "0"], "--port 0"),
+        (["--ui", "--animation", "vr"], "--animation"),
+        (["--ui", "--bounds-samples", "0"], "--bounds-samples"),
+    ],
+)
+def test_tune_ui_bad_input(args, words):
+    r = _cli("tune", "InvertedPendulum-v5", *args)
+    assert r.returncode == 2, r.stderr
+    assert words in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+
+
+def test_tune_ui_refuses_a_busy_port():
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = _cli("tune", "InvertedPendulum-v5", "--ui", "--port", str(port))
+    assert r.returncode == 2 and f"--port {port}" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_with_loop_value_rejects_unknown_names(ip):
+    _, _, spec = ip
+    with pytest.raises(ValueError):
+        with_loop_value(spec, "pole", "setpoint", 1.0)
+    with pytest.raises(ValueError):
+        with_loop_value(spec, "nope", "kp", 1.0)
+    assert replace(spec) == spec
