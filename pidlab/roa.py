@@ -460,6 +460,7 @@ def optimization_level(
             "ipopt.print_level": 0,
             "ipopt.sb": "yes",
             "print_time": False,
+            "show_eval_warnings": False,
             "ipopt.max_iter": 300,
             "ipopt.tol": 1e-10,
         },

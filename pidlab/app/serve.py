@@ -11,6 +11,24 @@ from pidlab.errors import PidlabError
 from pidlab.spec import CoachSpec
 
 
+class _ClosedSocketNoise(logging.Filter):
+    """Drop asyncio's report of a write to a browser tab that was just closed.
+
+    When a tab closes, Bokeh keeps the session until its cleanup and a pending write to the
+    closed websocket ends in ``WebSocketClosedError``; asyncio then logs "Task exception was
+    never retrieved" with a traceback. Nothing is wrong, so nothing is printed.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        name = type(exc).__name__ if exc is not None else ""
+        text = record.getMessage()
+        return not (
+            name in ("WebSocketClosedError", "StreamClosedError")
+            or ("never retrieved" in text and "WebSocketClosedError" in text)
+        )
+
+
 def check_port(port: int) -> None:
     """Raise :class:`PidlabError` unless ``port`` can be bound on 127.0.0.1."""
     if not 0 < port < 65536:
@@ -46,6 +64,7 @@ def serve_tuner(
 
     check_port(port)
     logging.getLogger("pidlab.app").addHandler(logging.StreamHandler())
+    logging.getLogger("asyncio").addFilter(_ClosedSocketNoise())
     runner = JobRunner()
 
     def page() -> Any:
