@@ -26,7 +26,6 @@ import os
 import shutil
 import signal
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -36,6 +35,7 @@ from typing import Any
 
 from pidlab.conditions import Condition, load_conditions, resolve, select
 from pidlab.errors import PidlabError
+from pidlab.orphans import watch_parent
 from pidlab.recipe import (
     Recipe,
     default_recipe_path,
@@ -348,18 +348,9 @@ def execute(task: RunTask) -> RunOutcome:
 def _worker_init() -> None:
     """Pool worker: leave terminal Ctrl-C to the parent, and stop politely if the parent dies."""
     os.setsid()
-    parent = os.getppid()
     # outside a run's training loop (which stops politely), SIGTERM ends the task, not the process
     signal.signal(signal.SIGTERM, _term_as_interrupt)
-
-    def watch() -> None:
-        while True:
-            time.sleep(1.0)
-            if os.getppid() != parent:
-                os.kill(os.getpid(), signal.SIGTERM)
-                return
-
-    threading.Thread(target=watch, daemon=True, name="pidlab-orphan-watch").start()
+    watch_parent(lambda: os.kill(os.getpid(), signal.SIGTERM))
 
 
 Progress = Callable[[RunOutcome], None]

@@ -20,15 +20,18 @@ import logging
 import multiprocessing as mp
 import os
 import queue as queue_mod
+import threading
 import traceback
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
+from multiprocessing.managers import SyncManager
 from typing import Any
 
 import numpy as np
 
 from pidlab.errors import PidlabError
+from pidlab.orphans import watch_parent
 from pidlab.spec import CoachSpec
 
 log = logging.getLogger("pidlab.app")
@@ -241,6 +244,12 @@ def _init_worker() -> None:
         os.nice(10)  # the server process answers slider moves first
     except OSError:  # pragma: no cover
         pass
+    # a job has nothing to save: a worker whose server died just ends
+    watch_parent(lambda: os._exit(0))
+
+
+def _init_manager() -> None:
+    watch_parent(lambda: os._exit(0))
 
 
 def _run(
@@ -319,7 +328,8 @@ class JobRunner:
     def _start(self) -> None:
         if self._pool is None:
             ctx = mp.get_context("spawn")
-            self._manager = ctx.Manager()
+            self._manager = SyncManager(ctx=ctx)
+            self._manager.start(initializer=_init_manager)
             self._updates = self._manager.Queue()
             self._pool = ProcessPoolExecutor(
                 max_workers=self.workers, mp_context=ctx, initializer=_init_worker
@@ -398,7 +408,17 @@ class JobRunner:
         for owner, kind in list(self._jobs):
             self.cancel(owner, kind)
         if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+            # the workers must finish (abandoned jobs return at their next progress report)
+            # while the manager still serves their queue and events; a job stuck in a long
+            # step without reports is terminated after the grace period
+            pool = self._pool
+            waiter = threading.Thread(target=pool.shutdown, kwargs={"wait": True, "cancel_futures": True})
+            waiter.start()
+            waiter.join(timeout=10.0)
+            if waiter.is_alive():
+                for proc in list(getattr(pool, "_processes", {}).values()):
+                    proc.terminate()
+                waiter.join(timeout=5.0)
             self._pool = None
         if self._manager is not None:
             self._manager.shutdown()

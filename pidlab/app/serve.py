@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import signal
 import socket
 from pathlib import Path
 from typing import Any
@@ -72,6 +73,10 @@ def serve_tuner(
             spec, source, tuning_dir, runner=runner, animation=animation, bounds_samples=bounds_samples
         ).panel()
 
+    def stop(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt  # SIGTERM stops like Ctrl-C: the workers are shut down below
+
+    signal.signal(signal.SIGTERM, stop)
     url = f"http://localhost:{port}/"
     announce(f"pidlab tuner for {spec.env_id} at {url} (Ctrl-C to stop)")
     try:
