@@ -25,7 +25,7 @@ def server(tmp_path_factory):
     tuning = tmp_path_factory.mktemp("tuning")
     log = tuning.parent / "server.log"
     port = free_port()
-    proc = start_server("InvertedPendulum-v5", SPEC, tuning, port, extra=["--bounds-samples", "200"], log=log)
+    proc = start_server("InvertedPendulum-v5", SPEC, tuning, port, extra=["--bounds-samples", "100"], log=log)
     yield f"http://localhost:{port}/", tuning, log
     stop_server(proc)
 

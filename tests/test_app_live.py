@@ -24,6 +24,7 @@ from pidlab.app.live import (
 )
 from pidlab.pid import Coach
 from pidlab.spec import load_spec
+from tests.conftest import cli_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 TUNING = ROOT / "tuning"
@@ -199,10 +200,10 @@ def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     ],
 )
 def test_tune_ui_bad_input(args, words):
-    r = _cli("tune", "InvertedPendulum-v5", *args)
-    assert r.returncode == 2, r.stderr
-    assert words in r.stderr
-    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+    code, stderr = cli_in_process("tune", "InvertedPendulum-v5", *args)
+    assert code == 2, stderr
+    assert words in stderr
+    assert len(stderr.strip().splitlines()) == 1 and "Traceback" not in stderr
 
 
 def test_tune_ui_refuses_a_busy_port():
@@ -223,3 +224,27 @@ def test_with_loop_value_rejects_unknown_names(ip):
     with pytest.raises(ValueError):
         with_loop_value(spec, "nope", "kp", 1.0)
     assert replace(spec) == spec
+
+
+def test_tuner_works_outside_a_server_as_in_a_notebook(ip, tmp_path):
+    """The same page object a notebook displays: widgets drive the views without a server."""
+    from bokeh.document import Document
+
+    from pidlab.app.tuner import Tuner
+
+    _, _, spec = ip
+    tuner = Tuner(spec, "notebook", tmp_path, runner=JobRunner(workers=1))
+    try:
+        doc = Document()
+        doc.add_root(tuner.panel().get_root(doc))
+        table = tuner.margins.object
+        bode = list(tuner.sources.bode_mag.data["db"])
+        tuner.sliders["kp"].value = 1.5 * tuner.sliders["kp"].value
+        assert tuner.margins.object != table
+        assert list(tuner.sources.bode_mag.data["db"]) != bode
+        assert tuner.inputs["kp"].value == f"{tuner.sliders['kp'].value:.6g}"
+        tuner.inputs["kd"].value = "garbage"
+        assert "is not a number" in tuner.messages["kd"].object
+        assert tuner.spec.loop("pole").kd == spec.loop("pole").kd
+    finally:
+        tuner.runner.shutdown()

@@ -24,6 +24,7 @@ from pidlab.experiment_report import write_report
 from pidlab.recipe import load_recipe
 from pidlab.rundir import read_csv_rows
 from pidlab.runinfo import read_json
+from tests.conftest import cli_in_process
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -165,10 +166,10 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
             base[j + 1] = args[i + 1]
         else:
             base += args[i : i + 2]
-    proc = subprocess.run([PIDLAB, "experiment", *base], capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2, proc.stderr
-    assert message in proc.stderr and "Traceback" not in proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1
+    code, stderr = cli_in_process("experiment", *base)
+    assert code == 2, stderr
+    assert message in stderr and "Traceback" not in stderr
+    assert len(stderr.strip().splitlines()) == 1
     assert not (tmp_path / "exp" / "runs").exists()
 
 
@@ -201,16 +202,16 @@ def test_a_folder_of_another_experiment_is_refused_untouched(tmp_path):
             other[other.index(change[0]) + 1] = change[1]
         else:
             other += change
-        proc = subprocess.run(other, capture_output=True, text=True, timeout=120)
-        assert proc.returncode == 2 and "holds another experiment" in proc.stderr, proc.stderr
+        code, stderr = cli_in_process(*other[1:])
+        assert code == 2 and "holds another experiment" in stderr, stderr
         assert tree_digest(out) == before
     # a non-empty folder that is no experiment
     stranger = tmp_path / "stranger"
     stranger.mkdir()
     (stranger / "thesis.tex").write_text("precious")
     cmd[cmd.index("--out") + 1] = str(stranger)
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2 and "not empty" in proc.stderr
+    code, stderr = cli_in_process(*cmd[1:])
+    assert code == 2 and "not empty" in stderr
     assert [p.name for p in stranger.iterdir()] == ["thesis.tex"]
 
 

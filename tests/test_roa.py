@@ -13,6 +13,7 @@ from pidlab.bounds import derive_bounds, with_bounds
 from pidlab.errors import UnknownSignalError
 from pidlab.roa import METHOD_LYAPUNOV, METHOD_SIMULATION, RegionError, estimate_roa
 from pidlab.spec import dumps_spec, load_spec, loads_spec
+from tests.conftest import cli_in_process
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
 
@@ -115,8 +116,12 @@ def test_cli_roa_and_bounds_bad_input(tmp_path):
 
     res = run("roa", str(TUNING / "InvertedPendulum-v5.paper.toml"))
     assert res.returncode == 2 and "no region of attraction: closed loop is unstable; poles" in res.stderr
-    res = run("bounds", str(TUNING / "InvertedPendulum-v5.pidlab-robust.toml"), "--variables", "pole_rate")
-    assert res.returncode == 2 and "valid names: slider_pos" in res.stderr
-    assert len(res.stderr.strip().splitlines()) == 1
-    res = run("roa", str(TUNING / "InvertedPendulum-v5.pidlab-robust.toml"), "--samples", "0")
-    assert res.returncode == 2 and "positive" in res.stderr
+    code, stderr = cli_in_process(
+        "bounds", str(TUNING / "InvertedPendulum-v5.pidlab-robust.toml"), "--variables", "pole_rate"
+    )
+    assert code == 2 and "valid names: slider_pos" in stderr
+    assert len(stderr.strip().splitlines()) == 1
+    code, stderr = cli_in_process(
+        "roa", str(TUNING / "InvertedPendulum-v5.pidlab-robust.toml"), "--samples", "0"
+    )
+    assert code == 2 and "positive" in stderr

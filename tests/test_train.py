@@ -20,6 +20,7 @@ from pidlab.recipe import load_recipe, parse_recipe
 from pidlab.rundir import read_csv_rows
 from pidlab.spec import load_spec
 from pidlab.train import resume, train
+from tests.conftest import cli_in_process
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -262,11 +263,19 @@ def test_subproc_vec_env_counts_every_env(tmp_path, ip_spec):
     ],
 )
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
-    done = subprocess.run([PIDLAB, "train", IP, *args, "--run-dir", str(tmp_path / "r")], capture_output=True,
-                          text=True, timeout=120)  # fmt: skip
-    assert done.returncode == 2, done.stderr
-    lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and message in lines[0], done.stderr
+    code, stderr = cli_in_process("train", IP, *args, "--run-dir", str(tmp_path / "r"))
+    assert code == 2, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], stderr
+    assert not (tmp_path / "r").exists()
+
+
+def test_cli_bad_input_from_the_real_executable(tmp_path):
+    done = subprocess.run([PIDLAB, "train", IP, "--coach", "none", "--algo", "td3", "--run-dir",
+                           str(tmp_path / "r")], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 2 and done.stderr.strip().splitlines() == [
+        "pidlab: error: --algo 'td3': expected one of ppo, sac"
+    ]
     assert not (tmp_path / "r").exists()
 
 
@@ -276,12 +285,11 @@ def test_cli_refuses_to_overwrite_a_run(tmp_path):
     first = subprocess.run([*base, "--no-progress"], capture_output=True, text=True, timeout=120)
     assert first.returncode == 0, first.stderr
     before = (tmp_path / "r" / "episodes.csv").read_bytes()
-    again = subprocess.run([*base, "--no-progress"], capture_output=True, text=True, timeout=120)
-    assert again.returncode == 2 and "exists and is not empty" in again.stderr
+    code, stderr = cli_in_process(*base[1:], "--no-progress")
+    assert code == 2 and "exists and is not empty" in stderr
     assert (tmp_path / "r" / "episodes.csv").read_bytes() == before
-    mismatch = subprocess.run([PIDLAB, "train", IP, "--resume", str(tmp_path / "r"), "--seed", "3"],
-                              capture_output=True, text=True, timeout=120)  # fmt: skip
-    assert mismatch.returncode == 2 and "--seed differs" in mismatch.stderr
+    code, stderr = cli_in_process("train", IP, "--resume", str(tmp_path / "r"), "--seed", "3")
+    assert code == 2 and "--seed differs" in stderr
 
 
 def test_growth_trigger_runs_the_papers_nudge(tmp_path, ip_spec):

@@ -159,14 +159,14 @@ class Tuner:
 
     def _build_widgets(self) -> None:
         self.title = _html(sizing_mode="stretch_width")
-        self.loop_select = pn.widgets.Select(name="Loop", options=[], css_classes=["pidlab-loop"])
+        self.loop_select = pn.widgets.Select(label="Loop", options=[], css_classes=["pidlab-loop"])
         self.loop_select.param.watch(self._on_loop, "value")
         self.sliders: dict[str, Any] = {}
         self.inputs: dict[str, Any] = {}
         self.messages: dict[str, Any] = {}
         for f in GAIN_FIELDS:
             s = pn.widgets.FloatSlider(
-                name=FIELD_LABELS[f],
+                label=FIELD_LABELS[f],
                 start=0.0,
                 end=1.0,
                 step=0.01,
@@ -176,13 +176,13 @@ class Tuner:
             )
             s.param.watch(lambda ev, f=f: self._on_slider(f, ev.new), "value")
             t = pn.widgets.TextInput(
-                name=f"{FIELD_LABELS[f]} value", width=130, css_classes=[f"pidlab-input-{f}"]
+                label=f"{FIELD_LABELS[f]} value", width=130, css_classes=[f"pidlab-input-{f}"]
             )
             t.param.watch(lambda ev, f=f: self._on_text(f, ev.new), "value")
             self.sliders[f], self.inputs[f] = s, t
             self.messages[f] = _html("", css_classes=[f"pidlab-msg-{f}"], sizing_mode="stretch_width")
         self.response_time = pn.widgets.FloatSlider(
-            name="Response time (s)",
+            label="Response time (s)",
             start=0.01,
             end=1.0,
             step=0.01,
@@ -190,7 +190,7 @@ class Tuner:
             css_classes=["pidlab-response-time"],
         )
         self.robustness = pn.widgets.FloatSlider(
-            name="Robustness", start=0.0, end=1.0, step=0.05, value=0.67, css_classes=["pidlab-robustness"]
+            label="Robustness", start=0.0, end=1.0, step=0.05, value=0.67, css_classes=["pidlab-robustness"]
         )
         self.targets = _html("")
         self.response_time.param.watch(lambda ev: self._autotune(), "value_throttled")
@@ -198,7 +198,7 @@ class Tuner:
         self.robustness.param.watch(lambda ev: self._show_targets(), "value")
         self.response_time.param.watch(lambda ev: self._show_targets(), "value")
         self.scale = pn.widgets.FloatSlider(
-            name="Critical-bound scale",
+            label="Critical-bound scale",
             start=0.25,
             end=3.0,
             step=0.05,
@@ -207,22 +207,24 @@ class Tuner:
         )
         self.scale.param.watch(lambda ev: self._draw_bounds(), "value")
         self.autotune_button = pn.widgets.Button(
-            name="Auto-tune", button_type="primary", css_classes=["pidlab-autotune"]
+            label="Auto-tune", color="primary", css_classes=["pidlab-autotune"]
         )
         self.autotune_button.on_click(lambda ev: self._autotune())
         self.bounds_button = pn.widgets.Button(
-            name="Derive bounds", button_type="primary", css_classes=["pidlab-derive"]
+            label="Derive bounds", color="primary", css_classes=["pidlab-derive"]
         )
         self.bounds_button.on_click(lambda ev: self._derive_bounds())
-        self.name_input = pn.widgets.TextInput(name="Spec name", width=200, css_classes=["pidlab-name"])
+        self.name_input = pn.widgets.TextInput(label="Spec name", width=200, css_classes=["pidlab-name"])
         self.name_msg = _html("", css_classes=["pidlab-msg-name"])
-        self.overwrite = pn.widgets.Checkbox(name="overwrite an existing file", value=False)
+        self.overwrite = pn.widgets.Checkbox(label="overwrite an existing file", value=False)
         self.save_button = pn.widgets.Button(
-            name="Save to tuning/", button_type="success", css_classes=["pidlab-save"]
+            label="Save to tuning/", color="success", css_classes=["pidlab-save"]
         )
         self.save_button.on_click(lambda ev: self._save())
-        self.load_select = pn.widgets.Select(name="Spec file", options=[], css_classes=["pidlab-load-select"])
-        self.load_button = pn.widgets.Button(name="Load", css_classes=["pidlab-load"])
+        self.load_select = pn.widgets.Select(
+            label="Spec file", options=[], css_classes=["pidlab-load-select"]
+        )
+        self.load_button = pn.widgets.Button(label="Load", css_classes=["pidlab-load"])
         self.load_button.on_click(lambda ev: self._load())
         self.file_msg = _html("", css_classes=["pidlab-file-msg"], sizing_mode="stretch_width")
         self.margins = _html("", css_classes=["pidlab-margins"], sizing_mode="stretch_width")
@@ -338,6 +340,12 @@ class Tuner:
             draw()  # the lock is held
         else:
             doc.add_next_tick_callback(draw)
+
+    def _closed(self) -> bool:
+        """Whether this page's browser tab has gone (Bokeh keeps the session a while longer)."""
+        doc = pn.state.curdoc
+        session = getattr(getattr(doc, "session_context", None), "_session", None)
+        return session is not None and getattr(session, "connection_count", 1) == 0
 
     def _adopt(self, spec: CoachSpec, source: str) -> None:
         """Make ``spec`` the current coach (after start, load or auto-tune)."""
@@ -653,6 +661,9 @@ class Tuner:
 
     def _poll(self) -> None:
         self._attached = True
+        if self._closed():
+            self.runner.cancel(self.owner)  # the tab is gone: its background work is not wanted
+            return
         if self._slow_due is not None and time.monotonic() >= self._slow_due:
             self._start_slow()
         for u in self.runner.poll(self.owner):
