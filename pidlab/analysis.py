@@ -311,14 +311,36 @@ def _true_gain_crossovers(
 
 
 def _true_phase_crossovers(
-    L: ct.StateSpace, gm: np.ndarray, wpc: np.ndarray
+    L: ct.StateSpace, wpc: np.ndarray, omega: np.ndarray, response: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Phase crossovers of python-control where ``L`` is really on the negative real axis."""
-    if not wpc.size:
-        return gm, wpc
-    r = siso_frequency_response(L, wpc)
-    ok = (r.real < 0) & (np.abs(r.imag) <= CROSSOVER_TOL * np.abs(r))
-    return gm[ok], wpc[ok]
+    """Phase crossovers (``L`` real and negative) and the gain factors ``1 / |L|`` there.
+
+    python-control's list is checked like the gain crossovers (on Hopper it returns points
+    where ``L`` is far off the real axis, and misses crossings at 10 and 13 rad/s); crossings of
+    the negative real axis seen on the dense grid are added (refined by bisection on ``Im L``).
+    """
+    keep: list[float] = []
+    for w in sorted(float(v) for v in wpc):
+        r = siso_frequency_response(L, np.array([w]))[0]
+        on_axis = np.isfinite(r) and r.real < 0 and abs(r.imag) <= CROSSOVER_TOL * abs(r)
+        if on_axis and all(abs(w - k) > 1e-4 * max(w, 1e-12) for k in keep):
+            keep.append(w)
+    im = response.imag
+    idx = np.nonzero(
+        (np.sign(im[:-1]) * np.sign(im[1:]) < 0) & (response.real[:-1] < 0) & (response.real[1:] < 0)
+    )[0]
+
+    def f(x: float) -> float:
+        return float(siso_frequency_response(L, np.array([np.exp(x)]))[0].imag)
+
+    for i in idx:
+        w = _refine(f, float(np.log(omega[i])), float(np.log(omega[i + 1])))
+        if all(abs(w - k) > 1e-4 * w for k in keep):
+            keep.append(w)
+    w_all = np.array(sorted(keep))
+    mags = np.abs(siso_frequency_response(L, w_all)) if w_all.size else np.array([])
+    with np.errstate(divide="ignore"):
+        return 1.0 / mags, w_all
 
 
 def loop_margins(L: ct.StateSpace, actuator: str) -> LoopMargins:
@@ -330,7 +352,7 @@ def loop_margins(L: ct.StateSpace, actuator: str) -> LoopMargins:
         response = siso_frequency_response(L, omega)
         dm, dgm, dpm = siso_disk_margins(response)
     gm, pm, sm, wpc, wgc = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (gm, pm, sm, wpc, wgc))
-    gm, wpc = _true_phase_crossovers(L, gm, wpc)
+    gm, wpc = _true_phase_crossovers(L, wpc, omega, response)
     wgc = _true_gain_crossovers(L, wgc, omega, response)
     upper = gm[gm > 1.0]
     lower = gm[(gm < 1.0) & (gm > 0.0)]

@@ -185,5 +185,11 @@ def test_gain_crossovers_are_real_crossovers(models, env, name):
         mag = np.abs(siso_frequency_response(L, omega))
         for k in np.nonzero(np.diff(np.sign(mag - 1.0)) != 0)[0]:
             assert any(abs(w - omega[k]) <= 0.01 * omega[k] for w in m.crossovers), (m.actuator, omega[k])
+        if np.isfinite(m.phase_crossover):  # the upper gain margin is read where L is real and negative
+            r = siso_frequency_response(L, np.array([m.phase_crossover]))[0]
+            assert r.real < 0 and abs(r.imag) <= 1e-3 * abs(r)
+            assert m.gain_margin_db == pytest.approx(-20 * np.log10(abs(r)))
     if env == "InvertedPendulum-v5":
         assert result.discrete.margins[0].phase_margin_deg == pytest.approx(59.73, abs=0.01)
+    if (env, name) == ("Hopper-v5", "paper"):  # python-control misses this phase crossover
+        assert result.discrete.margins[0].phase_crossover == pytest.approx(10.16, abs=0.01)
