@@ -233,7 +233,7 @@ def _tune_ui(
 ) -> None:
     from pathlib import Path
 
-    from pidlab.app.serve import check_port, serve_tuner
+    from pidlab.app.serve import serve_tuner
     from pidlab.conditions import spec_path
     from pidlab.model import load_model
     from pidlab.spec import load_spec, validate_against
@@ -256,7 +256,6 @@ def _tune_ui(
     folder = Path(tuning_dir)
     if folder.exists() and not folder.is_dir():
         _fail(f"--tuning-dir {folder}: not a folder")
-    check_port(port)
     serve_tuner(
         coach,
         str(path),

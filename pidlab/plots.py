@@ -168,14 +168,13 @@ def plot_roa_slice(
     fig, ax = plt.subplots(figsize=(7, 6))
     if result.lyapunov is not None:
         L = result.lyapunov
-        idx = [L.variables.index(v) for v in variables]
-        M = L.P_y[np.ix_(idx, idx)]
-        t = np.linspace(0, 2 * np.pi, 300)
-        circle = np.vstack([np.cos(t), np.sin(t)])
-        pts = np.linalg.solve(np.linalg.cholesky(M / result.level).T, circle)
+        from pidlab.roa import ellipse_slice
+
+        idx = (L.variables.index(variables[0]), L.variables.index(variables[1]))
+        pts = ellipse_slice(L.P_y, L.center, result.level, idx, points=300)
         ax.plot(
-            L.center[idx[0]] + pts[0],
-            L.center[idx[1]] + pts[1],
+            pts[0],
+            pts[1],
             "k",
             lw=2,
             label=f"slice of V <= c (c = {result.level:.3g})",

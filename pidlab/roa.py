@@ -292,6 +292,22 @@ class _Simulator:
         return False, np.array(path)
 
 
+def ellipse_slice(
+    P: np.ndarray, center: np.ndarray, level: float, idx: tuple[int, int], points: int = 200
+) -> np.ndarray:
+    """Boundary of ``{y : (y - c)' P (y - c) <= level}`` cut by the plane of ``idx`` through ``c``.
+
+    Returns
+    -------
+    xy : ndarray, shape (2, points)
+        The two chosen coordinates along the boundary.
+    """
+    M = np.asarray(P)[np.ix_(idx, idx)]
+    t = np.linspace(0, 2 * np.pi, points)
+    pts = np.linalg.solve(np.linalg.cholesky(M / level).T, np.vstack([np.cos(t), np.sin(t)]))
+    return np.asarray(center)[list(idx), None] + pts
+
+
 def _sample_ellipsoid(P_y: np.ndarray, c: float, n: int, rng: np.random.Generator) -> np.ndarray:
     """Uniform samples in ``{y : y' P_y y <= c}``, shape ``(n, k)``."""
     k = P_y.shape[0]

@@ -7,6 +7,8 @@
 - :mod:`pidlab.app.tuner` lays out the widgets and wires the callbacks;
 - :mod:`pidlab.app.serve` serves it on a local port.
 
-In a notebook: ``from pidlab.app.tuner import Tuner; Tuner("InvertedPendulum-v5").panel()``
-after ``import panel as pn; pn.extension()``.
+In a notebook, after ``import panel as pn; pn.extension()``::
+
+    Tuner(load_spec("tuning/InvertedPendulum-v5.pidlab-robust.toml"), "notebook", Path("tuning")).panel()
+
 """

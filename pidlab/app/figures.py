@@ -18,6 +18,7 @@ from bokeh.models.annotations import Span
 from bokeh.plotting import figure
 
 from pidlab.app.live import LinearViews
+from pidlab.roa import ellipse_slice
 
 STABLE = "#2b8a3e"
 UNSTABLE = "#c92a2a"
@@ -239,13 +240,9 @@ def pole_zero_data(v: LinearViews) -> tuple[dict[str, Any], dict[str, Any]]:
     )
 
 
-def ellipse_slice(P: np.ndarray, center: np.ndarray, level: float, idx: tuple[int, int]) -> dict[str, Any]:
-    """Boundary of ``{y : (y - c)' P (y - c) <= level}`` cut by the plane of ``idx`` through the centre."""
-    M = P[np.ix_(idx, idx)]
-    t = np.linspace(0, 2 * np.pi, 200)
-    circle = np.vstack([np.cos(t), np.sin(t)])
-    pts = np.linalg.solve(np.linalg.cholesky(M / level).T, circle)
-    return {"x": center[idx[0]] + pts[0], "y": center[idx[1]] + pts[1]}
+def _slice(P: np.ndarray, center: np.ndarray, level: float, idx: tuple[int, int]) -> dict[str, Any]:
+    xy = ellipse_slice(P, center, level, idx)
+    return {"x": xy[0], "y": xy[1]}
 
 
 def roa_data(preview: Any) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -255,7 +252,7 @@ def roa_data(preview: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     if roa.lyapunov is not None:
         L = roa.lyapunov
         idx = (L.variables.index(x), L.variables.index(y))
-        boundary = ellipse_slice(L.P_y, L.center, roa.level, idx)
+        boundary = _slice(L.P_y, L.center, roa.level, idx)
     else:
         hx, hy = roa.box.get(x, math.nan), roa.box.get(y, math.nan)
         boundary = {"x": [-hx, hx, hx, -hx, -hx], "y": [-hy, -hy, hy, hy, -hy]}
@@ -286,5 +283,5 @@ def bounds_data(
     e = bounds.get("ellipsoid")
     if e and x in e["variables"] and y in e["variables"]:
         idx = (e["variables"].index(x), e["variables"].index(y))
-        ellipse = ellipse_slice(np.asarray(e["shape"]), np.asarray(e["center"]), e["level"] * e["rho"], idx)
+        ellipse = _slice(np.asarray(e["shape"]), np.asarray(e["center"]), e["level"] * e["rho"], idx)
     return box, ellipse

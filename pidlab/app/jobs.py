@@ -150,24 +150,29 @@ def rollout_preview(
     backend: str = "auto",
     progress: Progress | None = None,
 ) -> RolloutPreview:
-    """Score the coach alone and draw an animation of its first episode."""
+    """Score the coach alone and draw an animation of its first episode.
+
+    Each episode is :func:`pidlab.animation.record_rollout` (the same episode as
+    :func:`pidlab.rollout.coach_alone` for the seed), so the animated one is not run twice.
+    """
     from pidlab.animation import frames_to_gif, record_rollout, render_frames
-    from pidlab.rollout import coach_alone
 
     report = _quiet(progress)
     loaded = _model(spec.env_id)
     returns: list[float] = []
     lengths: list[int] = []
     causes: dict[str, int] = {}
+    first = None
     for i in range(episodes):
         report(f"episode {i + 1}/{episodes}", i / (episodes + 1))
-        ep = coach_alone(spec, loaded, episodes=1, seed0=i).episodes[0]
-        returns.append(ep.episode_return)
+        ep = record_rollout(spec, loaded, seed=i)
+        first = first or ep
+        returns.append(ep.total_return)
         lengths.append(ep.length)
         causes[ep.cause] = causes.get(ep.cause, 0) + 1
+    assert first is not None
     report("drawing the rollout", episodes / (episodes + 1))
-    rollout = record_rollout(spec, loaded, seed=0)
-    frames = render_frames(loaded, rollout.qpos, backend=backend)
+    frames = render_frames(loaded, first.qpos, backend=backend)
     return RolloutPreview(
         mean=float(np.mean(returns)),
         std=float(np.std(returns)),
