@@ -14,8 +14,9 @@ sensitivity peak ``Ms = 1 / min|1 + L|``, and crossover frequencies.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import control as ct
 import numpy as np
@@ -83,6 +84,42 @@ class LoopMargins:
     def ms_db(self) -> float:
         """Sensitivity peak in dB."""
         return float(20 * np.log10(self.ms))
+
+
+MARGIN_COLUMNS = (
+    ("actuator", "loop broken at"),
+    ("gm_db", "gain margin (dB)"),
+    ("lower_gm_db", "lower gain margin (dB)"),
+    ("pm_deg", "phase margin (deg)"),
+    ("delay_ms", "delay margin (ms)"),
+    ("disk_alpha", "disk margin α"),
+    ("disk_gm_db", "disk gain margin (dB)"),
+    ("disk_pm_deg", "disk phase margin (deg)"),
+    ("ms_db", "Ms (dB)"),
+    ("wgc", "gain crossover (rad/s)"),
+    ("wpc", "phase crossover (rad/s)"),
+)
+"""Columns of a margins table (the tuner's, the pipeline report's): key, and heading with its unit."""
+
+
+def margin_table(margins: Sequence[LoopMargins]) -> list[dict[str, Any]]:
+    """One row per actuator, keyed and in the units of :data:`MARGIN_COLUMNS`."""
+    return [
+        {
+            "actuator": m.actuator,
+            "gm_db": m.gain_margin_db,
+            "lower_gm_db": m.lower_gain_margin_db,
+            "pm_deg": m.phase_margin_deg,
+            "delay_ms": 1000.0 * m.delay_margin_s,
+            "disk_alpha": m.disk_margin,
+            "disk_gm_db": m.disk_gain_margin_db,
+            "disk_pm_deg": m.disk_phase_margin_deg,
+            "ms_db": m.ms_db,
+            "wgc": m.gain_crossover,
+            "wpc": m.phase_crossover,
+        }
+        for m in margins
+    ]
 
 
 @dataclass(frozen=True)

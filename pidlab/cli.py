@@ -614,6 +614,62 @@ def experiment(
         raise typer.Exit(code=1)
 
 
+@app.command()
+@friendly_errors
+def run(
+    env: Annotated[
+        str, typer.Argument(metavar="ENV", help="A paper env id with a recipe, e.g. InvertedPendulum-v5.")
+    ],
+    out: Annotated[str | None, typer.Option(metavar="DIR", help="Pipeline folder (default out/ENV).")] = None,
+    seeds: Annotated[
+        int | None, typer.Option(help="Seeds per condition (default: the recipe's [pipeline] seeds).")
+    ] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="Env steps per training run (default: the recipe's [pipeline] steps).")
+    ] = None,
+    preset: Annotated[
+        str | None, typer.Option(help="Auto-tuning preset, robust or weak (default: the recipe's).")
+    ] = None,
+    samples: Annotated[
+        int | None,
+        typer.Option(help="Simulated states certifying the region (default: the recipe's roa_samples)."),
+    ] = None,
+    episodes: Annotated[
+        int | None, typer.Option(help="Coach-alone episodes, 0 to skip (default: the recipe's).")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Training runs in parallel (default: the machine's cores).")
+    ] = None,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show progress bars.")] = True,
+) -> None:
+    """The whole pipeline on ENV: linearize, auto-tune a coach, derive its bounds, train, report.
+
+    Trains the recipe's agent with and without the auto-tuned coach (its [pipeline] table sets the
+    seeds and the budget), then writes one report: margins table, region of attraction, learning
+    curves, agent-alone scores. Killed or interrupted, the same command resumes.
+    """
+    from pidlab.pipeline import run_pipeline, settings_for
+
+    if workers is not None and workers < 1:
+        _fail(f"--workers {workers}: expected 1 or more")
+    settings = settings_for(
+        env, seeds=seeds, steps=steps, preset=preset, roa_samples=samples, episodes=episodes
+    )
+    folder = out or f"out/{env}"
+    argv = ["pidlab", *sys.argv[1:]]
+    result = run_pipeline(env, folder, settings, workers=workers, progress_bar=progress, argv=argv)
+    if result.interrupted:
+        typer.echo(
+            "interrupted: finished stages and runs are kept; run the same command to resume", err=True
+        )
+        raise typer.Exit(code=130)
+    typer.echo(f"report: {result.report_html}")
+    typer.echo(f"        {result.report_md} (Markdown, figures in {result.out / 'figures'})")
+    if result.failed_runs:
+        typer.echo(f"{result.failed_runs} training run(s) failed; see {result.out / 'experiment'}", err=True)
+        raise typer.Exit(code=1)
+
+
 def main() -> None:
     """Console entry point."""
     try:

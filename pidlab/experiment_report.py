@@ -41,7 +41,7 @@ UNITS = {
     "intervention_rate": "coach steps / env steps",
 }
 
-_VERSIONS = (
+VERSIONS = (
     "python",
     "pidlab",
     "numpy",
@@ -65,22 +65,25 @@ def format_value(v: float, name: str) -> str:
     return f"{v:.0f}" if abs(v) >= 100 else f"{v:.1f}"
 
 
-def _est(e: Estimate, name: str) -> str:
+def estimate_text(e: Estimate, name: str) -> str:
+    """An estimate as ``value [low, high]`` in the units of metric ``name``."""
     if e.value == float("inf"):
         return "not reached"
     high = format_value(e.high, name) if e.high < float("inf") else "not reached"
     return f"{format_value(e.value, name)} [{format_value(e.low, name)}, {high}]"
 
 
-def _cell_metric(cell: CellResult, name: str) -> str:
+def cell_metric(cell: CellResult, name: str) -> str:
+    """A metric of one (env, condition) with its interval and, for targets, how many runs reached it."""
     m = cell.metrics[name]
-    text = _est(m.estimate, name)
+    text = estimate_text(m.estimate, name)
     if METRICS[name][1]:
         text += f" ({m.reached}/{m.runs})"
     return text
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A Markdown table."""
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines)
@@ -112,7 +115,7 @@ def _paper_rows(a: Analysis, env: str) -> list[list[str]]:
         base = a.cells.get((env, BASELINE))
         for c in conds:
             cell = a.cells[(env, c)]
-            text = _cell_metric(cell, name)
+            text = cell_metric(cell, name)
             if base is not None and c != BASELINE:
                 saving = _saving(cell.metrics[name].estimate.value, base.metrics[name].estimate.value)
                 text += f"; saving {saving}"
@@ -121,7 +124,7 @@ def _paper_rows(a: Analysis, env: str) -> list[list[str]]:
     return rows
 
 
-def _reading(a: Analysis, env: str) -> list[str]:
+def reading(a: Analysis, env: str) -> list[str]:
     """Plain sentences from the numbers (the human reading goes in docs/)."""
     out = []
     base = a.cells.get((env, BASELINE))
@@ -164,7 +167,7 @@ def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list
         f"{', '.join(a.conditions)}; created {record.get('created', '')}; git {git.get('sha', '?')[:12]}"
         f"{' (dirty)' if git.get('dirty') else ''}; resumed {len(record.get('resumes', []))} time(s).",
         "",
-        "Versions: " + ", ".join(f"{k} {versions[k]}" for k in _VERSIONS if k in versions) + ".",
+        "Versions: " + ", ".join(f"{k} {versions[k]}" for k in VERSIONS if k in versions) + ".",
         "",
     ]
     total = sum(len(c.runs) for c in a.cells.values())
@@ -205,7 +208,7 @@ def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list
             "",
             "### The paper's measures, beside its Table II",
             "",
-            _table(
+            markdown_table(
                 [
                     "measure",
                     "paper: with coach",
@@ -218,7 +221,7 @@ def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list
             "",
             "### Honest measures",
             "",
-            _table(
+            markdown_table(
                 [
                     "condition",
                     "env steps to target (agent alone)",
@@ -232,13 +235,13 @@ def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list
                 [
                     [
                         c.condition,
-                        _cell_metric(c, "env_steps_to_target"),
-                        _cell_metric(c, "agent_steps_to_target"),
-                        _cell_metric(c, "final_score"),
-                        _cell_metric(c, "final_training_score"),
-                        _cell_metric(c, "final_coached_score"),
+                        cell_metric(c, "env_steps_to_target"),
+                        cell_metric(c, "agent_steps_to_target"),
+                        cell_metric(c, "final_score"),
+                        cell_metric(c, "final_training_score"),
+                        cell_metric(c, "final_coached_score"),
                         f"{c.coach_dependent}/{len(c.runs)}",
-                        _cell_metric(c, "intervention_rate"),
+                        cell_metric(c, "intervention_rate"),
                     ]
                     for c in cells
                 ],
@@ -249,7 +252,7 @@ def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list
             lines += [
                 "### Probability of improvement over no coach",
                 "",
-                _table(
+                markdown_table(
                     [
                         "condition",
                         "P(fewer episodes to 5 wins)",
@@ -269,7 +272,7 @@ def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list
                 "",
                 "### In words (generated from the numbers above)",
                 "",
-                *(f"- {s}" for s in _reading(a, env)),
+                *(f"- {s}" for s in reading(a, env)),
                 "",
             ]
         for title, path in zip(("Learning curves", "Table II as bars", "Coach dependence and interventions"),
@@ -338,7 +341,8 @@ def summary_rows(a: Analysis) -> list[dict[str, Any]]:
     return rows
 
 
-def _save_figure(fig: Any, path: Path) -> None:
+def save_figure(fig: Any, path: Path) -> None:
+    """Write a matplotlib figure as PNG (atomically) and close it."""
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
@@ -347,8 +351,10 @@ def _save_figure(fig: Any, path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def write_report(p: Plan, progress_bar: bool = True) -> Path:
+def write_report(p: Plan, progress_bar: bool = True, analysis: Analysis | None = None) -> Path:
     """Analyze the runs of ``p`` and write the report files; returns the path of ``report.md``.
+
+    ``analysis``: the runs of ``p`` already analyzed (:func:`pidlab.experiment_analysis.analyze`).
 
     Raises
     ------
@@ -363,7 +369,7 @@ def write_report(p: Plan, progress_bar: bool = True) -> Path:
     record = read_json(p.out / "experiment.json")
     steps = ["analysis", *(f"figures {env}" for env in p.envs), "report"]
     with tqdm(total=len(steps), desc="report", unit="step", disable=not progress_bar) as bar:
-        a = analyze(record["identity"], p.out, p.recipes)
+        a = analysis if analysis is not None else analyze(record["identity"], p.out, p.recipes)
         bar.update(1)
         figures: dict[str, list[str]] = {}
         for env in p.envs:
@@ -374,7 +380,7 @@ def write_report(p: Plan, progress_bar: bool = True) -> Path:
             for suffix, draw in (("curves", plot_learning_curves), ("table2", plot_table2_bars),
                                  ("dependence", plot_coach_dependence)):  # fmt: skip
                 rel = f"figures/{env}-{suffix}.png"
-                _save_figure(draw(a, env), p.out / rel)
+                save_figure(draw(a, env), p.out / rel)
                 names.append(rel)
             figures[env] = names
             bar.update(1)

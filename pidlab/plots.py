@@ -161,10 +161,39 @@ def write_plots(analysis: CoachAnalysis, coach: Coach, folder: str | Path) -> li
     return written
 
 
+def _draw_bounds(ax: plt.Axes, bounds: Any, variables: tuple[str, str]) -> None:
+    from pidlab.roa import ellipse_slice
+
+    if all(v in bounds.variables for v in variables) and bounds.rho > 0:
+        idx = (bounds.variables.index(variables[0]), bounds.variables.index(variables[1]))
+        pts = ellipse_slice(bounds.shape, bounds.center, bounds.rho * bounds.level, idx, points=300)
+        ax.plot(pts[0], pts[1], color="C1", lw=1.5, label=f"takeover ellipsoid (rho = {bounds.rho:.3g})")
+    box = bounds.box
+    if any(v in box for v in variables):
+        lows = [box[v][0] if v in box else -np.inf for v in variables]
+        highs = [box[v][1] if v in box else np.inf for v in variables]
+        xl, yl = ax.get_xlim(), ax.get_ylim()
+        x0, x1 = max(lows[0], xl[0]), min(highs[0], xl[1])
+        y0, y1 = max(lows[1], yl[0]), min(highs[1], yl[1])
+        ax.add_patch(
+            plt.Rectangle(
+                (x0, y0), x1 - x0, y1 - y0, fill=False, lw=1.5, ls="--", color="C0", label="critical box"
+            )
+        )
+
+
 def plot_roa_slice(
-    result: Any, variables: tuple[str, str], trajectories: list[Any], units: dict[str, str]
+    result: Any,
+    variables: tuple[str, str],
+    trajectories: list[Any],
+    units: dict[str, str],
+    bounds: Any | None = None,
 ) -> plt.Figure:
-    """The certified set in the plane of two variables, with simulated trajectories overlaid."""
+    """The certified set in the plane of two variables, with simulated trajectories overlaid.
+
+    ``bounds`` (:class:`pidlab.bounds.CriticalBounds`): also draw the takeover ellipsoid's slice and
+    the critical box where they constrain these variables.
+    """
     fig, ax = plt.subplots(figsize=(7, 6))
     if result.lyapunov is not None:
         L = result.lyapunov
@@ -191,6 +220,8 @@ def plot_roa_slice(
             label = "recovered" if tr.recovered else "failed"
         ax.plot(tr.path[:, 0], tr.path[:, 1], color=color, lw=0.7, alpha=0.7, label=label)
         ax.plot(tr.path[0, 0], tr.path[0, 1], ".", color=color, ms=3)
+    if bounds is not None:
+        _draw_bounds(ax, bounds, variables)
     ax.set_xlabel(f"{variables[0]} ({units.get(variables[0], '')})")
     ax.set_ylabel(f"{variables[1]} ({units.get(variables[1], '')})")
     ax.set_title(f"{result.env_id} / {result.spec_name}\n{result.method}", fontsize=9)

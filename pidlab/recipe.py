@@ -53,6 +53,13 @@ Schema ``pidlab.recipe/1``::
 
     [sac]                        # keyword arguments of stable_baselines3.SAC
     ...
+
+    [pipeline]                   # optional: what `pidlab run ENV` does (not part of a run's settings)
+    seeds = 3                    # seeds per condition (coached and uncoached)
+    steps = 30000                # env steps per run (default: the recipe's steps)
+    preset = "robust"            # auto-tuning preset: robust | weak
+    roa_samples = 1000           # simulated states certifying the region behind the bounds
+    episodes = 10                # coach-alone episodes on the real env
 """
 
 from __future__ import annotations
@@ -319,7 +326,67 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
 
 
 _TOP = {"schema", "env_id", "description", "algo", "steps", "n_envs", "vec_env", "seed", "threads",
-        "normalize", "win", "evaluation", "checkpoint", "coaching", *ALGOS}  # fmt: skip
+        "normalize", "win", "evaluation", "checkpoint", "coaching", "pipeline", *ALGOS}  # fmt: skip
+PRESETS = ("robust", "weak")
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    """What ``pidlab run ENV`` does on the recipe's env (the recipe's ``[pipeline]`` table).
+
+    Attributes
+    ----------
+    seeds : int
+        Seeds per condition; the pipeline trains the recipe's agent with and without the coach.
+    steps : int
+        Budget of each run, env steps (agent + coach).
+    preset : {"robust", "weak"}
+        Auto-tuning preset.
+    roa_samples : int
+        Simulated initial states in the final certification of the region of attraction.
+    episodes : int
+        Coach-alone episodes on the real env.
+    """
+
+    seeds: int
+    steps: int
+    preset: str
+    roa_samples: int
+    episodes: int
+
+
+_PIPELINE = {"seeds", "steps", "preset", "roa_samples", "episodes"}
+
+
+def parse_pipeline(data: dict[str, Any], where: str = "recipe") -> PipelineSettings:
+    """The ``[pipeline]`` table of parsed recipe TOML, with defaults for what it leaves out.
+
+    Raises
+    ------
+    RecipeError
+        Naming the field and what is allowed.
+    """
+    table = _table(data, "pipeline", where, _PIPELINE)
+    w = f"{where}.pipeline"
+    return PipelineSettings(
+        seeds=_int(table, "seeds", w, 3, minimum=1),
+        steps=_int(table, "steps", w, _int(data, "steps", where, 100_000, minimum=1), minimum=1),
+        preset=_choice(table, "preset", w, PRESETS, "robust"),
+        roa_samples=_int(table, "roa_samples", w, 1000, minimum=1),
+        episodes=_int(table, "episodes", w, 10, minimum=0),
+    )
+
+
+def load_pipeline_settings(path: str | Path) -> PipelineSettings:
+    """Read and validate the ``[pipeline]`` table of a recipe file (and the rest of the recipe).
+
+    Raises
+    ------
+    RecipeError
+    """
+    data = read_toml(path, "recipe", RecipeError)
+    parse_recipe(data, str(path))
+    return parse_pipeline(data, str(path))
 
 
 def parse_recipe(data: dict[str, Any], where: str = "recipe") -> Recipe:
@@ -360,6 +427,7 @@ def parse_recipe(data: dict[str, Any], where: str = "recipe") -> Recipe:
     ev = _table(data, "evaluation", where, {"every", "episodes", "seed"})
     steps = _int(data, "steps", where, minimum=1)
     ck = _table(data, "checkpoint", where, {"every"})
+    parse_pipeline(data, where)  # checked here so a bad [pipeline] fails wherever the recipe loads
     return Recipe(
         env_id=env_id,
         description=str(data.get("description", "")),

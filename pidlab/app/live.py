@@ -26,6 +26,7 @@ from pidlab.analysis import (
     closed_loop_report,
     initial_response,
     loop_at_actuator,
+    margin_table,
     response_metrics,
     step_response,
 )
@@ -301,40 +302,7 @@ def linear_views(ctx: TunerContext, spec: CoachSpec, loop: str) -> LinearViews:
 
 def margins_rows(views: LinearViews) -> list[dict[str, Any]]:
     """The margins table, one row per actuator, values in the units of :data:`MARGIN_COLUMNS`."""
-    rows = []
-    for m in views.margins:
-        rows.append(
-            {
-                "actuator": m.actuator,
-                "gm_db": m.gain_margin_db,
-                "lower_gm_db": m.lower_gain_margin_db,
-                "pm_deg": m.phase_margin_deg,
-                "delay_ms": 1000.0 * m.delay_margin_s,
-                "disk_alpha": m.disk_margin,
-                "disk_gm_db": m.disk_gain_margin_db,
-                "disk_pm_deg": m.disk_phase_margin_deg,
-                "ms_db": m.ms_db,
-                "wgc": m.gain_crossover,
-                "wpc": m.phase_crossover,
-            }
-        )
-    return rows
-
-
-MARGIN_COLUMNS = (
-    ("actuator", "loop broken at"),
-    ("gm_db", "gain margin (dB)"),
-    ("lower_gm_db", "lower gain margin (dB)"),
-    ("pm_deg", "phase margin (deg)"),
-    ("delay_ms", "delay margin (ms)"),
-    ("disk_alpha", "disk margin α"),
-    ("disk_gm_db", "disk gain margin (dB)"),
-    ("disk_pm_deg", "disk phase margin (deg)"),
-    ("ms_db", "Ms (dB)"),
-    ("wgc", "gain crossover (rad/s)"),
-    ("wpc", "phase crossover (rad/s)"),
-)
-"""Columns of the margins table: key and heading with its unit."""
+    return margin_table(views.margins)
 
 
 def scaled_bounds(bounds: dict[str, Any] | None, scale: float) -> dict[str, Any] | None:

@@ -21,13 +21,13 @@ from typing import Any
 import panel as pn
 
 from pidlab import __version__
+from pidlab.analysis import MARGIN_COLUMNS
 from pidlab.app import figures as F
 from pidlab.app.jobs import JobRunner, JobUpdate, slice_variables
 from pidlab.app.live import (
     FIELD_LABELS,
     FIELD_LIMITS,
     GAIN_FIELDS,
-    MARGIN_COLUMNS,
     LinearViews,
     check_field,
     check_name,

@@ -1,0 +1,131 @@
+"""``pidlab run``: the whole pipeline, end to end with a tiny budget, resumed, and refused."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pidlab.recipe import RecipeError, load_pipeline_settings, parse_pipeline
+from pidlab.rundir import spec_digest
+from pidlab.spec import load_spec
+from tests.conftest import cli_in_process
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--seeds", "1", "--steps", "1024", "--samples", "40", "--episodes", "1", "--workers", "2"]
+
+
+def _run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "pidlab", "run", *args], capture_output=True, text=True, timeout=600
+    )
+
+
+def _without_timings(report: str) -> list[str]:
+    """The report but its command line (it counts resumes) and its stage-time rows."""
+    stage_row = re.compile(r"^\| (linearize|tune|analyze|bounds|train|report) \|")
+    return [ln for ln in report.splitlines() if not ln.startswith("Command:") and not stage_row.match(ln)]
+
+
+def test_pipeline_end_to_end_then_resumed(tmp_path):
+    out = tmp_path / "ip"
+    done = _run("InvertedPendulum-v5", "--out", str(out), *TINY, "--no-progress")
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert f"report: {out / 'report.html'}" in done.stdout
+    for name in ("pipeline.json", "linearization.json", "tuned.toml", "tune.json", "coach.toml", "roa.json",
+                 "conditions.toml", "report.md", "report.html", "experiment/report.md",
+                 "figures/roa.png", "figures/learning-curves.png", "figures/bode_slide.png",
+                 "figures/responses.png"):  # fmt: skip
+        assert (out / name).is_file(), name
+
+    # the coach that trained is the tuned one plus the derived bounds, and they are the report's
+    tuned, coached = load_spec(out / "tuned.toml"), load_spec(out / "coach.toml")
+    assert [lp.kp for lp in tuned.loops] == [lp.kp for lp in coached.loops]
+    assert tuned.bounds is None and coached.bounds is not None
+    roa = json.loads((out / "roa.json").read_text())
+    assert roa["check"]["samples"] == 40
+    assert {k: list(v) for k, v in coached.bounds["box"].items()} == roa["bounds"]["box"]
+    runs = out / "experiment" / "runs" / "InvertedPendulum-v5"
+    cfg = (runs / "coached" / "seed-0" / "config.toml").read_text()
+    assert spec_digest(coached) in cfg
+    assert 'name = "none"' in (runs / "none" / "seed-0" / "config.toml").read_text()
+    for cond in ("none", "coached"):
+        summary = json.loads((runs / cond / "seed-0" / "summary.json").read_text())
+        assert summary["env_steps"] >= 1024
+
+    report = (out / "report.md").read_text()
+    for needle in ("## 1. The linear model", "| loop broken at | gain margin (dB) |", "phase margin (deg)", "rad/s",
+                   "## 3. Region of attraction", "40 sampled initial states", "figures/roa.png",
+                   "figures/learning-curves.png", "| none |", "| coached |", "final agent-alone score"):  # fmt: skip
+        assert needle in report, needle
+    record = json.loads((out / "pipeline.json").read_text())
+    assert record["identity"]["settings"]["steps"] == 1024
+    assert record["git"]["sha"] and record["versions"]["mujoco"]
+    assert set(record["stages"]) == {"linearize", "tune", "analyze", "bounds", "train", "report"}
+
+    # the same command again: tune and bounds are not redone, no run is retrained, same report
+    before = {p: (out / p).read_bytes() for p in ("tuned.toml", "coach.toml", "roa.json")}
+    model = runs / "coached" / "seed-0" / "final_model.zip"
+    mtime = model.stat().st_mtime_ns
+    again = _run("InvertedPendulum-v5", "--out", str(out), *TINY, "--no-progress")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "tune: done before, skipped" in again.stdout and "bounds: done before, skipped" in again.stdout
+    assert {p: (out / p).read_bytes() for p in before} == before
+    assert model.stat().st_mtime_ns == mtime
+    assert _without_timings(report) == _without_timings((out / "report.md").read_text())
+    assert len(json.loads((out / "pipeline.json").read_text())["resumes"]) == 1
+
+    # other settings in the same folder: refused, one line, nothing touched
+    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(out), *TINY[:2], "--steps", "2048")
+    assert code == 2
+    assert "other settings" in err and "steps 1024 (now 2048)" in err and len(err.strip().splitlines()) == 1
+    assert {p: (out / p).read_bytes() for p in before} == before
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["NoSuchEnv-v0"], "no recipe"),
+        (["InvertedPendulum-v5", "--seeds", "0"], "--seeds 0: expected an integer >= 1"),
+        (["InvertedPendulum-v5", "--steps", "-5"], "--steps -5"),
+        (["InvertedPendulum-v5", "--preset", "strong"], "--preset 'strong': expected one of robust, weak"),
+        (["InvertedPendulum-v5", "--workers", "0"], "--workers 0"),
+        (["InvertedPendulum-v5", "--samples", "0"], "--samples 0"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
+    code, err = cli_in_process("run", *args, "--out", str(tmp_path / "x"))
+    assert code == 2
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_folder_that_is_not_a_pipeline_is_refused(tmp_path):
+    (tmp_path / "notes.txt").write_text("mine")
+    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(tmp_path))
+    assert code == 2 and "holds no pipeline.json" in err
+    assert [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
+
+
+def test_recipe_pipeline_table_defaults_and_errors(tmp_path, monkeypatch):
+    base = {"schema": "pidlab.recipe/1", "env_id": "X-v0", "steps": 5000, "ppo": {}}
+    s = parse_pipeline(base)
+    assert (s.seeds, s.steps, s.preset, s.roa_samples, s.episodes) == (3, 5000, "robust", 1000, 10)
+    with pytest.raises(RecipeError, match=r"recipe\.pipeline\.seeds = 0: expected >= 1"):
+        parse_pipeline({**base, "pipeline": {"seeds": 0}})
+    with pytest.raises(RecipeError, match="unknown field"):
+        parse_pipeline({**base, "pipeline": {"budget": 3}})
+    for env in ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5"):
+        assert load_pipeline_settings(ROOT / "coach" / f"{env}.toml").seeds >= 1
+    # a bad [pipeline] in the recipe of the env asked for: one line, exit 2
+    text = (
+        (ROOT / "coach" / "InvertedPendulum-v5.toml").read_text().replace('preset = "robust"', 'preset = "x"')
+    )
+    (tmp_path / "InvertedPendulum-v5.toml").write_text(text)
+    monkeypatch.setenv("PIDLAB_COACH", str(tmp_path))
+    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(tmp_path / "o"))
+    assert code == 2 and "pipeline.preset = 'x'" in err
