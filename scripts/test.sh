@@ -11,4 +11,5 @@ mypy pidlab
 # docstring griffe cannot read is an error. Not --quiet: it would hide the warnings from --strict
 # too. Only the INFO lines are dropped. (NO_MKDOCS_2_WARNING: Material's banner about MkDocs 2.)
 NO_MKDOCS_2_WARNING=1 mkdocs build --strict --site-dir build/site 2>&1 | { grep -v "^INFO " || true; }
-python -m pytest "$@"
+# Two workers (CI machines have 2 cores): the suite is CPU-bound, one process per core.
+python -m pytest -n 2 "$@"
