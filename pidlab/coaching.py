@@ -106,9 +106,13 @@ class CriticalRegion:
         else:
             e = b.get("ellipsoid")
             if not e:
-                raise CoachingError(
-                    f"{spec.name}: the spec has no [bounds.ellipsoid]; run `pidlab bounds SPEC --write`"
+                hint = (
+                    "its bounds come from a simulated recoverable box (contacts), which has no ellipsoid; "
+                    "use region = \"box\""
+                    if b.get("box")
+                    else "run `pidlab bounds SPEC --write`"
                 )
+                raise CoachingError(f"{spec.name}: the spec has no [bounds.ellipsoid]; {hint}")
             self.index = np.array([_index(v, observation_names, "bounds.ellipsoid") for v in e["variables"]])
             self.center = np.array(e["center"], dtype=float)
             self.shape = np.array(e["shape"], dtype=float)

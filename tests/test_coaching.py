@@ -308,3 +308,15 @@ def test_no_coach_is_a_pass_through_that_keeps_accounts(models):
         if te1 or tr1:
             assert info["coaching_episode"]["agent_steps"] == info["episode_agent_steps"]
             break
+
+
+def test_ellipsoid_region_on_a_box_only_spec_says_why(models):
+    from pidlab.coaching import CriticalRegion
+
+    names = tuple(v.name for v in models["Hopper-v5"].card.observation)
+    spec = load_spec(TUNING / "Hopper-v5.pidlab-robust.toml")
+    with pytest.raises(CoachingError, match='recoverable box .*use region = "box"'):
+        CriticalRegion(spec, names, "ellipsoid")
+    bare = dataclasses.replace(spec, bounds=None)
+    with pytest.raises(CoachingError, match=r"no \[bounds.ellipsoid\]; run `pidlab bounds SPEC --write`"):
+        CriticalRegion(bare, names, "ellipsoid")
