@@ -78,6 +78,7 @@ def roa_summary(region: Any, bounds: Any, pair: tuple[str, str]) -> dict[str, An
             "failure_bound_95": check.failure_bound_95,
         },
         "elapsed_s": region.elapsed_s,
+        "recoverable_box": {k: float(v) for k, v in region.box.items()},
         "bounds": {
             "method": bounds.method,
             "rho": bounds.rho,
@@ -201,8 +202,8 @@ def _coach(f: PipelineFacts) -> list[str]:
         "",
     ]
     for fig in f.figures:
-        name = fig.rsplit("/", 1)[-1].removesuffix(".png").replace("_", " at ")
-        lines += [f"![{name}]({fig})", ""]
+        kind, _, actuator = fig.rsplit("/", 1)[-1].removesuffix(".png").partition("_")
+        lines += [f"![{kind}{f', loop broken at {actuator}' if actuator else ''}]({fig})", ""]
     if f.score is not None:
         sc = f.score
         causes = ", ".join(f"{n} {c}" for c, n in sorted(sc.causes.items()))
@@ -221,21 +222,46 @@ def _region(f: PipelineFacts) -> list[str]:
     r = f.roa
     c = r["check"]
     b = r["bounds"]
-    lines = [
-        "## 3. Region of attraction and critical-state bounds",
-        "",
-        f"Method: {r['method']}. Certified level c = {_num(r['level'])}"
-        + (f" (CasADi's estimate {_num(r['c_optimization'])})" if r.get("c_optimization") is not None else "")
-        + f". Simulation check in MuJoCo: {c['samples']} sampled initial states, {c['horizon_s']:g} s each, "
+    check = (
+        f"Simulation check in MuJoCo: {c['samples']} sampled initial states, {c['horizon_s']:g} s each, "
         f"{c['failures']} failed ({c['terminated']} terminated, {c['not_converged']} did not converge); "
         f"with no failure, the failure probability over the set is below {100 * c['failure_bound_95']:.2g} % "
-        "at 95 % confidence (rule of three). A statistical statement about sampled states, not a proof.",
+        "at 95 % confidence (rule of three). A statistical statement about sampled states, not a proof."
+    )
+    one_step = (
+        f"one-step check in MuJoCo: {b['one_step_check'][0]} boundary states, "
+        f"{b['one_step_check'][1]} not recovered"
+    )
+    lines = ["## 3. Region of attraction and critical-state bounds", "", f"Method: {r['method']}.", ""]
+    if r["variables"]:
+        lines += [
+            f"Certified level c = {_num(r['level'])} of V = x' P x"
+            + (
+                f" (CasADi's estimate {_num(r['c_optimization'])})"
+                if r.get("c_optimization") is not None
+                else ""
+            )
+            + f". {check}",
+            "",
+            f"Critical-state bounds: the takeover ellipsoid is V <= rho c with rho = {_num(b['rho'])}, "
+            + f"sized so that one agent step from its edge is still recovered ({one_step}).",
+        ]
+    else:
+        half = ", ".join(
+            f"{k} +-{_num(v)} {f.units.get(k, '')}".rstrip() for k, v in r.get("recoverable_box", {}).items()
+        )
+        lines += [
+            "Recoverable box about the operating point (contacts: no Lyapunov argument)"
+            + (f": {half}" if half else "")
+            + f". {check}",
+            "",
+            f"Critical-state bounds: that box scaled by {_num(b['rho'])}, so that one agent step "
+            f"from its edge is still recovered ({one_step}).",
+        ]
+    lines += [
         "",
-        f"Critical-state bounds ({b['method']}): the takeover ellipsoid is V <= rho c with rho = "
-        f"{_num(b['rho'])}; one-step check in MuJoCo: {b['one_step_check'][0]} boundary states, "
-        f"{b['one_step_check'][1]} not recovered. The critical box (the coaching rule of this run is mode "
-        f"{f.coaching.get('mode')}, region {f.coaching.get('region')}: with region box, the coach takes "
-        "over when the state leaves this box):",
+        f"The critical box (this run's coaching rule: mode {f.coaching.get('mode')}, region "
+        f"{f.coaching.get('region')}; with region box the coach takes over when the state leaves it):",
         "",
     ]
     rows = [[k, f.units.get(k, ""), _num(lo), _num(hi)] for k, (lo, hi) in b["box"].items()]
