@@ -393,7 +393,7 @@ def bounds(
         str | None, typer.Option(help="Box variables, comma-separated (observation names).")
     ] = None,
     write: Annotated[
-        bool, typer.Option("--write", help="Write the bounds into the spec's [bounds] table.")
+        bool, typer.Option("--write", help="Write the bounds into the spec's bounds table.")
     ] = False,
     samples: Annotated[
         int, typer.Option(help="Simulated initial states in the region's final check.")
@@ -622,10 +622,10 @@ def run(
     ],
     out: Annotated[str | None, typer.Option(metavar="DIR", help="Pipeline folder (default out/ENV).")] = None,
     seeds: Annotated[
-        int | None, typer.Option(help="Seeds per condition (default: the recipe's [pipeline] seeds).")
+        int | None, typer.Option(help="Seeds per condition (default: the recipe's pipeline table).")
     ] = None,
     steps: Annotated[
-        int | None, typer.Option(help="Env steps per training run (default: the recipe's [pipeline] steps).")
+        int | None, typer.Option(help="Env steps per training run (default: the recipe's pipeline table).")
     ] = None,
     preset: Annotated[
         str | None, typer.Option(help="Auto-tuning preset, robust or weak (default: the recipe's).")
@@ -644,9 +644,10 @@ def run(
 ) -> None:
     """The whole pipeline on ENV: linearize, auto-tune a coach, derive its bounds, train, report.
 
-    Trains the recipe's agent with and without the auto-tuned coach (its [pipeline] table sets the
-    seeds and the budget), then writes one report: margins table, region of attraction, learning
-    curves, agent-alone scores. Killed or interrupted, the same command resumes.
+    Trains the recipe's agent with and without the auto-tuned coach (the pipeline table of its
+    recipe sets the seeds and the budget), then writes one report: margins table, region of
+    attraction, learning curves, agent-alone scores. Killed or interrupted, the same command
+    resumes; other settings need another --out.
     """
     from pidlab.pipeline import run_pipeline, settings_for
 

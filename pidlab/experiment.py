@@ -315,6 +315,14 @@ def _run_lock(run_dir: Path) -> Iterator[None]:
 
 def execute(task: RunTask) -> RunOutcome:
     """Run (or resume, or skip) one task; every failure becomes an outcome, never an exception."""
+    _BUSY[0] = True
+    try:
+        return _execute(task)
+    finally:
+        _BUSY[0] = False
+
+
+def _execute(task: RunTask) -> RunOutcome:
     from pidlab.train import resume, train
 
     started = time.perf_counter()
@@ -345,12 +353,25 @@ def execute(task: RunTask) -> RunOutcome:
                       wall_s=time.perf_counter() - started)  # fmt: skip
 
 
+_BUSY = [False]  # a pool worker is inside execute()
+
+
+def _term_in_worker(signum: int, frame: Any) -> None:
+    """SIGTERM in a pool worker: interrupt the task, or nothing when idle.
+
+    A task outside its training loop (which stops politely by itself) ends as interrupted. An idle
+    worker has nothing to save and waits for the pool's own shutdown: raising there would print a
+    worker traceback and break the pool under a run that is still checkpointing.
+    """
+    if _BUSY[0]:
+        raise KeyboardInterrupt
+
+
 def _worker_init() -> None:
     """Pool worker: leave terminal Ctrl-C to the parent, and stop politely if the parent dies."""
     os.setsid()
-    # outside a run's training loop (which stops politely), SIGTERM ends the task, not the process
-    signal.signal(signal.SIGTERM, _term_as_interrupt)
-    watch_parent(lambda: os.kill(os.getpid(), signal.SIGTERM))
+    signal.signal(signal.SIGTERM, _term_in_worker)
+    watch_parent(lambda: os.kill(os.getpid(), signal.SIGTERM) if _BUSY[0] else os._exit(0))
 
 
 Progress = Callable[[RunOutcome], None]

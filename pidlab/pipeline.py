@@ -61,11 +61,15 @@ class PipelineError(PidlabError, ValueError):
 
 @dataclass(frozen=True)
 class StageRecord:
-    """How one stage went: ``done`` (ran now) or ``skipped`` (finished before), and its time."""
+    """How one stage went: ``done`` (ran now), ``skipped`` (finished before) or ``interrupted``.
+
+    ``seconds`` is its time in this session, ``at`` when it ended.
+    """
 
     name: str
     status: str
     seconds: float
+    at: str = ""
 
 
 @dataclass(frozen=True)
@@ -121,7 +125,9 @@ def settings_for(
 
 
 def _identity(env_id: str, settings: PipelineSettings) -> dict[str, Any]:
-    return {"schema": PIPELINE_SCHEMA, "env_id": env_id, "settings": asdict(settings)}
+    # the coach-alone episodes are recomputed on every run: changing them needs no new folder
+    kept = {k: v for k, v in asdict(settings).items() if k != "episodes"}
+    return {"schema": PIPELINE_SCHEMA, "env_id": env_id, "settings": kept}
 
 
 def check_out_folder(out: Path, identity: dict[str, Any]) -> dict[str, Any] | None:
@@ -132,12 +138,16 @@ def check_out_folder(out: Path, identity: dict[str, Any]) -> dict[str, Any] | No
     PipelineError
         The folder holds something else: another pipeline, or files that are not a pipeline's.
     """
+    if out.exists() and not out.is_dir():
+        raise PipelineError(f"--out {out}: exists and is not a folder")
     record_path = out / "pipeline.json"
     if record_path.exists():
         try:
             record = read_json(record_path)
         except (OSError, json.JSONDecodeError):
-            raise PipelineError(f"--out {out}: pipeline.json is unreadable; use another folder") from None
+            record = None
+        if not isinstance(record, dict):
+            raise PipelineError(f"--out {out}: pipeline.json is not a pipeline record; use another folder")
         old = record.get("identity", {})
         if old != identity:
             diffs = []
@@ -171,7 +181,7 @@ def _stage(
     t0 = time.perf_counter()
     yield
     seconds = time.perf_counter() - t0
-    records.append(StageRecord(name, "done", seconds))
+    records.append(StageRecord(name, "done", seconds, time.strftime("%Y-%m-%dT%H:%M:%S%z")))
     say(f"[{index}/{len(STAGES)}] {name}: {seconds:.1f} s")
 
 
@@ -252,14 +262,17 @@ def run_pipeline(
     from pidlab.render import linearization_to_dict
     from pidlab.roa import estimate_roa
     from pidlab.rollout import coach_alone
+    from pidlab.rundir import spec_digest
     from pidlab.spec import load_spec, save_spec
 
     folder = Path(out).resolve()
     identity = _identity(env_id, settings)
     record = check_out_folder(folder, identity)
     recipe = load_recipe(default_recipe_path(env_id))
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "figures").mkdir(exist_ok=True)
+    try:
+        (folder / "figures").mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PipelineError(f"--out {out}: cannot create the folder ({exc.strerror})") from None
     now = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     if record is None:
         record = {"identity": identity, "created": now, "command": list(argv), "resumes": [],
@@ -316,7 +329,13 @@ def run_pipeline(
     roa_png = folder / "figures" / "roa.png"
     lp0 = spec.loops[0]
     pair = (lp0.signal, lp0.rate_signal or lp0.signal)
-    done = coach_path.exists() and roa_json.exists() and roa_png.exists()
+    tuned_digest = spec_digest(spec)
+    done = (
+        coach_path.exists()
+        and roa_png.exists()
+        and roa_json.exists()
+        and read_json(roa_json).get("tuned_sha256") == tuned_digest
+    )
     with _stage("bounds", records, done, say):
         if not done:
             with tqdm(total=100, desc="region", unit="%", disable=not progress_bar) as bar:
@@ -343,7 +362,7 @@ def run_pipeline(
                 bar.refresh()
             fig = plot_roa_slice(region, pair, kept, units, bounds=crit)
             save_figure(fig, roa_png)
-            write_json(roa_json, roa_summary(region, crit, pair))
+            write_json(roa_json, {**roa_summary(region, crit, pair), "tuned_sha256": tuned_digest})
             save_spec(with_bounds(spec, crit), coach_path)
     coached = load_spec(coach_path)
     roa_facts = read_json(roa_json)
@@ -357,6 +376,7 @@ def run_pipeline(
     with _stage("train", records, False, say):
         sweep = run_sweep(sweep_plan, workers=workers, argv=argv, progress_bar=progress_bar)
     if sweep.interrupted:
+        records[-1] = replace(records[-1], status="interrupted")
         _finish_record(folder, record, records)
         return PipelineResult(folder, folder / "report.md", folder / "report.html", tuple(records), True,
                               sweep.count("failed"))  # fmt: skip
@@ -403,9 +423,26 @@ def _shown(path: str | None) -> str:
 
 
 def _finish_record(folder: Path, record: dict[str, Any], records: list[StageRecord]) -> None:
+    """Write the stage times into ``pipeline.json``.
+
+    Each stage keeps the time of its last run; training is summed over the sessions that trained
+    (a resumed sweep only trains what was left).
+    """
     stages = dict(record.get("stages", {}))
+    pending = dict(record.get("pending_train_s", {}))
     for r in records:
-        if r.status == "done":
-            stages[r.name] = {"seconds": round(r.seconds, 2), "at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        if r.name == "train" and r.status in ("done", "interrupted"):
+            total = float(pending.get("seconds", 0.0)) + r.seconds
+            if r.status == "interrupted":
+                pending = {"seconds": round(total, 2)}
+                continue
+            pending = {}
+            stages[r.name] = {"seconds": round(total, 2), "at": r.at}
+        elif r.status == "done":
+            stages[r.name] = {"seconds": round(r.seconds, 2), "at": r.at}
     record["stages"] = stages
+    if pending:
+        record["pending_train_s"] = pending
+    else:
+        record.pop("pending_train_s", None)
     write_json(folder / "pipeline.json", record)

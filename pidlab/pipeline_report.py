@@ -84,6 +84,7 @@ def roa_summary(region: Any, bounds: Any, pair: tuple[str, str]) -> dict[str, An
             "rho": bounds.rho,
             "box": {k: [float(lo), float(hi)] for k, (lo, hi) in bounds.box.items()},
             "one_step_check": list(bounds.one_step_check),
+            "one_step_action_fraction": float(bounds.provenance.get("one_step_action_fraction", 1.0)),
         },
         "slice": list(pair),
     }
@@ -95,6 +96,10 @@ def _num(x: float | None, fmt: str = ".4g") -> str:
     if math.isinf(x):
         return "inf" if x > 0 else "-inf"
     return format(x, fmt)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _eig(value: complex) -> str:
@@ -115,9 +120,9 @@ def _header(f: PipelineFacts) -> list[str]:
         f"{rec.get('created', '')}; git {str(git.get('sha') or '?')[:12]}"
         f"{' (dirty)' if git.get('dirty') else ''}; resumed {len(rec.get('resumes', []))} time(s).",
         "",
-        f"Settings (the recipe's `[pipeline]` table and the command's overrides): {s.seeds} seeds per "
-        f"condition, {s.steps:,} env steps per run, preset {s.preset}, {s.roa_samples} simulated states "
-        f"certifying the region, {s.episodes} coach-alone episodes.",
+        f"Settings (the recipe's `[pipeline]` table and the command's overrides): {_count(s.seeds, 'seed')} "
+        f"per condition, {s.steps:,} env steps per run, preset {s.preset}, {s.roa_samples} simulated states "
+        f"certifying the region, {_count(s.episodes, 'coach-alone episode')}.",
         "",
         "Versions: " + ", ".join(f"{k} {versions[k]}" for k in VERSIONS if k in versions) + ".",
         "",
@@ -137,7 +142,7 @@ def _linear_model(f: PipelineFacts) -> list[str]:
         "",
         f"{r.n} states, linearized at the model card's operating point; the coach runs every "
         f"{1000 * f.control_dt:.4g} ms (the env's control period). "
-        f"{len(unstable)} unstable open-loop eigenvalue(s)"
+        f"{_count(len(unstable), 'unstable open-loop eigenvalue')}"
         + (": " + ", ".join(f"{_eig(m.value)} rad/s" for m in unstable) if unstable else "")
         + f". Controllable subspace: {r.controllable_dim} of {r.n}; "
         f"{'stabilizable' if r.stabilizable else 'NOT stabilizable'}.",
@@ -207,12 +212,13 @@ def _coach(f: PipelineFacts) -> list[str]:
     if f.score is not None:
         sc = f.score
         causes = ", ".join(f"{n} {c}" for c, n in sorted(sc.causes.items()))
+        n = len(sc.episodes)
+        episodes = f"{_count(n, 'seeded episode')}, " + (f"seeds 0-{n - 1}" if n > 1 else "seed 0")
         lines += [
             "### The coach alone on the real env",
             "",
-            f"Return {sc.mean:.1f} +- {sc.std:.1f} (mean +- std over {len(sc.episodes)} seeded episodes, "
-            f"seeds 0-{len(sc.episodes) - 1}); mean length {sc.mean_length:.0f} steps; "
-            f"how they ended: {causes}.",
+            f"Return {sc.mean:.1f} +- {sc.std:.1f} (mean +- std over {episodes}); "
+            f"mean length {sc.mean_length:.0f} steps; how they ended: {causes}.",
             "",
         ]
     return lines
@@ -232,6 +238,13 @@ def _region(f: PipelineFacts) -> list[str]:
         f"one-step check in MuJoCo: {b['one_step_check'][0]} boundary states, "
         f"{b['one_step_check'][1]} not recovered"
     )
+    fraction = float(b.get("one_step_action_fraction", 1.0))
+    step = "one agent step from its edge is still recovered"
+    if fraction < 1.0:
+        step += (
+            f" for agent actions up to {100 * fraction:.0f} % of the action range (a full-range step "
+            "is more than this coach recovers from)"
+        )
     lines = ["## 3. Region of attraction and critical-state bounds", "", f"Method: {r['method']}.", ""]
     if r["variables"]:
         lines += [
@@ -244,7 +257,7 @@ def _region(f: PipelineFacts) -> list[str]:
             + f". {check}",
             "",
             f"Critical-state bounds: the takeover ellipsoid is V <= rho c with rho = {_num(b['rho'])}, "
-            + f"sized so that one agent step from its edge is still recovered ({one_step}).",
+            + f"sized so that {step} ({one_step}).",
         ]
     else:
         half = ", ".join(
@@ -255,13 +268,14 @@ def _region(f: PipelineFacts) -> list[str]:
             + (f": {half}" if half else "")
             + f". {check}",
             "",
-            f"Critical-state bounds: that box scaled by {_num(b['rho'])}, so that one agent step "
-            f"from its edge is still recovered ({one_step}).",
+            f"Critical-state bounds: that box scaled by {_num(b['rho'])}, so that {step} ({one_step}).",
         ]
     lines += [
         "",
         f"The critical box (this run's coaching rule: mode {f.coaching.get('mode')}, region "
-        f"{f.coaching.get('region')}; with region box the coach takes over when the state leaves it):",
+        f"{f.coaching.get('region')}; with region box the coach takes over when the state leaves it). "
+        "It is the largest box inside the projection of the takeover set on these variables; it does "
+        "not constrain the others, so in the slice below it can reach beyond the drawn ellipse:",
         "",
     ]
     rows = [[k, f.units.get(k, ""), _num(lo), _num(hi)] for k, (lo, hi) in b["box"].items()]
@@ -279,9 +293,10 @@ def _training(f: PipelineFacts) -> list[str]:
     lines = [
         "## 4. Training with and without the coach",
         "",
-        f"The recipe's agent ({recipe}), {f.settings.seeds} seeds per condition, {budget:,} env steps "
-        "per run (agent and coach steps both count). `coached`: the coach above takes over as the "
-        f"recipe's coaching rule says ({rule}); its steps are hidden from the agent. "
+        f"The recipe's agent ({recipe}), {_count(f.settings.seeds, 'seed')} per condition, "
+        f"{budget:,} env steps per run (agent and coach steps both count). "
+        "`coached`: the coach above takes over as the recipe's coaching rule says "
+        f"({rule}); its steps are hidden from the agent. "
         f"Target {a.targets.get(env, 0):g}.",
         "",
     ]

@@ -14,7 +14,8 @@ Pendulums (smooth dynamics)
     - **simulation** (MuJoCo itself, the coach's real discrete law, saturation, the env's
       termination rule): states sampled uniformly in ``{V <= c}`` (coach at reset), simulated
       for a horizon; a sample fails if the episode would terminate or ``V`` has not decreased
-      by the end. Bisection on ``c`` (capped by ``c_opt``), then a final check with ``N`` samples.
+      by the end. Bisection on ``c`` (up to ``4 c_opt`` and the termination limits), then a final
+      check with ``N`` samples.
 
     The certified level has zero failures among ``N`` samples: by the rule of three the
     probability of failure from a uniformly drawn state in the set is below ``3/N`` at 95 %.

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -31,10 +33,44 @@ def _without_timings(report: str) -> list[str]:
     return [ln for ln in report.splitlines() if not ln.startswith("Command:") and not stage_row.match(ln)]
 
 
-def test_pipeline_end_to_end_then_resumed(tmp_path):
+def _interrupted_in_training(out: Path) -> subprocess.CompletedProcess[str]:
+    """Start the pipeline, SIGTERM it once it trains (workers starting or running)."""
+    argv = [
+        sys.executable,
+        "-m",
+        "pidlab",
+        "run",
+        "InvertedPendulum-v5",
+        "--out",
+        str(out),
+        *TINY,
+        "--no-progress",
+    ]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if line.startswith("[5/6] train ..."):
+            time.sleep(3.0)
+            proc.send_signal(signal.SIGTERM)
+            break
+    out_text, err = proc.communicate(timeout=300)
+    return subprocess.CompletedProcess(argv, proc.returncode, "".join(seen) + out_text, err)
+
+
+def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     out = tmp_path / "ip"
+    # killed while it trains: exit 130, one line saying how to resume, no traceback (not even a worker's)
+    stopped = _interrupted_in_training(out)
+    assert stopped.returncode == 130, stopped.stderr[-2000:]
+    assert "run the same command to resume" in stopped.stderr and "Traceback" not in stopped.stderr
+    assert (out / "coach.toml").is_file() and not (out / "report.md").exists()
+    assert "train" not in json.loads((out / "pipeline.json").read_text()).get("stages", {})
+
     done = _run("InvertedPendulum-v5", "--out", str(out), *TINY, "--no-progress")
     assert done.returncode == 0, done.stderr[-2000:]
+    assert "tune: done before, skipped" in done.stdout and "bounds: done before, skipped" in done.stdout
     assert f"report: {out / 'report.html'}" in done.stdout
     for name in ("pipeline.json", "linearization.json", "tuned.toml", "tune.json", "coach.toml", "roa.json",
                  "conditions.toml", "report.md", "report.html", "experiment/report.md",
@@ -62,8 +98,21 @@ def test_pipeline_end_to_end_then_resumed(tmp_path):
                    "## 3. Region of attraction", "40 sampled initial states", "figures/roa.png",
                    "figures/learning-curves.png", "| none |", "| coached |", "final agent-alone score"):  # fmt: skip
         assert needle in report, needle
+    # the numbers are the analysis' own: the margins row of the coach, the one-step fraction
+    from pidlab.analysis import analyze_coach, margin_table
+    from pidlab.model import load_model
+    from pidlab.pid import Coach
+
+    loaded = load_model("InvertedPendulum-v5")
+    row = margin_table(analyze_coach(Coach(tuned, loaded), loaded).discrete.margins)[0]
+    line = next(ln for ln in report.splitlines() if ln.startswith(f"| {row['actuator']} |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[3] == f"{row['pm_deg']:.1f}" and cells[4] == f"{row['delay_ms']:.1f}"
+    assert cells[8] == f"{row['ms_db']:.2f}"
+    fraction = roa["bounds"]["one_step_action_fraction"]
+    assert ("for agent actions up to" in report) == (fraction < 1.0)
     record = json.loads((out / "pipeline.json").read_text())
-    assert record["identity"]["settings"]["steps"] == 1024
+    assert record["identity"]["settings"]["steps"] == 1024 and len(record["resumes"]) == 1
     assert record["git"]["sha"] and record["versions"]["mujoco"]
     assert set(record["stages"]) == {"linearize", "tune", "analyze", "bounds", "train", "report"}
 
@@ -77,7 +126,7 @@ def test_pipeline_end_to_end_then_resumed(tmp_path):
     assert {p: (out / p).read_bytes() for p in before} == before
     assert model.stat().st_mtime_ns == mtime
     assert _without_timings(report) == _without_timings((out / "report.md").read_text())
-    assert len(json.loads((out / "pipeline.json").read_text())["resumes"]) == 1
+    assert len(json.loads((out / "pipeline.json").read_text())["resumes"]) == 2
 
     # other settings in the same folder: refused, one line, nothing touched
     code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(out), *TINY[:2], "--steps", "2048")
@@ -102,6 +151,15 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
     assert code == 2
     assert message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x").exists()
+
+
+def test_an_out_that_is_a_file_is_refused(tmp_path):
+    (tmp_path / "f").write_text("mine")
+    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(tmp_path / "f"))
+    assert code == 2 and "exists and is not a folder" in err
+    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(tmp_path / "f" / "sub"))
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert (tmp_path / "f").read_text() == "mine"
 
 
 def test_a_folder_that_is_not_a_pipeline_is_refused(tmp_path):
