@@ -41,6 +41,7 @@ from pidlab.recipe import (
     default_recipe_path,
     load_recipe,
     parse_recipe,
+    recipe_envs,
     recipe_to_dict,
     with_overrides,
 )
@@ -188,10 +189,9 @@ def plan(
         if env_id not in given:
             default = default_recipe_path(env_id)
             if not default.is_file():
-                known = sorted(p.stem for p in default.parent.glob("*-v*.toml"))
                 raise ExperimentError(
                     f"--envs {env_id}: unknown env (no recipe {default}); "
-                    f"recipes exist for: {', '.join(known)}"
+                    f"recipes exist for: {', '.join(recipe_envs())}"
                 )
             given[env_id] = load_recipe(default)
         recipes[env_id] = with_overrides(given[env_id], algo=algo, steps=steps)

@@ -46,6 +46,7 @@ from pidlab.recipe import (
     default_recipe_path,
     load_pipeline_settings,
     load_recipe,
+    recipe_envs,
     recipe_to_dict,
 )
 from pidlab.runinfo import atomic_write_text, git_state, package_versions, read_json, write_json
@@ -104,8 +105,9 @@ def settings_for(
     """
     path = default_recipe_path(env_id)
     if not path.is_file():
-        known = sorted(p.stem for p in path.parent.glob("*-v*.toml"))
-        raise PipelineError(f"ENV {env_id!r}: no recipe {path}; recipes exist for: {', '.join(known)}")
+        raise PipelineError(
+            f"ENV {env_id!r}: no recipe {path}; recipes exist for: {', '.join(recipe_envs())}"
+        )
     base = load_pipeline_settings(path)
     checks = {"--seeds": (seeds, 1), "--steps": (steps, 1), "--samples": (roa_samples, 1),
               "--episodes": (episodes, 0)}  # fmt: skip
@@ -114,14 +116,9 @@ def settings_for(
             raise PipelineError(f"{flag} {value}: expected an integer >= {low}")
     if preset is not None and preset not in PRESETS:
         raise PipelineError(f"--preset {preset!r}: expected one of {', '.join(PRESETS)}")
-    return replace(
-        base,
-        seeds=base.seeds if seeds is None else seeds,
-        steps=base.steps if steps is None else steps,
-        preset=base.preset if preset is None else preset,
-        roa_samples=base.roa_samples if roa_samples is None else roa_samples,
-        episodes=base.episodes if episodes is None else episodes,
-    )
+    given: dict[str, Any] = {"seeds": seeds, "steps": steps, "preset": preset, "roa_samples": roa_samples,
+                             "episodes": episodes}  # fmt: skip
+    return replace(base, **{k: v for k, v in given.items() if v is not None})
 
 
 def _identity(env_id: str, settings: PipelineSettings) -> dict[str, Any]:
@@ -186,24 +183,22 @@ def _stage(
 
 
 def _write_conditions(out: Path, coach_file: Path) -> Path:
-    text = "\n".join(
-        [
-            "# Written by pidlab run: the two conditions it trains (see pidlab.conditions).",
-            'schema = "pidlab.conditions/1"',
-            "",
-            "[condition.none]",
-            'description = "No coach: the recipe\'s agent alone (the baseline)."',
-            'coach = "none"',
-            "",
-            "[condition.coached]",
-            'description = "The coach auto-tuned by this pipeline, with the critical-state bounds derived '
-            "from its certified region of attraction, intervening as the recipe's [coaching] table says; "
-            'coach steps hidden from the agent."',
-            f"coach = {json.dumps(str(coach_file.resolve()))}",
-            "",
-        ]
-    )
-    return atomic_write_text(out / "conditions.toml", text)
+    import tomli_w
+
+    table = {
+        "schema": "pidlab.conditions/1",
+        "condition": {
+            "none": {"description": "No coach: the recipe's agent alone (the baseline).", "coach": "none"},
+            "coached": {
+                "description": "The coach auto-tuned by this pipeline, with the critical-state bounds "
+                "derived from its certified region of attraction, intervening as the recipe's [coaching] "
+                "table says; coach steps hidden from the agent.",
+                "coach": str(coach_file.resolve()),
+            },
+        },
+    }
+    header = "# Written by pidlab run: the two conditions it trains (see pidlab.conditions).\n"
+    return atomic_write_text(out / "conditions.toml", header + tomli_w.dumps(table))
 
 
 def run_pipeline(

@@ -481,6 +481,11 @@ def default_recipe_path(env_id: str) -> Path:
     return recipes_dir() / f"{env_id}.toml"
 
 
+def recipe_envs() -> list[str]:
+    """The env ids that have a recipe in :func:`recipes_dir`, sorted."""
+    return sorted(p.stem for p in recipes_dir().glob("*-v*.toml"))
+
+
 def with_overrides(
     recipe: Recipe,
     algo: str | None = None,
