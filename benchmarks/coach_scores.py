@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from pidlab import __version__
-from pidlab.analysis import analyze_coach
-from pidlab.model import load_model
-from pidlab.pid import Coach
-from pidlab.rollout import coach_alone
-from pidlab.spec import load_spec
+from pidlab.controller.analysis import analyze_coach
+from pidlab.controller.pid import Coach
+from pidlab.controller.rollout import coach_alone
+from pidlab.controller.spec import load_spec
+from pidlab.plant.model import load_model
 
 ROOT = Path(__file__).resolve().parents[1]
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")

@@ -36,13 +36,14 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 from pidlab import __version__
-from pidlab.coaching import CoachingWrapper
-from pidlab.model import load_model
-from pidlab.pid import Coach
-from pidlab.recipe import load_recipe
-from pidlab.runinfo import atomic_write_text, git_state
-from pidlab.spec import load_spec
-from pidlab.train import make_vec_env, sb3_arguments
+from pidlab.controller.pid import Coach
+from pidlab.controller.spec import load_spec
+from pidlab.files import atomic_write_text
+from pidlab.plant.model import load_model
+from pidlab.provenance import git_state
+from pidlab.rl.coaching import CoachingWrapper
+from pidlab.rl.recipe import load_recipe
+from pidlab.rl.train import make_vec_env, sb3_arguments
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -13,11 +13,11 @@ import control as ct
 import numpy as np
 
 from pidlab import __version__, validate
-from pidlab.linearize import linearize
-from pidlab.lti import analyze_lti
-from pidlab.model import load_model
-from pidlab.operating_point import resolve_operating_point
-from pidlab.symbolic import cart_pole_dynamics, cart_pole_parameters
+from pidlab.linear.linearize import linearize
+from pidlab.linear.lti import analyze_lti
+from pidlab.linear.symbolic import cart_pole_dynamics, cart_pole_parameters
+from pidlab.plant.model import load_model
+from pidlab.plant.operating_point import resolve_operating_point
 
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")
 ROOT = Path(__file__).resolve().parents[1]
@@ -76,7 +76,7 @@ def main() -> None:
         "",
         "Maximum entry-wise relative error of pidlab's finite-difference `A`, `B` against the "
         "Euler-Lagrange equations derived symbolically from the compiled model's parameters "
-        "(`pidlab.symbolic`). Requirement: below 1e-3.",
+        "(`pidlab.linear.symbolic`). Requirement: below 1e-3.",
         "",
         "| env | operating point | max rel. error A | max rel. error B |",
         "|---|---|---|---|",
@@ -107,7 +107,8 @@ def main() -> None:
         "",
         "Error `|x_next(MuJoCo) - x_next(Ad x + Bd u)|` for a random perturbation of size "
         "`delta` (tangent-space state; control perturbation `delta/10`), and the observed "
-        "convergence order between successive sizes (2 = quadratic). `pidlab.validate.prediction_errors`.",
+        "convergence order between successive sizes (2 = quadratic). "
+        "`pidlab.linear.validate.prediction_errors`.",
         "",
         "| model | operating point | " + " | ".join(f"delta={s:g}" for s in SIZES) + " | orders |",
         "|---|---|" + "---|" * (len(SIZES) + 1),

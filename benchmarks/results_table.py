@@ -11,8 +11,8 @@ import csv
 import math
 from pathlib import Path
 
-from pidlab.experiment_report import PAPER_TABLE_II, format_value
-from pidlab.runinfo import atomic_write_text, read_json
+from pidlab.files import atomic_write_text, read_json
+from pidlab.report.experiment import PAPER_TABLE_II, format_value
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"

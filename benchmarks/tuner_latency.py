@@ -22,7 +22,8 @@ import tempfile
 from pathlib import Path
 
 from pidlab.app.browser import CHROMIUM, CHROMIUM_ARGS, PAGE_JS, free_port, start_server, stop_server
-from pidlab.runinfo import atomic_write_text, git_state
+from pidlab.files import atomic_write_text
+from pidlab.provenance import git_state
 
 ROOT = Path(__file__).resolve().parents[1]
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5")

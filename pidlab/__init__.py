@@ -2,10 +2,10 @@
 
 The pipeline's stages are plain Python functions first, CLI verbs second:
 
-- :func:`pidlab.model.load_model` resolves a Gymnasium MuJoCo env id or an MJCF file;
-- :func:`pidlab.operating_point.resolve_operating_point` picks the point to linearize about;
-- :func:`pidlab.linearize.linearize` returns continuous and discrete python-control models;
-- :func:`pidlab.lti.analyze_lti` reports eigenvalues, controllability and observability.
+- :func:`pidlab.plant.model.load_model` resolves a Gymnasium MuJoCo env id or an MJCF file;
+- :func:`pidlab.plant.operating_point.resolve_operating_point` picks the point to linearize about;
+- :func:`pidlab.linear.linearize.linearize` returns continuous and discrete python-control models;
+- :func:`pidlab.linear.lti.analyze_lti` reports eigenvalues, controllability and observability.
 """
 
 from importlib.metadata import PackageNotFoundError, version

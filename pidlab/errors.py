@@ -1,15 +1,30 @@
-"""Exception hierarchy of pidlab.
+"""Every exception class of pidlab, in one place (as ``gymnasium/error.py`` keeps Gymnasium's).
 
 Every error raised on bad input is a :class:`PidlabError`. Its message says what was wrong,
-what was expected and, where it helps, how to fix it, in one line. The CLI prints that line
-and exits with code 2.
+what was expected and, where it helps, how to fix it, in one line. A message about a function's
+argument starts with the Python parameter's name, ``name=value: ...``, and the error carries that
+name in :attr:`PidlabError.param`; the command line replaces it with its own flag (``--seeds 0:
+...``), prints the line and exits with code 2.
 """
 
 from __future__ import annotations
 
 
 class PidlabError(Exception):
-    """Base class of every error pidlab raises on bad input or an impossible request."""
+    """Base class of every error pidlab raises on bad input or an impossible request.
+
+    Parameters
+    ----------
+    message : str
+        One line: what was wrong, what was expected. When ``param`` is given, the message
+        starts with ``f"{param}="``.
+    param : str, optional
+        The Python parameter whose value was wrong (the CLI maps it to its flag).
+    """
+
+    def __init__(self, message: str = "", *, param: str | None = None) -> None:
+        super().__init__(message)
+        self.param = param
 
 
 class UnknownEnvError(PidlabError, KeyError):
@@ -47,3 +62,43 @@ class UnknownSignalError(PidlabError, KeyError):
 
     def __str__(self) -> str:
         return str(self.args[0]) if self.args else ""
+
+
+class RecipeError(PidlabError, ValueError):
+    """A malformed recipe: the message names the field and what is allowed."""
+
+
+class ScheduleError(PidlabError, ValueError):
+    """A schedule that cannot be evaluated (unknown shape, begin after finish, ...)."""
+
+
+class CoachingError(PidlabError, ValueError):
+    """A coaching configuration that cannot work (no bounds, unknown mode, wrong env)."""
+
+
+class SpecError(PidlabError, ValueError):
+    """A coach spec that is malformed or does not fit its env."""
+
+
+class ConditionError(PidlabError, ValueError):
+    """A conditions file or a condition name that cannot be used."""
+
+
+class ExperimentError(PidlabError, ValueError):
+    """An experiment that cannot be planned or run as asked."""
+
+
+class RunDirError(PidlabError):
+    """A run directory that cannot be used as asked (exists already, not a run, mismatched resume)."""
+
+
+class RegionError(PidlabError, ValueError):
+    """No region of attraction can be given (unstable closed loop, nothing certified)."""
+
+
+class PipelineError(PidlabError, ValueError):
+    """A pipeline that cannot run as asked."""
+
+
+class JobCancelled(Exception):
+    """Raised inside a worker when its job was superseded."""

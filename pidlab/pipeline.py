@@ -1,14 +1,14 @@
 """The whole pipeline on one env: linearize, auto-tune a coach, derive its bounds, train, report.
 
 ``pidlab run ENV`` (and the README's main command on InvertedPendulum-v5) runs, with the
-settings of the recipe's ``[pipeline]`` table (:class:`pidlab.recipe.PipelineSettings`):
+settings of the recipe's ``[pipeline]`` table (:class:`pidlab.rl.recipe.PipelineSettings`):
 
 1. **linearize** the env's model at its model card's operating point;
-2. **tune** a coach automatically (:func:`pidlab.autotune.tune`, the chosen preset);
+2. **tune** a coach automatically (:func:`pidlab.controller.autotune.tune`, the chosen preset);
 3. **analyze** it: margins per actuator, closed-loop poles, responses, its score alone;
 4. **bounds**: estimate and certify its region of attraction in MuJoCo, derive the critical-state
    bounds from it and write them into the spec;
-5. **train** the recipe's agent with and without that coach (a :mod:`pidlab.experiment` sweep);
+5. **train** the recipe's agent with and without that coach (a :mod:`pidlab.experiment.sweep` sweep);
 6. **report**: one page with the margins table, the region picture, the learning curves and the
    agent-alone scores.
 
@@ -39,8 +39,11 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from pidlab.errors import PidlabError
-from pidlab.recipe import (
+from pidlab.data import source_root
+from pidlab.errors import PipelineError
+from pidlab.files import atomic_write_text, read_json, write_json
+from pidlab.provenance import git_state, package_versions
+from pidlab.rl.recipe import (
     PRESETS,
     PipelineSettings,
     default_recipe_path,
@@ -49,15 +52,10 @@ from pidlab.recipe import (
     recipe_envs,
     recipe_to_dict,
 )
-from pidlab.runinfo import atomic_write_text, git_state, package_versions, read_json, write_json
 
 PIPELINE_SCHEMA = "pidlab.pipeline/1"
 STAGES = ("linearize", "tune", "analyze", "bounds", "train", "report")
 CONDITIONS = ("none", "coached")
-
-
-class PipelineError(PidlabError, ValueError):
-    """A pipeline that cannot run as asked."""
 
 
 @dataclass(frozen=True)
@@ -197,7 +195,7 @@ def _write_conditions(out: Path, coach_file: Path) -> Path:
             },
         },
     }
-    header = "# Written by pidlab run: the two conditions it trains (see pidlab.conditions).\n"
+    header = "# Written by pidlab run: the two conditions it trains (see pidlab.experiment.conditions).\n"
     return atomic_write_text(out / "conditions.toml", header + tomli_w.dumps(table))
 
 
@@ -241,24 +239,25 @@ def run_pipeline(
     """
     from tqdm.auto import tqdm
 
-    from pidlab.analysis import analyze_coach
-    from pidlab.autotune import tune
-    from pidlab.bounds import derive_bounds, with_bounds
-    from pidlab.experiment import plan, run_sweep
-    from pidlab.experiment_analysis import analyze
-    from pidlab.experiment_plots import plot_learning_curves
-    from pidlab.experiment_report import render_html, save_figure, write_report
-    from pidlab.linearize import linearize
-    from pidlab.lti import analyze_lti
-    from pidlab.model import load_model
-    from pidlab.pid import Coach
-    from pidlab.pipeline_report import PipelineFacts, render_markdown, roa_summary, tune_summary
-    from pidlab.plots import plot_roa_slice, write_plots
-    from pidlab.render import linearization_to_dict
-    from pidlab.roa import estimate_roa
-    from pidlab.rollout import coach_alone
-    from pidlab.rundir import spec_digest
-    from pidlab.spec import load_spec, save_spec
+    from pidlab.controller.analysis import analyze_coach
+    from pidlab.controller.autotune import tune
+    from pidlab.controller.pid import Coach
+    from pidlab.controller.rollout import coach_alone
+    from pidlab.controller.spec import load_spec, save_spec
+    from pidlab.experiment.analysis import analyze
+    from pidlab.experiment.sweep import plan, run_sweep
+    from pidlab.files import save_figure
+    from pidlab.linear.linearize import linearize
+    from pidlab.linear.lti import analyze_lti
+    from pidlab.linear.serialize import linearization_to_dict
+    from pidlab.plant.model import load_model
+    from pidlab.region.bounds import derive_bounds, with_bounds
+    from pidlab.region.roa import estimate_roa
+    from pidlab.report.curves import plot_learning_curves
+    from pidlab.report.experiment import render_html, write_report
+    from pidlab.report.pipeline import PipelineFacts, render_markdown, roa_summary, tune_summary
+    from pidlab.report.plots import plot_roa_slice, write_plots
+    from pidlab.rl.rundir import spec_digest
 
     folder = Path(out).resolve()
     identity = _identity(env_id, settings)
@@ -280,8 +279,8 @@ def run_pipeline(
     write_json(folder / "pipeline.json", record)
     records: list[StageRecord] = []
     loaded = load_model(env_id)
-    assert loaded.card is not None
-    units = {v.name: v.unit for v in loaded.card.observation}
+    card = loaded.require_card()
+    units = {v.name: v.unit for v in card.observation}
 
     # 1. linearize (seconds; the JSON is rewritten only when missing)
     lin_path = folder / "linearization.json"
@@ -412,9 +411,9 @@ def run_pipeline(
 
 def _shown(path: str | None) -> str:
     """A path as the report shows it: relative to pidlab's source tree when inside it."""
-    root = Path(__file__).resolve().parents[1]
+    root = source_root()
     p = Path(path or "").resolve()
-    return p.relative_to(root).as_posix() if p.is_relative_to(root) else str(p)
+    return p.relative_to(root).as_posix() if root is not None and p.is_relative_to(root) else str(p)
 
 
 def _finish_record(folder: Path, record: dict[str, Any], records: list[StageRecord]) -> None:

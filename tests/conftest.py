@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from pidlab.model import LoadedModel, load_model
+from pidlab.plant.model import LoadedModel, load_model
 
 PAPER_ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")
 DATA = Path(__file__).parent / "data"

@@ -9,10 +9,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from pidlab.analysis import analyze_coach, coach_to_continuous, loop_margins
-from pidlab.observation import observe
-from pidlab.pid import Coach, law
-from pidlab.spec import load_spec
+from pidlab.controller.analysis import analyze_coach, coach_to_continuous, loop_margins
+from pidlab.controller.pid import Coach, law
+from pidlab.controller.spec import load_spec
+from pidlab.plant.observation import observe
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
 s = ct.tf("s")
@@ -92,7 +92,7 @@ def test_closed_loop_poles_cross_check_and_stability(models, env, kind, stable):
 
 def _linear_prediction_error(loaded, spec, size: float, steps: int = 25) -> float:
     """Max observation error between MuJoCo + coach and the linear closed loop, from a pole tilt."""
-    from pidlab.linearize import linearize
+    from pidlab.linear.linearize import linearize
 
     lin = linearize(loaded)
     m = loaded.model
@@ -136,7 +136,7 @@ def test_nonlinear_response_matches_linear_prediction(models):
 def test_step_response_equals_python_control_forced_response(models):
     import warnings
 
-    from pidlab.analysis import step_response
+    from pidlab.controller.analysis import step_response
 
     loaded = models["InvertedDoublePendulum-v5"]
     spec = load_spec(TUNING / "InvertedDoublePendulum-v5.pidlab-robust.toml")
@@ -165,8 +165,8 @@ def test_gain_crossovers_are_real_crossovers(models, env, name):
     (e.g. 0.093 rad/s where |L| = 4 dB on InvertedPendulum, and misses the real one of
     Walker2d's ankle loop at 2.5 rad/s); every reported crossover must have |L| = 1, and every
     crossing of |L| = 1 seen on a dense grid must be reported."""
-    from pidlab.analysis import _frequency_grid, loop_at_actuator
-    from pidlab.lti import siso_frequency_response
+    from pidlab.controller.analysis import _frequency_grid, loop_at_actuator
+    from pidlab.linear.lti import siso_frequency_response
 
     loaded = models[env]
     spec = load_spec(TUNING / f"{env}.{name}.toml")

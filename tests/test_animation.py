@@ -1,7 +1,7 @@
 """The coach alone as an animation: the rollout is coach_alone's episode, the drawings show it.
 
 MuJoCo reads MUJOCO_GL when it is first imported, and conftest.py imports it (through
-pidlab.model) before this module runs: setting MUJOCO_GL here would have no effect. So the
+pidlab.plant.model) before this module runs: setting MUJOCO_GL here would have no effect. So the
 in-process MuJoCo-renderer tests run only when pytest itself was started with a working
 MUJOCO_GL (e.g. ``MUJOCO_GL=egl pytest``), and one test renders in a child process started with
 MUJOCO_GL=egl, so that the EGL path is exercised wherever EGL exists.
@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pidlab.animation import (
+from pidlab.controller.animation import (
     Frames,
     Rollout,
     frames_to_gif,
@@ -31,9 +31,9 @@ from pidlab.animation import (
     record_rollout,
     render_frames,
 )
+from pidlab.controller.rollout import coach_alone
+from pidlab.controller.spec import CoachSpec, load_spec
 from pidlab.errors import PidlabError
-from pidlab.rollout import coach_alone
-from pidlab.spec import CoachSpec, load_spec
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
 IP = "InvertedPendulum-v5"
@@ -284,8 +284,8 @@ def test_mujoco_frames_of_walker_are_not_blank(models):
 _CHILD = """
 import json
 import numpy as np
-from pidlab.animation import offscreen_renderer_available, render_frames
-from pidlab.model import load_model
+from pidlab.controller.animation import offscreen_renderer_available, render_frames
+from pidlab.plant.model import load_model
 ok, why = offscreen_renderer_available()
 out = {"ok": ok, "why": why}
 if ok:

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from pidlab.app.browser import CHROMIUM, CHROMIUM_ARGS, PAGE_JS, free_port, start_server, stop_server
-from pidlab.spec import load_spec
+from pidlab.controller.spec import load_spec
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = ROOT / "tuning" / "InvertedPendulum-v5.pidlab-robust.toml"

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pidlab.analysis import analyze_coach
 from pidlab.app.jobs import JobRunner, roa_preview, rollout_preview
 from pidlab.app.live import (
     check_field,
@@ -22,8 +21,9 @@ from pidlab.app.live import (
     tuner_context,
     with_loop_value,
 )
-from pidlab.pid import Coach
-from pidlab.spec import load_spec
+from pidlab.controller.analysis import analyze_coach
+from pidlab.controller.pid import Coach
+from pidlab.controller.spec import load_spec
 from tests.conftest import cli_in_process
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from pidlab.analysis import analyze_coach
-from pidlab.autotune import tune
+from pidlab.controller.analysis import analyze_coach
+from pidlab.controller.autotune import tune
+from pidlab.controller.pid import Coach
 from pidlab.errors import PidlabError
-from pidlab.pid import Coach
 
 
 def test_robust_tune_stabilizes_and_reports_truthfully(models):

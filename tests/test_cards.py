@@ -6,9 +6,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from pidlab.card import load_card, parse_card
 from pidlab.errors import ModelCardError, UnknownSignalError
-from pidlab.observation import CompiledCard, check_termination, observe
+from pidlab.plant.card import load_card, parse_card
+from pidlab.plant.observation import CompiledCard, check_termination, observe
 
 from .conftest import PAPER_ENVS
 
@@ -52,7 +52,7 @@ def test_observation_names_are_unique_and_named_by_joint(models):
 
 
 def test_card_operating_points_are_equilibria(models):
-    from pidlab.linearize import linearize
+    from pidlab.linear.linearize import linearize
 
     for env_id, loaded in models.items():
         lin = linearize(loaded)

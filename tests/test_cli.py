@@ -11,7 +11,7 @@ import pytest
 
 from .conftest import PAPER_ENVS
 
-PIDLAB = [sys.executable, "-m", "pidlab.cli"]
+PIDLAB = [sys.executable, "-m", "pidlab"]
 
 
 def run(*args: str) -> subprocess.CompletedProcess[str]:

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from pidlab.spec import load_spec
+from pidlab.controller.spec import load_spec
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
-PIDLAB = [sys.executable, "-m", "pidlab.cli"]
+PIDLAB = [sys.executable, "-m", "pidlab"]
 
 
 def run(*args: str) -> subprocess.CompletedProcess[str]:

@@ -9,8 +9,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from pidlab.coaching import CoachingError, CoachingWrapper
-from pidlab.spec import load_spec
+from pidlab.controller.spec import load_spec
+from pidlab.rl.coaching import CoachingError, CoachingWrapper
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
 IP = "InvertedPendulum-v5"
@@ -252,7 +252,7 @@ def test_sb3_subproc_vec_env(ip_spec):
 def test_growth_trigger_on_hand_made_histories():
     from collections import deque
 
-    from pidlab.coaching import GrowthTrigger
+    from pidlab.rl.coaching import GrowthTrigger
 
     t = GrowthTrigger("hinge_vel", 0.0, 0.3, 2)
     assert t.fires(deque([0.1, 0.2, 0.25]))  # grew twice, same sign, inside the band
@@ -270,7 +270,7 @@ def test_growth_trigger_on_hand_made_histories():
 
 
 def test_growth_trigger_needs_nudge(ip_spec, models):
-    from pidlab.coaching import GrowthTrigger
+    from pidlab.rl.coaching import GrowthTrigger
 
     with pytest.raises(CoachingError, match="mode = nudge"):
         coached(ip_spec, models, trigger=GrowthTrigger("hinge_vel", 0, 0.3, 2))
@@ -279,7 +279,7 @@ def test_growth_trigger_needs_nudge(ip_spec, models):
 
 
 def test_width_schedule_scales_the_region(ip_spec, models):
-    from pidlab.schedule import Schedule
+    from pidlab.rl.schedule import Schedule
 
     env, _ = coached(ip_spec, models, width=Schedule("linear", 1.0, 100.0))
     env.set_progress(0.0)
@@ -311,7 +311,7 @@ def test_no_coach_is_a_pass_through_that_keeps_accounts(models):
 
 
 def test_ellipsoid_region_on_a_box_only_spec_says_why(models):
-    from pidlab.coaching import CriticalRegion
+    from pidlab.rl.coaching import CriticalRegion
 
     names = tuple(v.name for v in models["Hopper-v5"].card.observation)
     spec = load_spec(TUNING / "Hopper-v5.pidlab-robust.toml")

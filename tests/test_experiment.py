@@ -18,12 +18,12 @@ from pathlib import Path
 import pytest
 import tomli_w
 
-from pidlab.conditions import ConditionError, load_conditions, parse_conditions, resolve
-from pidlab.experiment import ExperimentError, parse_seeds, plan, run_sweep
-from pidlab.experiment_report import write_report
-from pidlab.recipe import load_recipe
-from pidlab.rundir import read_csv_rows
-from pidlab.runinfo import read_json
+from pidlab.experiment.conditions import ConditionError, load_conditions, parse_conditions, resolve
+from pidlab.experiment.sweep import ExperimentError, parse_seeds, plan, run_sweep
+from pidlab.files import read_json
+from pidlab.report.experiment import write_report
+from pidlab.rl.recipe import load_recipe
+from pidlab.rl.rundir import read_csv_rows
 from tests.conftest import cli_in_process
 
 if sys.version_info >= (3, 11):

@@ -8,10 +8,10 @@ import control as ct
 import numpy as np
 import pytest
 
-from pidlab import validate
-from pidlab.linearize import linearize
-from pidlab.model import LoadedModel, load_model
-from pidlab.operating_point import resolve_operating_point
+from pidlab.linear import validate
+from pidlab.linear.linearize import linearize
+from pidlab.plant.model import LoadedModel, load_model
+from pidlab.plant.operating_point import resolve_operating_point
 
 SIZES = (1e-2, 1e-3, 1e-4)
 

@@ -6,7 +6,7 @@ import control as ct
 import numpy as np
 import pytest
 
-from pidlab.lti import analyze_lti, reachable_dimension, siso_disk_margins, siso_frequency_response
+from pidlab.linear.lti import analyze_lti, reachable_dimension, siso_disk_margins, siso_frequency_response
 
 
 def test_double_integrator():
@@ -47,7 +47,7 @@ def test_staircase_rank_on_badly_scaled_chain():
 
 
 def test_pendulum_models(models):
-    from pidlab.linearize import linearize
+    from pidlab.linear.linearize import linearize
 
     for env, unstable in [("InvertedPendulum-v5", 1), ("InvertedDoublePendulum-v5", 2)]:
         lin = linearize(models[env])

@@ -7,14 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from pidlab.metrics import (
+from pidlab.experiment.metrics import (
     episodes_to_average,
     episodes_to_consecutive_wins,
     first_reaching,
     moving_average,
     run_metrics,
 )
-from pidlab.stats import bootstrap_ci, iqm, probability_of_improvement
+from pidlab.experiment.stats import bootstrap_ci, iqm, probability_of_improvement
 
 
 def test_five_wins_point_is_the_fifth_win_of_the_first_streak():

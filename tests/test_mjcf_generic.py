@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from pidlab.errors import ModelCompileError, NonFiniteJacobianError, UnknownEnvError
-from pidlab.linearize import linearize
-from pidlab.lti import analyze_lti
-from pidlab.model import load_model
-from pidlab.operating_point import resolve_operating_point
+from pidlab.linear.linearize import linearize
+from pidlab.linear.lti import analyze_lti
+from pidlab.plant.model import load_model
+from pidlab.plant.operating_point import resolve_operating_point
 
 ASSETS = Path(gymnasium.__file__).parent / "envs" / "mujoco" / "assets"
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from pidlab.errors import KeyframeError, OperatingPointError
-from pidlab.model import load_model
-from pidlab.operating_point import equilibrium_control, resolve_operating_point, settle
+from pidlab.plant.model import load_model
+from pidlab.plant.operating_point import equilibrium_control, resolve_operating_point, settle
 
 ARM = """
 <mujoco>

@@ -6,8 +6,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from pidlab.pid import Coach, law
-from pidlab.spec import CoachSpec, Loop
+from pidlab.controller.pid import Coach, law
+from pidlab.controller.spec import CoachSpec, Loop
 
 FULL = CoachSpec(
     env_id="InvertedPendulum-v5",

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from pidlab.recipe import RecipeError, load_pipeline_settings, parse_pipeline
-from pidlab.rundir import spec_digest
-from pidlab.spec import load_spec
+from pidlab.controller.spec import load_spec
+from pidlab.rl.recipe import RecipeError, load_pipeline_settings, parse_pipeline
+from pidlab.rl.rundir import spec_digest
 from tests.conftest import cli_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -99,9 +99,9 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
                    "figures/learning-curves.png", "| none |", "| coached |", "final agent-alone score"):  # fmt: skip
         assert needle in report, needle
     # the numbers are the analysis' own: the margins row of the coach, the one-step fraction
-    from pidlab.analysis import analyze_coach, margin_table
-    from pidlab.model import load_model
-    from pidlab.pid import Coach
+    from pidlab.controller.analysis import analyze_coach, margin_table
+    from pidlab.controller.pid import Coach
+    from pidlab.plant.model import load_model
 
     loaded = load_model("InvertedPendulum-v5")
     row = margin_table(analyze_coach(Coach(tuned, loaded), loaded).discrete.margins)[0]

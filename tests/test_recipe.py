@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from pidlab.recipe import RecipeError, load_recipe, parse_recipe, recipe_to_dict, with_overrides
-from pidlab.schedule import Schedule, ScheduleError, parse_schedule
+from pidlab.rl.recipe import RecipeError, load_recipe, parse_recipe, recipe_to_dict, with_overrides
+from pidlab.rl.schedule import Schedule, ScheduleError, parse_schedule
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pidlab.bounds import derive_bounds, with_bounds
+from pidlab.controller.spec import dumps_spec, load_spec, loads_spec
 from pidlab.errors import UnknownSignalError
-from pidlab.roa import METHOD_LYAPUNOV, METHOD_SIMULATION, RegionError, estimate_roa
-from pidlab.spec import dumps_spec, load_spec, loads_spec
+from pidlab.region.bounds import derive_bounds, with_bounds
+from pidlab.region.roa import METHOD_LYAPUNOV, METHOD_SIMULATION, RegionError, estimate_roa
 from tests.conftest import cli_in_process
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
@@ -49,9 +49,9 @@ def test_ip_region_is_certified_with_zero_failures(ip_region):
 
 def test_independent_samples_inside_the_certified_set_recover(ip_region, models):
     """A fresh seed: states drawn in {V <= c} do not fail either (what the certificate claims)."""
-    from pidlab.analysis import analyze_coach
-    from pidlab.pid import Coach
-    from pidlab.roa import _check_level, _Simulator
+    from pidlab.controller.analysis import analyze_coach
+    from pidlab.controller.pid import Coach
+    from pidlab.region.roa import _check_level, _Simulator
 
     spec, roa, _ = ip_region
     loaded = models["InvertedPendulum-v5"]
@@ -111,7 +111,7 @@ def test_contact_rich_env_uses_simulation_only(models):
 def test_cli_roa_and_bounds_bad_input(tmp_path):
     def run(*a):
         return subprocess.run(
-            [sys.executable, "-m", "pidlab.cli", *a], capture_output=True, text=True, timeout=300
+            [sys.executable, "-m", "pidlab", *a], capture_output=True, text=True, timeout=300
         )
 
     res = run("roa", str(TUNING / "InvertedPendulum-v5.paper.toml"))

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pidlab.rollout import coach_alone
-from pidlab.spec import load_spec
+from pidlab.controller.rollout import coach_alone
+from pidlab.controller.spec import load_spec
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
 

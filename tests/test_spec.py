@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from pidlab.pid import Coach, SpecError
-from pidlab.spec import dumps_spec, load_spec, loads_spec, save_spec
+from pidlab.controller.pid import Coach, SpecError
+from pidlab.controller.spec import dumps_spec, load_spec, loads_spec, save_spec
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
 SHIPPED = sorted(TUNING.glob("*.toml"))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pidlab.linearize import linearize
-from pidlab.operating_point import resolve_operating_point
-from pidlab.symbolic import cart_pole_dynamics, cart_pole_parameters
+from pidlab.linear.linearize import linearize
+from pidlab.linear.symbolic import cart_pole_dynamics, cart_pole_parameters
+from pidlab.plant.operating_point import resolve_operating_point
 
 
 def _assert_rel(actual: np.ndarray, desired: np.ndarray, rtol: float) -> None:
@@ -51,7 +51,7 @@ def test_symbolic_parameters_come_from_the_mjcf(models):
 
 def test_symbolic_rejects_other_structures(data_dir):
     from pidlab.errors import PidlabError
-    from pidlab.model import load_model
+    from pidlab.plant.model import load_model
 
     with pytest.raises(PidlabError, match="not a cart-pole chain"):
         cart_pole_parameters(load_model(data_dir / "floating_arm.xml").model)

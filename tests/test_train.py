@@ -16,10 +16,10 @@ import gymnasium as gym
 import pytest
 import tomli_w
 
-from pidlab.recipe import load_recipe, parse_recipe
-from pidlab.rundir import read_csv_rows
-from pidlab.spec import load_spec
-from pidlab.train import resume, train
+from pidlab.controller.spec import load_spec
+from pidlab.rl.recipe import load_recipe, parse_recipe
+from pidlab.rl.rundir import read_csv_rows
+from pidlab.rl.train import resume, train
 from tests.conftest import cli_in_process
 
 if sys.version_info >= (3, 11):

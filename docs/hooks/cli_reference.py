@@ -1,7 +1,7 @@
 """MkDocs hook: fill the CLI reference page from the command line itself.
 
 ``reference/cli.md`` holds a marker line; at build time it is replaced by the Markdown that
-:func:`pidlab.clidoc.cli_markdown` generates from ``pidlab.cli.app``, so the page shows exactly
+:func:`pidlab.cli.clidoc.cli_markdown` generates from ``pidlab.cli.main.app``, so the page shows exactly
 the commands, arguments, options and defaults of the installed command line.
 """
 
@@ -24,7 +24,7 @@ def on_page_markdown(markdown: str, page: Any, config: Any, files: Any) -> str:
     if MARKER not in markdown:
         log.warning("%s: no %s line to replace with the CLI reference", PAGE, MARKER)
         return markdown
-    from pidlab.clidoc import cli_markdown
+    from pidlab.cli.clidoc import cli_markdown
 
     return markdown.replace(MARKER, cli_markdown().rstrip("\n"), 1)
 

@@ -3,10 +3,11 @@
 mkdocstrings reads docstrings as Markdown; pidlab's also use three reST idioms, rewritten here
 before a docstring is parsed:
 
-- cross-reference roles (``:func:`pidlab.model.load_model```, ``:class:`~pidlab.spec.CoachSpec```)
+- cross-reference roles (``:func:`pidlab.plant.model.load_model```,
+  ``:class:`~pidlab.controller.spec.CoachSpec```)
   become *optional* cross-references of mkdocs-autorefs: a link when the target is documented on
   the site, plain code otherwise (never a build warning). Unqualified names are looked up in the
-  docstring's scope (``:func:`load_spec``` inside ``pidlab.spec``);
+  docstring's scope (``:func:`load_spec``` inside ``pidlab.controller.spec``);
 - a paragraph ending in ``::`` before an indented literal block ends in ``:`` (the block is
   Markdown's indented code block already);
 - definition lists in the free text before the numpydoc sections (a short term line, then its

@@ -18,7 +18,7 @@ from bokeh.models.annotations import Span
 from bokeh.plotting import figure
 
 from pidlab.app.live import LinearViews
-from pidlab.roa import ellipse_slice
+from pidlab.region.roa import ellipse_slice
 
 STABLE = "#2b8a3e"
 UNSTABLE = "#c92a2a"

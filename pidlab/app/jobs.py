@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from pidlab.errors import PidlabError
+from pidlab.controller.spec import CoachSpec
+from pidlab.errors import JobCancelled, PidlabError
 from pidlab.orphans import watch_parent
-from pidlab.spec import CoachSpec
 
 log = logging.getLogger("pidlab.app")
 
@@ -46,17 +46,13 @@ ROLLOUT_EPISODES = 5
 BOUNDS_SAMPLES = 1000
 
 
-class JobCancelled(Exception):
-    """Raised inside a worker when its job was superseded."""
-
-
 # --------------------------------------------------------------------------------------------
 # Job functions (run in the workers)
 
 
 @functools.lru_cache(maxsize=4)
 def _model(env_id: str) -> Any:
-    from pidlab.model import load_model
+    from pidlab.plant.model import load_model
 
     return load_model(env_id)
 
@@ -71,7 +67,7 @@ class RoaPreview:
 
     Attributes
     ----------
-    roa : pidlab.roa.RegionOfAttraction
+    roa : pidlab.region.roa.RegionOfAttraction
     variables : (str, str)
         The slice's variables.
     paths : tuple of ndarray, shape (steps, 2)
@@ -94,7 +90,7 @@ def roa_preview(
     spec: CoachSpec, samples: int = ROA_PREVIEW_SAMPLES, progress: Progress | None = None
 ) -> RoaPreview:
     """Estimate the region of attraction of ``spec`` with a preview budget, keeping trajectories."""
-    from pidlab.roa import estimate_roa
+    from pidlab.region.roa import estimate_roa
 
     loaded = _model(spec.env_id)
     variables = slice_variables(spec)
@@ -152,10 +148,10 @@ def rollout_preview(
 ) -> RolloutPreview:
     """Score the coach alone and draw an animation of its first episode.
 
-    Each episode is :func:`pidlab.animation.record_rollout` (the same episode as
-    :func:`pidlab.rollout.coach_alone` for the seed), so the animated one is not run twice.
+    Each episode is :func:`pidlab.controller.animation.record_rollout` (the same episode as
+    :func:`pidlab.controller.rollout.coach_alone` for the seed), so the animated one is not run twice.
     """
-    from pidlab.animation import frames_to_gif, record_rollout, render_frames
+    from pidlab.controller.animation import frames_to_gif, record_rollout, render_frames
 
     report = _quiet(progress)
     loaded = _model(spec.env_id)
@@ -186,8 +182,11 @@ def rollout_preview(
 
 
 def autotune_job(env_id: str, bandwidth: float, phase_margin: float, progress: Progress | None = None) -> Any:
-    """Run :func:`pidlab.autotune.tune` (robust preset) for the asked crossover and phase margin."""
-    from pidlab.autotune import tune
+    """Auto-tune (robust preset) for the asked crossover and phase margin.
+
+    Runs :func:`pidlab.controller.autotune.tune`.
+    """
+    from pidlab.controller.autotune import tune
 
     report = _quiet(progress)
     budget = 400
@@ -218,8 +217,8 @@ def bounds_job(
     spec: CoachSpec, samples: int = BOUNDS_SAMPLES, progress: Progress | None = None
 ) -> BoundsResult:
     """What ``pidlab bounds SPEC`` does: certify the region with ``samples`` states, derive bounds."""
-    from pidlab.bounds import derive_bounds
-    from pidlab.roa import estimate_roa
+    from pidlab.region.bounds import derive_bounds
+    from pidlab.region.roa import estimate_roa
 
     report = _quiet(progress)
     loaded = _model(spec.env_id)

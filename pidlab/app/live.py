@@ -2,7 +2,7 @@
 
 Nothing here knows about widgets or the browser: :func:`linear_views` takes a spec and returns
 a frozen :class:`LinearViews` with every number and curve the linear plots and the margins table
-need; the app only draws it. It reuses the analysis of :mod:`pidlab.analysis` (the same discrete
+need; the app only draws it. It reuses the analysis of :mod:`pidlab.controller.analysis` (the same discrete
 closed loop, margins and response metrics as ``pidlab analyze``), restricted to the discrete
 loop that runs, so that one update takes a few tens of milliseconds on the pendulums.
 """
@@ -19,7 +19,7 @@ from typing import Any
 import control as ct
 import numpy as np
 
-from pidlab.analysis import (
+from pidlab.controller.analysis import (
     LoopMargins,
     Pole,
     ResponseMetrics,
@@ -30,11 +30,11 @@ from pidlab.analysis import (
     response_metrics,
     step_response,
 )
-from pidlab.linearize import Linearization, linearize
-from pidlab.lti import observable_part, siso_frequency_response
-from pidlab.model import LoadedModel
-from pidlab.pid import Coach
-from pidlab.spec import CoachSpec, Loop
+from pidlab.controller.pid import Coach
+from pidlab.controller.spec import CoachSpec, Loop
+from pidlab.linear.linearize import Linearization, linearize
+from pidlab.linear.lti import observable_part, siso_frequency_response
+from pidlab.plant.model import LoadedModel
 
 GAIN_FIELDS = ("kp", "ki", "kd", "tf")
 """The loop fields the tuner edits."""
@@ -86,12 +86,12 @@ class TunerContext:
 
 def tuner_context(loaded: LoadedModel) -> TunerContext:
     """Linearize ``loaded`` at its card's operating point, once per tuning session."""
-    assert loaded.card is not None
+    card = loaded.require_card()
     lin = linearize(loaded)
     plant, _ = observable_part(lin.sysd)
     top = math.pi / loaded.control_dt
     omega = np.logspace(math.log10(top) - 4, math.log10(top) - 1e-6, BODE_POINTS)
-    units = {v.name: v.unit for v in loaded.card.observation}
+    units = {v.name: v.unit for v in card.observation}
     return TunerContext(loaded=loaded, lin=lin, plant=plant, omega=omega, units=units)
 
 

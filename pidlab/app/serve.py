@@ -8,8 +8,8 @@ import socket
 from pathlib import Path
 from typing import Any
 
+from pidlab.controller.spec import CoachSpec
 from pidlab.errors import PidlabError
-from pidlab.spec import CoachSpec
 
 
 class _ClosedSocketNoise(logging.Filter):

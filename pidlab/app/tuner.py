@@ -21,7 +21,6 @@ from typing import Any
 import panel as pn
 
 from pidlab import __version__
-from pidlab.analysis import MARGIN_COLUMNS
 from pidlab.app import figures as F
 from pidlab.app.jobs import JobRunner, JobUpdate, slice_variables
 from pidlab.app.live import (
@@ -37,9 +36,10 @@ from pidlab.app.live import (
     tuner_context,
     with_loop_value,
 )
+from pidlab.controller.analysis import MARGIN_COLUMNS
+from pidlab.controller.spec import CoachSpec, dumps_spec, load_spec, loads_spec, save_spec, validate_against
 from pidlab.errors import PidlabError
-from pidlab.model import load_model
-from pidlab.spec import CoachSpec, dumps_spec, load_spec, loads_spec, save_spec, validate_against
+from pidlab.plant.model import load_model
 
 POLL_MS = 150
 """Period of the poll that collects background results, ms."""

@@ -1,0 +1,700 @@
+"""The ``pidlab`` command line.
+
+Every verb is a thin layer over the Python API: parse options, call, print. Bad input
+(a :class:`pidlab.errors.PidlabError`) becomes one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import sys
+from collections.abc import Callable
+from typing import Annotated, Any, TypeVar
+
+import numpy as np
+import typer
+
+from pidlab import __version__
+from pidlab.errors import PidlabError
+
+app = typer.Typer(
+    name="pidlab",
+    help="MuJoCo models -> linearization -> PID coach -> regions of attraction -> coached RL.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"pidlab: error: {message}", err=True)
+    raise typer.Exit(code=2)
+
+
+FLAGS = {"env_id": "ENV", "roa_samples": "--samples", "conditions_file": "--conditions-file",
+         "recipe_files": "--recipe"}  # fmt: skip
+"""Python parameter -> the flag that sets it, where the flag is not ``--`` + the name with dashes."""
+
+
+def cli_message(exc: PidlabError) -> str:
+    """The error's message as the command line says it: the Python parameter becomes its flag."""
+    message = str(exc)
+    param = exc.param
+    if param and message.startswith(f"{param}="):
+        flag = FLAGS.get(param, "--" + param.replace("_", "-"))
+        message = f"{flag} {message[len(param) + 1 :]}"
+    return message
+
+
+def friendly_errors(func: F) -> F:
+    """Turn :class:`PidlabError` (bad input) into one line on stderr and exit code 2."""
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except PidlabError as exc:
+            _fail(cli_message(exc))
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _vector(text: str | None, what: str) -> list[float] | None:
+    if text is None:
+        return None
+    try:
+        return [float(v) for v in text.replace(";", ",").split(",") if v.strip()]
+    except ValueError:
+        _fail(f"--{what} {text!r}: expected comma-separated numbers, e.g. --{what} 0,0.1")
+    return None
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"pidlab {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")
+    ] = False,
+) -> None:
+    """pidlab: a PID coach for RL agents on MuJoCo models."""
+
+
+@app.command()
+@friendly_errors
+def linearize(
+    target: Annotated[
+        str,
+        typer.Argument(
+            metavar="ENV_OR_MJCF",
+            help="A Gymnasium MuJoCo env id (e.g. InvertedPendulum-v5) or the path of an MJCF file.",
+        ),
+    ],
+    at: Annotated[
+        str | None,
+        typer.Option(
+            "--at",
+            metavar="KEYFRAME|qpos0|card",
+            help="Operating point: a keyframe name, qpos0, or card (the env's model card; the "
+            "default when the env has one).",
+        ),
+    ] = None,
+    qpos: Annotated[str | None, typer.Option(help="Explicit qpos, comma-separated (nq values).")] = None,
+    qvel: Annotated[str | None, typer.Option(help="Explicit qvel, comma-separated (nv values).")] = None,
+    ctrl: Annotated[str | None, typer.Option(help="Explicit ctrl, comma-separated (nu values).")] = None,
+    equilibrium_ctrl: Annotated[
+        bool,
+        typer.Option(
+            "--equilibrium-ctrl",
+            help="Use the control found by inverse dynamics (mj_inverse + actuator moments).",
+        ),
+    ] = False,
+    settle_joints: Annotated[
+        str | None,
+        typer.Option(
+            "--settle",
+            metavar="JOINT,...",
+            help="Move these hinge/slide joints (e.g. rootz,rooty) until contacts carry the model, "
+            "then use the inverse-dynamics control.",
+        ),
+    ] = None,
+    discrete: Annotated[
+        bool, typer.Option("--discrete", help="Show the discrete-time model at the env's control period.")
+    ] = False,
+    discretization: Annotated[
+        str, typer.Option(help="Discrete model: 'step' (differentiate frame_skip MuJoCo steps) or 'zoh'.")
+    ] = "step",
+    eps: Annotated[float, typer.Option(help="Finite-difference step.")] = 1e-6,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON for machines.")] = False,
+) -> None:
+    """Linearize a MuJoCo model: named A/B tables, eigenvalues, controllability."""
+    from pidlab.linear.linearize import linearize as run_linearize
+    from pidlab.linear.lti import analyze_lti
+    from pidlab.linear.serialize import linearization_to_dict
+    from pidlab.plant.model import load_model
+    from pidlab.plant.operating_point import resolve_operating_point
+    from pidlab.report.console import linearization_view, wide_console
+
+    if discretization not in ("step", "zoh"):
+        _fail(f"--discretization {discretization!r}: expected 'step' or 'zoh'")
+    if not eps > 0:
+        _fail(f"--eps {eps}: expected a positive step, e.g. 1e-6")
+    loaded = load_model(target)
+    op = resolve_operating_point(
+        loaded,
+        at,
+        qpos=_vector(qpos, "qpos"),
+        qvel=_vector(qvel, "qvel"),
+        ctrl=_vector(ctrl, "ctrl"),
+        equilibrium_ctrl=equilibrium_ctrl,
+    )
+    if settle_joints:
+        from pidlab.plant.operating_point import settle
+
+        free = [name.strip() for name in settle_joints.split(",") if name.strip()]
+        settled = settle(loaded, op.qpos, free)
+        base = op.source
+        op = resolve_operating_point(loaded, at, qpos=settled.qpos, qvel=op.qvel, equilibrium_ctrl=True)
+        op = dataclasses.replace(op, source=f"{base}+settled {'/'.join(free)}")
+    lin = run_linearize(loaded, op, eps=eps, discretization=discretization)  # type: ignore[arg-type]
+    report_c = analyze_lti(lin.sys)
+    report_d = analyze_lti(lin.sysd)
+    if as_json:
+        typer.echo(json.dumps(linearization_to_dict(lin, report_c, report_d), indent=2))
+        return
+    wide_console().print(linearization_view(lin, report_d if discrete else report_c, discrete))
+
+
+@app.command()
+@friendly_errors
+def tune(
+    env: Annotated[str, typer.Argument(metavar="ENV", help="A paper env id, e.g. InvertedPendulum-v5.")],
+    auto: Annotated[bool, typer.Option("--auto", help="Tune automatically and write the spec.")] = False,
+    ui: Annotated[bool, typer.Option("--ui", help="Serve the interactive tuner in the browser.")] = False,
+    spec: Annotated[
+        str | None,
+        typer.Option(help="--ui: the spec to start from (default: tuning/ENV.pidlab-robust.toml)."),
+    ] = None,
+    port: Annotated[int, typer.Option(help="--ui: local port to serve on.")] = 5006,
+    tuning_dir: Annotated[
+        str, typer.Option(help="--ui: where Save writes ENV.NAME.toml and Load looks.")
+    ] = "tuning",
+    animation: Annotated[
+        str, typer.Option(help="--ui: rollout frames: auto, mujoco (offscreen OpenGL) or schematic.")
+    ] = "auto",
+    bounds_samples: Annotated[
+        int, typer.Option(help="--ui: simulated states certifying the region behind Derive bounds.")
+    ] = 1000,
+    bandwidth: Annotated[float | None, typer.Option(help="Target gain crossover, rad/s.")] = None,
+    phase_margin: Annotated[float | None, typer.Option(help="Target phase margin, degrees.")] = None,
+    preset: Annotated[str, typer.Option(help="robust or weak.")] = "robust",
+    output: Annotated[str | None, typer.Option("-o", "--output", help="Spec file to write (TOML).")] = None,
+) -> None:
+    """Tune a PID coach for ENV: automatically (--auto) or interactively in the browser (--ui)."""
+    from rich.progress import Progress
+
+    from pidlab.controller.autotune import tune as run_tune
+    from pidlab.controller.spec import save_spec
+    from pidlab.plant.model import load_model
+    from pidlab.report.console import wide_console
+
+    if auto == ui:
+        _fail("give exactly one of --auto (write a tuned spec) or --ui (interactive tuner in the browser)")
+    if ui:
+        _tune_ui(env, spec, port, tuning_dir, animation, bounds_samples)
+        return
+    if preset not in ("robust", "weak"):
+        _fail(f"--preset {preset!r}: expected robust or weak")
+    loaded = load_model(env)
+    out = output or f"tuning/{env}.pidlab-{preset}.toml"
+    with Progress(transient=True) as bar:
+        task = bar.add_task(f"tuning {env} ({preset})", total=None)
+        result = run_tune(
+            loaded,
+            bandwidth=bandwidth,
+            phase_margin=phase_margin,
+            preset=preset,
+            progress=lambda n: bar.update(task, completed=n),
+        )
+    path = save_spec(result.spec, out)
+    con = wide_console()
+    con.print(f"[bold]{env}[/bold] {preset} coach: {result.evaluations} evaluations")
+    con.print(
+        f"  gain crossover (rad/s): asked {result.asked_bandwidth:.4g}, "
+        f"achieved {result.achieved_bandwidth:.4g}"
+    )
+    con.print(
+        f"  phase margin (deg):     asked {result.asked_phase_margin:.1f}, "
+        f"achieved {result.achieved_phase_margin:.1f}"
+    )
+    con.print(f"  Ms: {result.achieved_ms:.3g}; closed-loop spectral radius {result.spectral_radius:.5f}")
+    if result.refined_return is not None:
+        con.print(
+            f"  refined on the real env: mean return {result.refined_return:.1f} on tuning seeds 1000-1002"
+        )
+    con.print(f"wrote {path}")
+
+
+def _tune_ui(
+    env: str, spec_file: str | None, port: int, tuning_dir: str, animation: str, bounds_samples: int
+) -> None:
+    from pathlib import Path
+
+    from pidlab.app.serve import serve_tuner
+    from pidlab.controller.spec import load_spec, validate_against
+    from pidlab.experiment.conditions import spec_path
+    from pidlab.plant.model import load_model
+
+    if animation not in ("auto", "mujoco", "schematic"):
+        _fail(f"--animation {animation!r}: expected auto, mujoco or schematic")
+    if bounds_samples < 1:
+        _fail(f"--bounds-samples {bounds_samples}: expected a positive number")
+    loaded = load_model(env)
+    if loaded.card is None:
+        _fail(f"{env}: the tuner needs a model card (one of the paper envs)")
+    path = Path(spec_file) if spec_file else spec_path(env, "pidlab-robust")
+    if not path.is_file():
+        _fail(f"--spec {path}: no such file; give a coach spec, or make one with pidlab tune {env} --auto")
+    coach = load_spec(path)
+    if coach.env_id != env:
+        _fail(f"--spec {path}: a coach for {coach.env_id}, not {env}")
+    card = loaded.require_card()
+    validate_against(coach, card.observation_names, loaded.input_names, where=str(path))
+    folder = Path(tuning_dir)
+    if folder.exists() and not folder.is_dir():
+        _fail(f"--tuning-dir {folder}: not a folder")
+    serve_tuner(
+        coach,
+        str(path),
+        folder,
+        port,
+        animation=animation,
+        bounds_samples=bounds_samples,
+        announce=typer.echo,
+    )
+
+
+@app.command()
+@friendly_errors
+def analyze(
+    spec_file: Annotated[str, typer.Argument(metavar="FILE", help="A coach spec (TOML).")],
+    plots: Annotated[str | None, typer.Option(metavar="DIR", help="Write PNG plots to DIR.")] = None,
+    episodes: Annotated[int, typer.Option(help="Coach-alone episodes on the real env (0: skip).")] = 10,
+) -> None:
+    """Analyze a coach: margins, poles, responses, and its score alone on the real env."""
+    from pidlab.controller.analysis import analyze_coach
+    from pidlab.controller.pid import Coach
+    from pidlab.controller.rollout import coach_alone
+    from pidlab.controller.spec import load_spec
+    from pidlab.plant.model import load_model
+    from pidlab.report.console import analysis_view, wide_console
+
+    if episodes < 0:
+        _fail(f"--episodes {episodes}: expected 0 or more")
+    spec = load_spec(spec_file)
+    loaded = load_model(spec.env_id)
+    coach = Coach(spec, loaded)
+    result = analyze_coach(coach, loaded)
+    score = coach_alone(spec, loaded, episodes=episodes) if episodes else None
+    con = wide_console()
+    con.print(analysis_view(result, score))
+    if plots:
+        from pidlab.report.plots import write_plots
+
+        written = write_plots(result, coach, plots)
+        con.print(f"wrote {len(written)} plots to {plots}")
+
+
+@app.command()
+@friendly_errors
+def roa(
+    spec_file: Annotated[str, typer.Argument(metavar="SPEC", help="A coach spec (TOML).")],
+    samples: Annotated[int, typer.Option(help="Simulated initial states in the final check (N).")] = 1000,
+    seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
+    horizon: Annotated[float, typer.Option(help="Simulated time per trajectory, s.")] = 3.0,
+    plots: Annotated[
+        str | None, typer.Option(metavar="DIR", help="Write the slice and phase portrait as PNG.")
+    ] = None,
+    slice_vars: Annotated[
+        str | None,
+        typer.Option("--slice", help="Two observation variables for the plots (default: first loop)."),
+    ] = None,
+) -> None:
+    """Estimate and certify the coach's region of attraction (Lyapunov + MuJoCo simulation)."""
+    from pidlab.controller.spec import load_spec
+    from pidlab.plant.model import load_model
+    from pidlab.region.roa import estimate_roa
+    from pidlab.report.console import roa_view, wide_console
+
+    if samples < 1:
+        _fail(f"--samples {samples}: expected a positive number")
+    if not horizon > 0:
+        _fail(f"--horizon {horizon}: expected a positive time in s")
+    spec = load_spec(spec_file)
+    loaded = load_model(spec.env_id)
+    card = loaded.require_card()
+    units = {v.name: v.unit for v in card.observation}
+    pair: tuple[str, str] | None = None
+    if plots:
+        from pidlab.region.bounds import check_variables
+
+        lp0 = spec.loops[0]
+        chosen = (
+            [v.strip() for v in slice_vars.split(",")] if slice_vars else [lp0.signal, lp0.rate_signal or ""]
+        )
+        if len(chosen) != 2 or not all(chosen):
+            _fail("--slice: expected two observation variables, e.g. --slice hinge_pos,hinge_vel")
+        check_variables(chosen, loaded)
+        pair = (chosen[0], chosen[1])
+    result, kept = estimate_roa(
+        spec,
+        loaded,
+        samples=samples,
+        seed=seed,
+        horizon_s=horizon,
+        keep_trajectories=80 if pair else 0,
+        record=pair,
+    )
+    con = wide_console()
+    con.print(roa_view(result, units))
+    if plots and pair is not None:
+        from pathlib import Path
+
+        import matplotlib.pyplot as plt
+
+        from pidlab.region.roa import phase_portrait
+        from pidlab.report.plots import plot_phase_portrait, plot_roa_slice
+
+        folder = Path(plots)
+        folder.mkdir(parents=True, exist_ok=True)
+        fig = plot_roa_slice(result, pair, kept, units)
+        fig.savefig(folder / f"roa_{pair[0]}_{pair[1]}.png", dpi=110)
+        plt.close(fig)
+        if result.lyapunov is not None:
+            L = result.lyapunov
+            ext = [
+                2
+                * float(
+                    np.sqrt(result.level * np.linalg.inv(L.P_y)[L.variables.index(v)][L.variables.index(v)])
+                )
+                if v in L.variables
+                else 0.1
+                for v in pair
+            ]
+        else:
+            ext = [2 * result.box.get(v, 0.1) for v in pair]
+        paths = phase_portrait(spec, loaded, pair, (ext[0], ext[1]), horizon_s=horizon)
+        fig = plot_phase_portrait(
+            paths, pair, units, f"{spec.env_id} / {spec.name}: coached phase portrait (MuJoCo)"
+        )
+        fig.savefig(folder / f"phase_{pair[0]}_{pair[1]}.png", dpi=110)
+        plt.close(fig)
+        con.print(f"wrote 2 plots to {folder}")
+
+
+@app.command()
+@friendly_errors
+def bounds(
+    spec_file: Annotated[str, typer.Argument(metavar="SPEC", help="A coach spec (TOML).")],
+    variables: Annotated[
+        str | None, typer.Option(help="Box variables, comma-separated (observation names).")
+    ] = None,
+    write: Annotated[
+        bool, typer.Option("--write", help="Write the bounds into the spec's bounds table.")
+    ] = False,
+    samples: Annotated[
+        int, typer.Option(help="Simulated initial states in the region's final check.")
+    ] = 1000,
+    seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
+) -> None:
+    """Derive critical-state bounds (ellipsoid and box) from the certified region."""
+    from pidlab.controller.spec import load_spec, save_spec
+    from pidlab.plant.model import load_model
+    from pidlab.region.bounds import check_variables, derive_bounds, with_bounds
+    from pidlab.region.roa import estimate_roa
+    from pidlab.report.console import bounds_view, roa_view, wide_console
+
+    if samples < 1:
+        _fail(f"--samples {samples}: expected a positive number")
+    spec = load_spec(spec_file)
+    loaded = load_model(spec.env_id)
+    names = [v.strip() for v in variables.split(",") if v.strip()] if variables else None
+    if names:
+        check_variables(names, loaded)
+    result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed)
+    crit = derive_bounds(result, spec, loaded, variables=names, seed=seed)
+    con = wide_console()
+    card = loaded.require_card()
+    con.print(roa_view(result, {v.name: v.unit for v in card.observation}))
+    con.print(bounds_view(crit))
+    if write:
+        path = save_spec(with_bounds(spec, crit), spec_file)
+        con.print(f"wrote the bounds into {path}")
+
+
+def _resolve_coach(env: str, coach: str) -> tuple[Any, str | None]:
+    """``none``, a spec file, or a spec name in ``tuning/`` (``pidlab-robust``)."""
+    from pathlib import Path
+
+    from pidlab.controller.spec import load_spec
+    from pidlab.experiment.conditions import spec_path
+
+    if coach == "none":
+        return None, None
+    path = Path(coach)
+    if not path.exists() and path.suffix != ".toml":
+        path = spec_path(env, coach)
+    if not path.exists():
+        _fail(
+            f"--coach {coach!r}: expected none, a coach spec file, or the name of a spec in tuning/ "
+            f"(e.g. pidlab-robust for tuning/{env}.pidlab-robust.toml)"
+        )
+    spec = load_spec(path)
+    if spec.env_id != env:
+        _fail(f"--coach {coach}: the spec is for {spec.env_id}, not for {env}")
+    return spec, str(path)
+
+
+@app.command()
+@friendly_errors
+def train(
+    env: Annotated[
+        str, typer.Argument(metavar="ENV", help="A Gymnasium env id with a recipe, e.g. InvertedPendulum-v5.")
+    ],
+    coach: Annotated[
+        str | None,
+        typer.Option(
+            metavar="SPEC|none",
+            help="The coach: a spec file, a spec name in tuning/ (e.g. pidlab-robust), or none.",
+        ),
+    ] = None,
+    recipe_file: Annotated[
+        str | None, typer.Option("--recipe", metavar="FILE", help="Recipe (default coach/ENV.toml).")
+    ] = None,
+    algo: Annotated[str | None, typer.Option(help="ppo or sac (default: the recipe's).")] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="Budget in env steps, agent + coach (default: the recipe's).")
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed (default: the recipe's).")] = None,
+    n_envs: Annotated[
+        int | None, typer.Option("--n-envs", help="Parallel envs (default: the recipe's).")
+    ] = None,
+    resume_dir: Annotated[
+        str | None,
+        typer.Option("--resume", metavar="RUN_DIR", help="Continue this run from its last checkpoint."),
+    ] = None,
+    run_dir: Annotated[
+        str | None,
+        typer.Option("--run-dir", metavar="DIR", help="Where to write (default runs/ENV/COACH-ALGO-seedS)."),
+    ] = None,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+) -> None:
+    """Train an agent with SB3, coached by a PID coach (or not); evaluate it alone as it learns."""
+    from pidlab.report.console import train_view, wide_console
+    from pidlab.rl.recipe import default_recipe_path, load_recipe, with_overrides
+    from pidlab.rl.rundir import default_run_dir, load_run_config
+    from pidlab.rl.train import resume as resume_run
+    from pidlab.rl.train import train as run_train
+
+    argv = ["pidlab", *sys.argv[1:]]
+    if resume_dir is not None:
+        saved, saved_spec, _ = load_run_config(resume_dir)
+        given = {"ENV": (env, saved.env_id), "--algo": (algo, saved.algo), "--seed": (seed, saved.seed),
+                 "--n-envs": (n_envs, saved.n_envs),
+                 "--coach": (None if coach is None else _resolve_coach(env, coach)[0],
+                             saved_spec)}  # fmt: skip
+        for flag, (asked, had) in given.items():
+            if asked is not None and asked != had:
+                shown = getattr(had, "name", had)
+                _fail(f"{flag} differs from the run in {resume_dir} ({shown!r}); a resumed run keeps them")
+        if coach == "none" and saved_spec is not None:
+            _fail(f"--coach none: the run in {resume_dir} was coached by {saved_spec.name}")
+        if recipe_file is not None:
+            _fail("--recipe: a resumed run keeps the recipe it started with (see its config.toml)")
+        result = resume_run(resume_dir, steps=steps, progress_bar=progress, argv=argv)
+        recipe = saved
+    else:
+        if coach is None:
+            _fail("--coach: required; a spec file, a spec name in tuning/ (e.g. pidlab-robust), or none")
+        assert coach is not None
+        spec, source = _resolve_coach(env, coach)
+        path = recipe_file or str(default_recipe_path(env))
+        recipe = load_recipe(path)
+        if recipe.env_id != env:
+            _fail(f"--recipe {path}: the recipe is for {recipe.env_id}, not for {env}")
+        recipe = with_overrides(recipe, algo=algo, steps=steps, seed=seed, n_envs=n_envs)
+        folder = run_dir or str(default_run_dir(recipe, spec))
+        result = run_train(recipe, spec, folder, coach_source=source, progress_bar=progress, argv=argv)
+    wide_console().print(train_view(result, recipe.win.target))
+    if not result.completed:
+        raise typer.Exit(code=130)
+
+
+def _names(text: str) -> list[str]:
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+@app.command()
+@friendly_errors
+def experiment(
+    envs: Annotated[
+        str,
+        typer.Option(
+            metavar="ENV[,ENV...]", help="Env ids, comma-separated (each needs a recipe in coach/)."
+        ),
+    ] = "InvertedPendulum-v5",
+    conditions: Annotated[
+        str,
+        typer.Option(
+            metavar="NAME[,NAME...]",
+            help="Conditions from the conditions file, comma-separated.",
+        ),
+    ] = "none,paper,pidlab,pidlab-fading",
+    seeds: Annotated[
+        str, typer.Option(metavar="N|A-B|A,B,...", help="Seeds: a count, a range or a list.")
+    ] = "10",
+    out: Annotated[
+        str | None, typer.Option(metavar="DIR", help="Experiment folder (default results/ENVS).")
+    ] = None,
+    conditions_file: Annotated[
+        str | None,
+        typer.Option(
+            "--conditions-file", metavar="FILE", help="Conditions file (default coach/conditions.toml)."
+        ),
+    ] = None,
+    recipe: Annotated[
+        list[str] | None,
+        typer.Option(metavar="FILE", help="A recipe to use instead of coach/ENV.toml (repeatable)."),
+    ] = None,
+    algo: Annotated[
+        str | None, typer.Option(help="ppo or sac for every env (default: each recipe's).")
+    ] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="Budget in env steps for every run (default: each recipe's).")
+    ] = None,
+    backend: Annotated[str, typer.Option(help="process (local pool) or ray.")] = "process",
+    address: Annotated[
+        str | None, typer.Option(metavar="ADDR", help="Ray cluster address (--backend ray); default: local.")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Runs in parallel (default: the machine's cores).")
+    ] = None,
+    report_only: Annotated[
+        bool, typer.Option("--report-only", help="Write the report from the runs in DIR; train nothing.")
+    ] = False,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show progress bars.")] = True,
+) -> None:
+    """Multi-seed coaching experiment: train every (env, condition, seed), then report.
+
+    Killed or interrupted, the same command resumes: finished runs are skipped, unfinished ones
+    continue from their last checkpoint.
+    """
+    from pidlab.experiment.sweep import parse_seeds, plan, run_sweep
+
+    env_list = _names(envs)
+    folder = out or f"results/{'+'.join(env_list)}"
+    p = plan(
+        env_list, _names(conditions), parse_seeds(seeds), folder,
+        conditions_file=conditions_file, recipe_files=recipe or [], algo=algo, steps=steps,
+    )  # fmt: skip
+    failed = 0
+    if not report_only:
+        argv = ["pidlab", *sys.argv[1:]]
+        result = run_sweep(p, backend=backend, workers=workers, address=address, argv=argv,
+                           progress_bar=progress)  # fmt: skip
+        counts = ", ".join(f"{result.count(s)} {s}" for s in ("done", "skipped", "stopped", "failed"))
+        typer.echo(f"runs: {counts} (of {len(p.tasks)})")
+        failed = result.count("failed")
+        if result.interrupted:
+            typer.echo(
+                "interrupted: unfinished runs keep their last checkpoint; run the same command to resume",
+                err=True,
+            )
+            raise typer.Exit(code=130)
+    elif not (p.out / "experiment.json").exists():
+        _fail(f"--report-only: {p.out} holds no experiment (no experiment.json)")
+    from pidlab.report.experiment import write_report
+
+    report = write_report(p, progress_bar=progress)
+    typer.echo(f"report: {report}")
+    if failed:
+        raise typer.Exit(code=1)
+
+
+@app.command()
+@friendly_errors
+def run(
+    env: Annotated[
+        str, typer.Argument(metavar="ENV", help="A paper env id with a recipe, e.g. InvertedPendulum-v5.")
+    ],
+    out: Annotated[str | None, typer.Option(metavar="DIR", help="Pipeline folder (default out/ENV).")] = None,
+    seeds: Annotated[
+        int | None, typer.Option(help="Seeds per condition (default: the recipe's pipeline table).")
+    ] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="Env steps per training run (default: the recipe's pipeline table).")
+    ] = None,
+    preset: Annotated[
+        str | None, typer.Option(help="Auto-tuning preset, robust or weak (default: the recipe's).")
+    ] = None,
+    samples: Annotated[
+        int | None,
+        typer.Option(help="Simulated states certifying the region (default: the recipe's roa_samples)."),
+    ] = None,
+    episodes: Annotated[
+        int | None, typer.Option(help="Coach-alone episodes, 0 to skip (default: the recipe's).")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Training runs in parallel (default: the machine's cores).")
+    ] = None,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show progress bars.")] = True,
+) -> None:
+    """The whole pipeline on ENV: linearize, auto-tune a coach, derive its bounds, train, report.
+
+    Trains the recipe's agent with and without the auto-tuned coach (the pipeline table of its
+    recipe sets the seeds and the budget), then writes one report: margins table, region of
+    attraction, learning curves, agent-alone scores. Killed or interrupted, the same command
+    resumes; other settings need another --out.
+    """
+    from pidlab.pipeline import run_pipeline, settings_for
+
+    if workers is not None and workers < 1:
+        _fail(f"--workers {workers}: expected 1 or more")
+    settings = settings_for(
+        env, seeds=seeds, steps=steps, preset=preset, roa_samples=samples, episodes=episodes
+    )
+    folder = out or f"out/{env}"
+    argv = ["pidlab", *sys.argv[1:]]
+    result = run_pipeline(env, folder, settings, workers=workers, progress_bar=progress, argv=argv)
+    if result.interrupted:
+        typer.echo(
+            "interrupted: finished stages and runs are kept; run the same command to resume", err=True
+        )
+        raise typer.Exit(code=130)
+    typer.echo(f"report: {result.report_html}")
+    typer.echo(f"        {result.report_md} (Markdown, figures in {result.out / 'figures'})")
+    if result.failed_runs:
+        typer.echo(f"{result.failed_runs} training run(s) failed; see {result.out / 'experiment'}", err=True)
+        raise typer.Exit(code=1)
+
+
+def main() -> None:
+    """Console entry point."""
+    try:
+        app()
+    except KeyboardInterrupt:  # pragma: no cover - interactive
+        typer.echo("pidlab: interrupted", err=True)
+        sys.exit(130)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

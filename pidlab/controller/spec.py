@@ -1,0 +1,489 @@
+"""Coach specs: a versioned TOML schema for multi-loop PID coaches.
+
+A coach spec lives in ``tuning/`` and is read by analysis, the tuner and the training wrapper.
+:func:`save_spec` writes a canonical form; ``save(load(file))`` reproduces a canonical file
+byte for byte and ``load(save(spec)) == spec``. Validation errors name the field and the
+allowed values.
+
+Schema ``pidlab.coach-spec/1``::
+
+    schema = "pidlab.coach-spec/1"
+    env_id = "InvertedPendulum-v5"
+    name = "pidlab-robust"
+    description = "..."
+
+    [offset]                     # control added to the loops' output (e.g. the equilibrium
+    slide = 0.0                  # control); default 0 for every actuator
+
+    [[loop]]
+    name = "pole"
+    signal = "hinge_pos"         # observation variable measured
+    setpoint = 0.0
+    action = "reverse"           # reverse: e = setpoint - signal; direct: e = signal - setpoint
+    kp = 20.0
+    ki = 0.0                     # 1/s
+    kd = 3.0                     # s
+    rate_signal = "hinge_vel"    # optional: derivative from this measured rate, else from a
+                                 # filtered difference of the signal
+    tf = 0.0                     # derivative filter time constant, s (>= 0)
+    anti_windup = "clamping"     # none | clamping | back-calculation
+    tt = 0.0                     # back-calculation tracking time constant, s (> 0 when used)
+    output_limits = [-inf, inf]  # clip of the loop's output (used by cascades)
+    actuators = { slide = 1.0 }  # actuator -> weight; or:
+    # feeds = "other_loop"       # cascade: the output shifts the setpoint of that loop
+
+    [provenance]                 # free-form strings and numbers: how the spec was made
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from pidlab.errors import SpecError
+from pidlab.files import parse_toml, read_toml
+
+SPEC_SCHEMA = "pidlab.coach-spec/1"
+ACTIONS = ("reverse", "direct")
+ANTI_WINDUP = ("none", "clamping", "back-calculation")
+
+
+@dataclass(frozen=True)
+class Loop:
+    """One PID loop of a coach.
+
+    Attributes
+    ----------
+    name : str
+    signal : str
+        Observation variable measured.
+    setpoint : float
+    action : {"reverse", "direct"}
+        ``reverse``: error = setpoint - signal (output rises when the signal is low);
+        ``direct``: error = signal - setpoint.
+    kp, ki, kd : float
+        Gains: ``u = kp e + ki * integral(e) + kd * de/dt``; ``ki`` in 1/s, ``kd`` in s.
+    rate_signal : str or None
+        Observation variable that measures the signal's rate; used for the derivative term
+        (derivative on measurement) instead of a filtered difference.
+    tf : float
+        Derivative filter time constant, s.
+    anti_windup : {"none", "clamping", "back-calculation"}
+    tt : float
+        Back-calculation tracking time constant, s.
+    output_limits : tuple of float
+        Clip of the loop's output.
+    actuators : tuple of (str, float)
+        Actuator names and weights the loop's output drives.
+    feeds : str or None
+        Name of the loop whose setpoint this loop's output shifts (cascade).
+    """
+
+    name: str
+    signal: str
+    setpoint: float = 0.0
+    action: str = "reverse"
+    kp: float = 0.0
+    ki: float = 0.0
+    kd: float = 0.0
+    rate_signal: str | None = None
+    tf: float = 0.0
+    anti_windup: str = "clamping"
+    tt: float = 0.0
+    output_limits: tuple[float, float] = (-math.inf, math.inf)
+    actuators: tuple[tuple[str, float], ...] = ()
+    feeds: str | None = None
+
+    def __post_init__(self) -> None:
+        for key in ("setpoint", "kp", "ki", "kd", "tf", "tt"):
+            object.__setattr__(self, key, float(getattr(self, key)))
+        object.__setattr__(self, "output_limits", tuple(float(v) for v in self.output_limits))
+        object.__setattr__(self, "actuators", tuple((str(a), float(w)) for a, w in self.actuators))
+
+    @property
+    def sign(self) -> float:
+        """+1 for reverse action, -1 for direct action."""
+        return 1.0 if self.action == "reverse" else -1.0
+
+
+@dataclass(frozen=True)
+class CoachSpec:
+    """A multi-loop PID coach for one env.
+
+    Attributes
+    ----------
+    env_id : str
+    name : str
+    description : str
+    loops : tuple of Loop
+    offset : tuple of (str, float)
+        Control added to every command, per actuator.
+    provenance : dict
+        Free-form record of how the spec was made (tool, version, date, targets, achieved).
+    bounds : dict or None
+        Critical-state bounds (``[bounds]`` table, see :mod:`pidlab.region.bounds`): ``method``, an
+        optional ``ellipsoid`` (``variables``, ``center``, ``shape``, ``level``, ``rho``), an
+        optional ``box`` (variable -> ``[low, high]``) and their ``provenance``.
+    """
+
+    env_id: str
+    name: str
+    loops: tuple[Loop, ...]
+    description: str = ""
+    offset: tuple[tuple[str, float], ...] = ()
+    provenance: dict[str, Any] = field(default_factory=dict, compare=True, hash=False)
+    bounds: dict[str, Any] | None = field(default=None, compare=True, hash=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "offset", tuple((str(a), float(v)) for a, v in self.offset))
+
+    def loop(self, name: str) -> Loop:
+        """The loop called ``name``."""
+        for lp in self.loops:
+            if lp.name == name:
+                return lp
+        raise SpecError(f"no loop {name!r}; loops: {', '.join(lp.name for lp in self.loops)}")
+
+    def order(self) -> tuple[Loop, ...]:
+        """Loops in evaluation order: a loop that feeds another comes before it."""
+        done: list[Loop] = []
+        pending = list(self.loops)
+        while pending:
+            progressed = False
+            for lp in list(pending):
+                feeders = [o for o in self.loops if o.feeds == lp.name]
+                if all(f in done for f in feeders):
+                    done.append(lp)
+                    pending.remove(lp)
+                    progressed = True
+            if not progressed:
+                raise SpecError(f"cascade cycle among loops {', '.join(lp.name for lp in pending)}")
+        return tuple(done)
+
+
+def _num(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SpecError(f"{where}: expected a number, got {value!r}")
+    return float(value)
+
+
+def _str(value: Any, where: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise SpecError(f"{where}: expected a non-empty string, got {value!r}")
+    return value
+
+
+_LOOP_KEYS = {
+    "name",
+    "signal",
+    "setpoint",
+    "action",
+    "kp",
+    "ki",
+    "kd",
+    "rate_signal",
+    "tf",
+    "anti_windup",
+    "tt",
+    "output_limits",
+    "actuators",
+    "feeds",
+}
+_TOP_KEYS = {"schema", "env_id", "name", "description", "offset", "loop", "provenance", "bounds", "analysis"}
+
+
+def parse_spec(data: dict[str, Any], where: str = "spec") -> CoachSpec:
+    """Build a :class:`CoachSpec` from parsed TOML, checking types and values.
+
+    Names (signals, actuators) are checked against the env by :func:`validate_against`.
+
+    Raises
+    ------
+    SpecError
+    """
+    unknown = set(data) - _TOP_KEYS
+    if unknown:
+        raise SpecError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}")
+    if data.get("schema") != SPEC_SCHEMA:
+        raise SpecError(f"{where}: schema is {data.get('schema')!r}; expected {SPEC_SCHEMA!r}")
+    env_id = _str(data.get("env_id"), f"{where}: env_id")
+    name = _str(data.get("name", "coach"), f"{where}: name")
+    offset_tbl = data.get("offset", {})
+    if not isinstance(offset_tbl, dict):
+        raise SpecError(f"{where}: offset: expected a table of actuator = number")
+    offset = tuple((k, _num(v, f"{where}: offset.{k}")) for k, v in offset_tbl.items())
+    raw_loops = data.get("loop")
+    if not isinstance(raw_loops, list) or not raw_loops:
+        raise SpecError(f"{where}: expected at least one [[loop]] table")
+    loops = []
+    for i, t in enumerate(raw_loops):
+        w = f"{where}: loop[{i}]"
+        if not isinstance(t, dict):
+            raise SpecError(f"{w}: expected a table")
+        unknown = set(t) - _LOOP_KEYS
+        if unknown:
+            raise SpecError(f"{w}: unknown field(s) {sorted(unknown)}; allowed: {sorted(_LOOP_KEYS)}")
+        lname = _str(t.get("name"), f"{w}.name")
+        w = f"{where}: loop {lname!r}"
+        action = t.get("action", "reverse")
+        if action not in ACTIONS:
+            raise SpecError(f"{w}.action: {action!r}; allowed: {', '.join(ACTIONS)}")
+        aw = t.get("anti_windup", "clamping")
+        if aw not in ANTI_WINDUP:
+            raise SpecError(f"{w}.anti_windup: {aw!r}; allowed: {', '.join(ANTI_WINDUP)}")
+        tf = _num(t.get("tf", 0.0), f"{w}.tf")
+        if tf < 0 or not math.isfinite(tf):
+            raise SpecError(f"{w}.tf: {tf} is negative; the derivative filter time constant must be >= 0 s")
+        tt = _num(t.get("tt", 0.0), f"{w}.tt")
+        if aw == "back-calculation" and not tt > 0:
+            raise SpecError(f"{w}.tt: back-calculation needs a tracking time constant > 0 s, got {tt}")
+        if tt < 0:
+            raise SpecError(f"{w}.tt: {tt} is negative; expected >= 0 s")
+        gains = {}
+        for key in ("setpoint", "kp", "ki", "kd"):
+            gains[key] = _num(t.get(key, 0.0), f"{w}.{key}")
+            if not math.isfinite(gains[key]):
+                raise SpecError(f"{w}.{key}: expected a finite number, got {gains[key]}")
+        limits = t.get("output_limits", [-math.inf, math.inf])
+        if not isinstance(limits, list) or len(limits) != 2:
+            raise SpecError(f"{w}.output_limits: expected [low, high], got {limits!r}")
+        lo, hi = (_num(v, f"{w}.output_limits") for v in limits)
+        if not lo < hi:
+            raise SpecError(f"{w}.output_limits: low ({lo}) must be below high ({hi})")
+        acts = t.get("actuators", {})
+        if not isinstance(acts, dict):
+            raise SpecError(f"{w}.actuators: expected a table of actuator = weight")
+        actuators = tuple((k, _num(v, f"{w}.actuators.{k}")) for k, v in acts.items())
+        feeds = t.get("feeds")
+        if feeds is not None:
+            feeds = _str(feeds, f"{w}.feeds")
+        if bool(actuators) == (feeds is not None):
+            raise SpecError(f'{w}: give either actuators = {{...}} or feeds = "<loop>" (exactly one)')
+        rate = t.get("rate_signal")
+        if rate is not None:
+            rate = _str(rate, f"{w}.rate_signal")
+        loops.append(
+            Loop(
+                name=lname,
+                signal=_str(t.get("signal"), f"{w}.signal"),
+                action=action,
+                rate_signal=rate,
+                tf=tf,
+                anti_windup=aw,
+                tt=tt,
+                output_limits=(lo, hi),
+                actuators=actuators,
+                feeds=feeds,
+                **gains,
+            )
+        )
+    names = [lp.name for lp in loops]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise SpecError(f"{where}: loop names must be unique; repeated: {dupes}")
+    for lp in loops:
+        if lp.feeds is not None and lp.feeds not in names:
+            raise SpecError(
+                f"{where}: loop {lp.name!r}.feeds: no loop {lp.feeds!r}; loops: {', '.join(names)}"
+            )
+        if lp.feeds == lp.name:
+            raise SpecError(f"{where}: loop {lp.name!r} feeds itself")
+    provenance = data.get("provenance", {})
+    if not isinstance(provenance, dict):
+        raise SpecError(f"{where}: provenance: expected a table")
+    bounds = data.get("bounds")
+    if bounds is not None:
+        _check_bounds(bounds, f"{where}: bounds")
+    spec = CoachSpec(
+        env_id=env_id,
+        name=name,
+        description=str(data.get("description", "")),
+        loops=tuple(loops),
+        offset=offset,
+        provenance=dict(provenance),
+        bounds=bounds,
+    )
+    spec.order()  # raises on cascade cycles
+    return spec
+
+
+def _check_bounds(b: Any, where: str) -> None:
+    if not isinstance(b, dict):
+        raise SpecError(f"{where}: expected a table")
+    unknown = set(b) - {"method", "ellipsoid", "box", "provenance"}
+    if unknown:
+        raise SpecError(
+            f"{where}: unknown field(s) {sorted(unknown)}; allowed: method, ellipsoid, box, provenance"
+        )
+    _str(b.get("method"), f"{where}.method")
+    if "ellipsoid" in b:
+        e = b["ellipsoid"]
+        if not isinstance(e, dict):
+            raise SpecError(f"{where}.ellipsoid: expected a table")
+        names = e.get("variables")
+        if not isinstance(names, list) or not names or not all(isinstance(v, str) for v in names):
+            raise SpecError(f"{where}.ellipsoid.variables: expected a list of observation variable names")
+        k = len(names)
+        center = e.get("center")
+        if not isinstance(center, list) or len(center) != k:
+            raise SpecError(f"{where}.ellipsoid.center: expected {k} numbers")
+        [_num(v, f"{where}.ellipsoid.center") for v in center]
+        shape = e.get("shape")
+        if (
+            not isinstance(shape, list)
+            or len(shape) != k
+            or not all(isinstance(r, list) and len(r) == k for r in shape)
+        ):
+            raise SpecError(f"{where}.ellipsoid.shape: expected a {k} x {k} matrix")
+        [_num(v, f"{where}.ellipsoid.shape") for r in shape for v in r]
+        for key in ("level", "rho"):
+            if _num(e.get(key), f"{where}.ellipsoid.{key}") <= 0:
+                raise SpecError(f"{where}.ellipsoid.{key}: must be positive")
+    if "box" in b:
+        box = b["box"]
+        if not isinstance(box, dict):
+            raise SpecError(f"{where}.box: expected a table of variable = [low, high]")
+        for name, lim in box.items():
+            if not isinstance(lim, list) or len(lim) != 2:
+                raise SpecError(f"{where}.box.{name}: expected [low, high]")
+            lo, hi = (_num(v, f"{where}.box.{name}") for v in lim)
+            if not lo < hi:
+                raise SpecError(f"{where}.box.{name}: low ({lo}) must be below high ({hi})")
+
+
+def bound_variables(spec: CoachSpec) -> list[str]:
+    """Observation variables the spec's bounds mention."""
+    if not spec.bounds:
+        return []
+    names = list(spec.bounds.get("ellipsoid", {}).get("variables", []))
+    names += [n for n in spec.bounds.get("box", {}) if n not in names]
+    return names
+
+
+def validate_against(
+    spec: CoachSpec,
+    observation_names: tuple[str, ...],
+    actuator_names: tuple[str, ...],
+    ctrlrange: dict[str, tuple[float, float]] | None = None,
+    where: str = "spec",
+) -> None:
+    """Check every signal and actuator name, and offsets against ``ctrlrange``.
+
+    Raises
+    ------
+    SpecError
+        Naming the field and listing the valid names.
+    """
+    obs = ", ".join(observation_names)
+    for name in bound_variables(spec):
+        if name not in observation_names:
+            raise SpecError(
+                f"{where}: bounds: {name!r} is not an observation variable of {spec.env_id}; "
+                f"valid names: {obs}"
+            )
+    for lp in spec.loops:
+        for key in ("signal", "rate_signal"):
+            name = getattr(lp, key)
+            if name is not None and name not in observation_names:
+                raise SpecError(
+                    f"{where}: loop {lp.name!r}.{key}: {name!r} is not an observation variable of "
+                    f"{spec.env_id}; valid names: {obs}"
+                )
+        for act, _ in lp.actuators:
+            if act not in actuator_names:
+                raise SpecError(
+                    f"{where}: loop {lp.name!r}.actuators: no actuator {act!r} in {spec.env_id}; "
+                    f"actuators: {', '.join(actuator_names)}"
+                )
+    for act, value in spec.offset:
+        if act not in actuator_names:
+            raise SpecError(
+                f"{where}: offset.{act}: no such actuator; actuators: {', '.join(actuator_names)}"
+            )
+        if ctrlrange and act in ctrlrange:
+            lo, hi = ctrlrange[act]
+            if not lo <= value <= hi:
+                raise SpecError(
+                    f"{where}: offset.{act} = {value} is outside the actuator's ctrlrange [{lo}, {hi}]"
+                )
+
+
+def spec_to_dict(spec: CoachSpec) -> dict[str, Any]:
+    """Canonical plain-data form of a spec (the TOML document)."""
+    loops = []
+    for lp in spec.loops:
+        t: dict[str, Any] = {
+            "name": lp.name,
+            "signal": lp.signal,
+            "setpoint": lp.setpoint,
+            "action": lp.action,
+            "kp": lp.kp,
+            "ki": lp.ki,
+            "kd": lp.kd,
+        }
+        if lp.rate_signal is not None:
+            t["rate_signal"] = lp.rate_signal
+        t.update(
+            {
+                "tf": lp.tf,
+                "anti_windup": lp.anti_windup,
+                "tt": lp.tt,
+                "output_limits": [lp.output_limits[0], lp.output_limits[1]],
+            }
+        )
+        if lp.feeds is not None:
+            t["feeds"] = lp.feeds
+        else:
+            t["actuators"] = dict(lp.actuators)
+        loops.append(t)
+    out: dict[str, Any] = {
+        "schema": SPEC_SCHEMA,
+        "env_id": spec.env_id,
+        "name": spec.name,
+        "description": spec.description,
+    }
+    if spec.offset:
+        out["offset"] = dict(spec.offset)
+    out["loop"] = loops
+    if spec.provenance:
+        out["provenance"] = spec.provenance
+    if spec.bounds:
+        out["bounds"] = spec.bounds
+    return out
+
+
+def dumps_spec(spec: CoachSpec) -> str:
+    """The canonical TOML text of ``spec``."""
+    return tomli_w.dumps(spec_to_dict(spec), multiline_strings=False)
+
+
+def loads_spec(text: str, where: str = "spec") -> CoachSpec:
+    """Parse TOML text into a spec.
+
+    Raises
+    ------
+    SpecError
+    """
+    return parse_spec(parse_toml(text, where, SpecError), where)
+
+
+def load_spec(path: str | Path) -> CoachSpec:
+    """Read a spec file.
+
+    Raises
+    ------
+    SpecError
+        Unreadable file, invalid TOML or an invalid field.
+    """
+    return parse_spec(read_toml(path, "coach spec", SpecError), str(path))
+
+
+def save_spec(spec: CoachSpec, path: str | Path) -> Path:
+    """Write ``spec`` atomically (temporary file, then rename) in canonical form."""
+    from pidlab.files import atomic_write_text
+
+    return atomic_write_text(path, dumps_spec(spec))

@@ -1,0 +1,220 @@
+"""Experimental conditions: which coach, which rule, named in a TOML file.
+
+A condition says how an agent is coached (or not) in an experiment: the coach spec (a name in
+``tuning/``, a spec file, or ``none``), changes to the recipe's ``[coaching]`` table (mode,
+trigger, schedules, ...), and optionally the critical-state bounds to use instead of the spec's.
+Any of these can differ per environment (``[condition.NAME.env."ENV"]``). The file
+``coach/conditions.toml`` holds pidlab's conditions; users add their own in the same form::
+
+    schema = "pidlab.conditions/1"
+
+    [condition.pidlab-fading]
+    description = "pidlab's coach, taking over less and less often"
+    coach = "pidlab-robust"
+    coaching = { mode = "takeover", probability = { shape = "linear", start = 1.0, end = 0.0 } }
+
+    [condition.paper.env."InvertedPendulum-v5"]
+    coaching = { mode = "nudge", trigger = { variable = "hinge_vel", low = 0.0, high = 0.3, steps = 2 } }
+    bounds = { hinge_vel = [-0.4, 0.4] }     # a box, replacing the spec's [bounds]
+
+:func:`resolve` turns a condition and a recipe into what the trainer takes: a recipe whose
+coaching table is the condition's, and the coach spec (with the condition's bounds).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from pidlab.controller.spec import CoachSpec, SpecError, load_spec, parse_spec, spec_to_dict
+from pidlab.data import tuning_dir
+from pidlab.errors import ConditionError
+from pidlab.files import read_toml
+from pidlab.rl.recipe import Recipe, RecipeError, parse_recipe, recipe_to_dict
+
+CONDITIONS_SCHEMA = "pidlab.conditions/1"
+
+
+@dataclass(frozen=True)
+class EnvCondition:
+    """A condition as it applies to one environment.
+
+    Attributes
+    ----------
+    coach : str
+        ``none``, a spec name in ``tuning/`` or a spec file.
+    coaching : dict
+        Fields replacing the recipe's ``[coaching]`` fields.
+    bounds : dict or None
+        ``variable = [low, high]`` box replacing the spec's ``[bounds]``.
+    """
+
+    coach: str
+    coaching: dict[str, Any]
+    bounds: dict[str, list[float]] | None
+
+
+@dataclass(frozen=True)
+class Condition:
+    """A named condition: a default for every env and per-env changes."""
+
+    name: str
+    description: str
+    default: EnvCondition
+    per_env: dict[str, EnvCondition]
+
+    def for_env(self, env_id: str) -> EnvCondition:
+        """The condition as it applies to ``env_id``."""
+        return self.per_env.get(env_id, self.default)
+
+
+def conditions_path() -> Path:
+    """The conditions file of pidlab, ``coach/conditions.toml`` (``$PIDLAB_COACH`` overrides the folder)."""
+    from pidlab.rl.recipe import recipes_dir
+
+    return recipes_dir() / "conditions.toml"
+
+
+_FIELDS = {"description", "coach", "coaching", "bounds", "env"}
+
+
+def _env_condition(table: dict[str, Any], base: EnvCondition | None, where: str) -> EnvCondition:
+    unknown = set(table) - (_FIELDS - {"description", "env"} if base else _FIELDS)
+    if unknown:
+        allowed = "coach, coaching, bounds" if base else "description, coach, coaching, bounds, env"
+        raise ConditionError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {allowed}")
+    coach = table.get("coach", base.coach if base else None)
+    if not isinstance(coach, str) or not coach:
+        raise ConditionError(f"{where}.coach: expected none, a spec name in tuning/ or a spec file")
+    coaching = table.get("coaching", {})
+    if not isinstance(coaching, dict):
+        raise ConditionError(f"{where}.coaching: expected a table of [coaching] fields of a recipe")
+    bounds = table.get("bounds", base.bounds if base else None)
+    if bounds is not None:
+        if not isinstance(bounds, dict) or not bounds:
+            raise ConditionError(f"{where}.bounds: expected a table of variable = [low, high]")
+        for name, lim in bounds.items():
+            ok = isinstance(lim, list) and len(lim) == 2 and all(isinstance(v, (int, float)) for v in lim)
+            if not ok or not lim[0] < lim[1]:
+                raise ConditionError(f"{where}.bounds.{name}: expected [low, high] with low < high")
+    merged = {**(base.coaching if base else {}), **coaching}
+    return EnvCondition(coach=coach, coaching=merged, bounds=bounds)
+
+
+def parse_conditions(data: dict[str, Any], where: str = "conditions") -> dict[str, Condition]:
+    """Build the conditions of a parsed conditions file.
+
+    Raises
+    ------
+    ConditionError
+        Naming the field and what is expected.
+    """
+    if data.get("schema") != CONDITIONS_SCHEMA:
+        raise ConditionError(f"{where}: schema = {data.get('schema')!r}, expected {CONDITIONS_SCHEMA!r}")
+    unknown = set(data) - {"schema", "condition"}
+    if unknown:
+        raise ConditionError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: schema, condition")
+    tables = data.get("condition")
+    if not isinstance(tables, dict) or not tables:
+        raise ConditionError(f"{where}: no conditions; add [condition.NAME] tables")
+    out: dict[str, Condition] = {}
+    for name, table in tables.items():
+        w = f"{where}: condition.{name}"
+        if not isinstance(table, dict):
+            raise ConditionError(f"{w}: expected a table")
+        default = _env_condition(table, None, w)
+        envs = table.get("env", {})
+        if not isinstance(envs, dict):
+            raise ConditionError(f"{w}.env: expected tables named after env ids")
+        per_env = {}
+        for env_id, t in envs.items():
+            if not isinstance(t, dict):
+                raise ConditionError(f"{w}.env.{env_id}: expected a table")
+            per_env[env_id] = _env_condition(t, default, f"{w}.env.{env_id}")
+        out[name] = Condition(name, str(table.get("description", "")), default, per_env)
+    return out
+
+
+def load_conditions(path: str | Path | None = None) -> dict[str, Condition]:
+    """Read a conditions file (default :func:`conditions_path`).
+
+    Raises
+    ------
+    ConditionError
+    """
+    path = Path(path) if path is not None else conditions_path()
+    return parse_conditions(read_toml(path, "conditions file", ConditionError), str(path))
+
+
+def select(conditions: dict[str, Condition], names: list[str], source: str) -> list[Condition]:
+    """The conditions called ``names``, in that order.
+
+    Raises
+    ------
+    ConditionError
+        A name that is not in the file, or none at all.
+    """
+    if not names:
+        raise ConditionError("--conditions: empty; name at least one condition")
+    missing = [n for n in names if n not in conditions]
+    if missing:
+        raise ConditionError(
+            f"--conditions: unknown condition(s) {', '.join(missing)}; {source} has: {', '.join(conditions)}"
+        )
+    if len(set(names)) != len(names):
+        raise ConditionError(f"--conditions: a condition is named twice in {', '.join(names)}")
+    return [conditions[n] for n in names]
+
+
+def spec_path(env_id: str, coach: str) -> Path:
+    """Where the spec called ``coach`` for ``env_id`` lives (a file, or ``tuning/ENV.COACH.toml``)."""
+    path = Path(coach)
+    if path.suffix == ".toml":
+        return path
+    return tuning_dir() / f"{env_id}.{coach}.toml"
+
+
+def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | None, str | None]:
+    """The recipe, coach spec and spec source that ``condition`` gives on ``recipe``'s env.
+
+    Raises
+    ------
+    ConditionError
+        A spec that does not exist or is for another env, coaching fields a recipe rejects,
+        bounds on variables the env does not observe.
+    """
+    env_id = recipe.env_id
+    c = condition.for_env(env_id)
+    where = f"condition {condition.name} on {env_id}"
+    table = recipe_to_dict(recipe)
+    coaching = {**table["coaching"], **c.coaching}
+    if coaching.get("mode") != "nudge" and "trigger" not in c.coaching:
+        coaching.pop("trigger", None)
+    table["coaching"] = coaching
+    try:
+        resolved = replace(parse_recipe(table, where), path=recipe.path)
+    except RecipeError as exc:
+        raise ConditionError(str(exc)) from None
+    if c.coach == "none":
+        return resolved, None, None
+    path = spec_path(env_id, c.coach)
+    if not path.exists():
+        raise ConditionError(
+            f"{where}: coach {c.coach!r} not found ({path}); "
+            "expected none, a spec file or a spec name in tuning/"
+        )
+    spec = load_spec(path)
+    if spec.env_id != env_id:
+        raise ConditionError(f"{where}: the spec {path} is for {spec.env_id}")
+    if c.bounds is not None:
+        data = spec_to_dict(spec)
+        data["bounds"] = {
+            "method": f"given by the condition {condition.name!r} (not derived)",
+            "box": {k: [float(v) for v in lim] for k, lim in c.bounds.items()},
+        }
+        try:
+            spec = parse_spec(data, where)
+        except SpecError as exc:
+            raise ConditionError(str(exc)) from None
+    return resolved, spec, str(path)

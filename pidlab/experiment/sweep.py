@@ -1,0 +1,545 @@
+"""Multi-seed coaching experiments: plan a sweep, run it on a process pool or Ray, resume it.
+
+An experiment is every (env, condition, seed) combination, each trained by
+:func:`pidlab.rl.train.train` into its own run directory::
+
+    OUT/
+      experiment.json                   what was asked (envs, conditions, seeds), the command,
+                                        versions, git SHA, and the digest of every run's settings
+      runs/ENV/CONDITION/seed-S/        one run directory each (see pidlab.rl.train)
+      report.md, report.html, figures/  written by pidlab.report.experiment
+
+A sweep that is killed and started again with the same command skips finished runs, resumes
+unfinished ones from their last checkpoint, and starts the rest. A folder that holds another
+experiment (other envs, conditions, seeds or settings) is refused, and nothing in it is touched.
+
+Backends: ``process`` (a local process pool, one run per core) and ``ray`` (Ray tasks on a local
+instance or, with ``address``, on a cluster whose nodes all have pidlab installed and see OUT).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import signal
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from pidlab.controller.spec import parse_spec, spec_to_dict
+from pidlab.errors import ExperimentError
+from pidlab.experiment.conditions import Condition, load_conditions, resolve, select
+from pidlab.files import read_json, write_json
+from pidlab.orphans import watch_parent
+from pidlab.provenance import git_state, package_versions
+from pidlab.rl.recipe import (
+    Recipe,
+    default_recipe_path,
+    load_recipe,
+    parse_recipe,
+    recipe_envs,
+    recipe_to_dict,
+    with_overrides,
+)
+from pidlab.rl.rundir import config_dict, latest_checkpoint
+
+EXPERIMENT_SCHEMA = "pidlab.experiment/1"
+BACKENDS = ("process", "ray")
+
+
+@dataclass(frozen=True)
+class RunTask:
+    """One run of a sweep, in plain data (it crosses process and machine boundaries)."""
+
+    env_id: str
+    condition: str
+    seed: int
+    run_dir: str
+    recipe: dict[str, Any]
+    spec: dict[str, Any] | None
+    coach_source: str | None
+    digest: str
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What became of a :class:`RunTask`: ``done``, ``skipped`` (done before), ``stopped`` or ``failed``."""
+
+    env_id: str
+    condition: str
+    seed: int
+    status: str
+    wall_s: float = 0.0
+    error: str = ""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A planned experiment: where, what, and every run."""
+
+    out: Path
+    envs: tuple[str, ...]
+    conditions: tuple[str, ...]
+    seeds: tuple[int, ...]
+    tasks: tuple[RunTask, ...]
+    recipes: dict[str, Recipe] = field(compare=False)
+    descriptions: dict[str, str] = field(compare=False)
+
+    def identity(self) -> dict[str, Any]:
+        """What makes two experiments the same: envs, conditions, seeds and every run's settings."""
+        runs = {f"{t.env_id}/{t.condition}/{t.seed}": t.digest for t in self.tasks}
+        return {"envs": list(self.envs), "conditions": list(self.conditions), "seeds": list(self.seeds),
+                "runs": runs}  # fmt: skip
+
+
+def parse_seeds(text: str, default_count: int | None = None) -> tuple[int, ...]:
+    """Seeds from ``N`` (0..N-1), ``A-B`` (inclusive) or ``A,B,C``.
+
+    Raises
+    ------
+    ExperimentError
+        Empty, negative, repeated or unreadable.
+    """
+    t = text.strip()
+    try:
+        if t.isdigit():
+            seeds = tuple(range(int(t)))
+        elif "-" in t and "," not in t:
+            a, b = (int(v) for v in t.split("-", 1))
+            seeds = tuple(range(a, b + 1))
+        else:
+            seeds = tuple(int(v) for v in t.split(",") if v.strip())
+    except ValueError:
+        raise ExperimentError(
+            f"--seeds {text!r}: expected a count (10), a range (0-9) or a list (0,3,7)"
+        ) from None
+    if not seeds:
+        raise ExperimentError(f"--seeds {text!r}: no seeds; expected at least one (e.g. --seeds 10)")
+    if min(seeds) < 0 or len(set(seeds)) != len(seeds):
+        raise ExperimentError(f"--seeds {text!r}: seeds must be distinct non-negative integers")
+    return seeds
+
+
+def _digest(data: Any) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def plan(
+    envs: Sequence[str],
+    condition_names: Sequence[str],
+    seeds: Sequence[int],
+    out: str | Path,
+    *,
+    conditions_file: str | Path | None = None,
+    recipe_files: Sequence[str] = (),
+    algo: str | None = None,
+    steps: int | None = None,
+) -> Plan:
+    """Check every input and list the runs of an experiment (nothing is written).
+
+    Parameters
+    ----------
+    envs : sequence of str
+        Env ids; each needs a recipe (``coach/ENV.toml`` or one of ``recipe_files``).
+    condition_names : sequence of str
+        Names in the conditions file.
+    seeds : sequence of int
+    out : path
+        The experiment folder.
+    conditions_file : path, optional
+        Default ``coach/conditions.toml``.
+    recipe_files : sequence of str
+        Recipes to use instead of ``coach/ENV.toml`` (their ``env_id`` says for which env).
+    algo, steps : optional
+        Overrides of every recipe's algorithm and budget (env steps).
+
+    Raises
+    ------
+    ExperimentError, RecipeError, ConditionError, SpecError
+        One line naming what is wrong.
+    """
+    if not envs:
+        raise ExperimentError("--envs: empty; name at least one env, e.g. InvertedPendulum-v5")
+    if not seeds:
+        raise ExperimentError("--seeds: no seeds; expected at least one (e.g. --seeds 10)")
+    if len(set(envs)) != len(envs):
+        raise ExperimentError(f"--envs: an env is named twice in {', '.join(envs)}")
+    conditions: dict[str, Condition] = load_conditions(conditions_file)
+    chosen = select(conditions, list(condition_names), str(conditions_file or "coach/conditions.toml"))
+    given: dict[str, Recipe] = {}
+    for path in recipe_files:
+        if not Path(path).is_file():
+            raise ExperimentError(f"--recipe {path}: no such file")
+        r = load_recipe(path)
+        if r.env_id not in envs:
+            raise ExperimentError(f"--recipe {path}: the recipe is for {r.env_id}, which is not in --envs")
+        given[r.env_id] = r
+    recipes: dict[str, Recipe] = {}
+    for env_id in envs:
+        if env_id not in given:
+            default = default_recipe_path(env_id)
+            if not default.is_file():
+                raise ExperimentError(
+                    f"--envs {env_id}: unknown env (no recipe {default}); "
+                    f"recipes exist for: {', '.join(recipe_envs())}"
+                )
+            given[env_id] = load_recipe(default)
+        recipes[env_id] = with_overrides(given[env_id], algo=algo, steps=steps)
+    root = Path(out).resolve()
+    tasks = []
+    for env_id in envs:
+        for cond in chosen:
+            base, spec, source = resolve(cond, recipes[env_id])
+            for seed in seeds:
+                recipe = replace(base, seed=int(seed))
+                # what the run does, not where its files came from (a moved clone still resumes)
+                settings = config_dict(recipe, spec, None)
+                settings.pop("recipe_source", None)
+                tasks.append(
+                    RunTask(
+                        env_id=env_id,
+                        condition=cond.name,
+                        seed=int(seed),
+                        run_dir=str(root / "runs" / env_id / cond.name / f"seed-{seed}"),
+                        recipe=recipe_to_dict(recipe),
+                        spec=spec_to_dict(spec) if spec is not None else None,
+                        coach_source=source,
+                        digest=_digest(settings),
+                    )
+                )
+    return Plan(
+        out=root,
+        envs=tuple(envs),
+        conditions=tuple(c.name for c in chosen),
+        seeds=tuple(int(s) for s in seeds),
+        tasks=tuple(tasks),
+        recipes=recipes,
+        descriptions={c.name: c.description for c in chosen},
+    )
+
+
+def _describe_difference(old: dict[str, Any], new: dict[str, Any]) -> str:
+    for key in ("envs", "conditions", "seeds"):
+        if old.get(key) != new.get(key):
+            return f"{key} {old.get(key)} (asked: {new.get(key)})"
+    return "the settings of its runs (recipes, coach specs or conditions changed)"
+
+
+def check_out_folder(p: Plan) -> None:
+    """Refuse a folder that is not this experiment's (nothing is written or removed).
+
+    Raises
+    ------
+    ExperimentError
+        The folder holds another experiment, or files that are not an experiment's.
+    """
+    out = p.out
+    if out.exists() and not out.is_dir():
+        raise ExperimentError(f"--out {out}: exists and is not a folder")
+    meta = out / "experiment.json"
+    if meta.exists():
+        old = read_json(meta)
+        if old.get("schema") != EXPERIMENT_SCHEMA or old.get("identity") != p.identity():
+            what = _describe_difference(old.get("identity", {}), p.identity())
+            raise ExperimentError(
+                f"--out {out}: holds another experiment (its {what}); nothing was changed. "
+                "Choose another --out, or repeat that experiment's own command to resume it"
+            )
+    elif out.exists() and any(out.iterdir()):
+        raise ExperimentError(
+            f"--out {out}: the folder is not empty and holds no experiment.json; nothing was changed. "
+            "Choose a new or empty folder"
+        )
+
+
+def write_experiment_record(p: Plan, argv: Sequence[str], backend: str) -> None:
+    """Create (or on resume, extend) ``experiment.json``."""
+    meta = p.out / "experiment.json"
+    now = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    if meta.exists():
+        record = read_json(meta)
+        record.setdefault("resumes", []).append(
+            {"time": now, "command": list(argv), "backend": backend, "git": git_state()}
+        )
+    else:
+        record = {
+            "schema": EXPERIMENT_SCHEMA,
+            "created": now,
+            "command": list(argv),
+            "backend": backend,
+            "identity": p.identity(),
+            "descriptions": p.descriptions,
+            "recipes": {env: r.path for env, r in p.recipes.items()},
+            "versions": package_versions(),
+            "git": git_state(),
+            "python": sys.version.split()[0],
+        }
+    p.out.mkdir(parents=True, exist_ok=True)
+    write_json(meta, record)
+
+
+def finished(run_dir: Path, budget: int) -> bool:
+    """A run whose ``summary.json`` says it completed its budget."""
+    path = run_dir / "summary.json"
+    if not path.exists():
+        return False
+    s = read_json(path)
+    return bool(s.get("completed")) and int(s.get("env_steps", 0)) >= budget
+
+
+STOP_FILE = ".stopping"
+STOP_TIMEOUT_S = 300.0  # how long an interrupted sweep waits for its runs to checkpoint
+
+
+@contextmanager
+def _run_lock(run_dir: Path) -> Iterator[None]:
+    """Hold an exclusive lock on one run (an orphaned worker may still be checkpointing it)."""
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    with open(run_dir.parent / f".{run_dir.name}.lock", "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def execute(task: RunTask) -> RunOutcome:
+    """Run (or resume, or skip) one task; every failure becomes an outcome, never an exception."""
+    _BUSY[0] = True
+    try:
+        return _execute(task)
+    finally:
+        _BUSY[0] = False
+
+
+def _execute(task: RunTask) -> RunOutcome:
+    from pidlab.rl.train import resume, train
+
+    started = time.perf_counter()
+    run_dir = Path(task.run_dir)
+    out = run_dir.parents[3]
+    key = (task.env_id, task.condition, task.seed)
+    if (out / STOP_FILE).exists():
+        return RunOutcome(*key, status="stopped")
+    budget = int(task.recipe["steps"])
+    try:
+        with _run_lock(run_dir):
+            if finished(run_dir, budget):
+                return RunOutcome(*key, status="skipped")
+            if run_dir.exists() and latest_checkpoint(run_dir) is None:
+                shutil.rmtree(run_dir)  # killed before its first checkpoint: nothing to keep
+            argv = ["pidlab experiment", f"{task.env_id}/{task.condition}/seed-{task.seed}"]
+            if run_dir.exists():
+                result = resume(run_dir, progress_bar=False, argv=argv)
+            else:
+                recipe = parse_recipe(task.recipe, f"{task.env_id}/{task.condition}")
+                spec = parse_spec(task.spec) if task.spec is not None else None
+                result = train(recipe, spec, run_dir, coach_source=task.coach_source, progress_bar=False,
+                               argv=argv)  # fmt: skip
+    except Exception as exc:  # a run that fails is reported, the sweep goes on
+        return RunOutcome(*key, status="failed", wall_s=time.perf_counter() - started,
+                          error=f"{type(exc).__name__}: {exc}")  # fmt: skip
+    return RunOutcome(*key, status="done" if result.completed else "stopped",
+                      wall_s=time.perf_counter() - started)  # fmt: skip
+
+
+_BUSY = [False]  # a pool worker is inside execute()
+
+
+def _term_in_worker(signum: int, frame: Any) -> None:
+    """SIGTERM in a pool worker: interrupt the task, or nothing when idle.
+
+    A task outside its training loop (which stops politely by itself) ends as interrupted. An idle
+    worker has nothing to save and waits for the pool's own shutdown: raising there would print a
+    worker traceback and break the pool under a run that is still checkpointing.
+    """
+    if _BUSY[0]:
+        raise KeyboardInterrupt
+
+
+def _worker_init() -> None:
+    """Pool worker: leave terminal Ctrl-C to the parent, and stop politely if the parent dies."""
+    os.setsid()
+    signal.signal(signal.SIGTERM, _term_in_worker)
+    watch_parent(lambda: os.kill(os.getpid(), signal.SIGTERM) if _BUSY[0] else os._exit(0))
+
+
+Progress = Callable[[RunOutcome], None]
+
+
+def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, out: Path) -> None:
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    ctx = mp.get_context("spawn")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+    futures = {pool.submit(execute, t) for t in tasks}
+    try:
+        while futures:
+            done, futures = wait(futures, return_when=FIRST_COMPLETED)
+            for f in done:
+                report(f.result())
+    except KeyboardInterrupt:
+        (out / STOP_FILE).touch()  # queued runs return at once
+        procs = list(getattr(pool, "_processes", {}).values())
+        for proc in procs:  # running runs stop at their next step with a checkpoint
+            try:
+                os.kill(proc.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        running = [f for f in futures if not f.cancel()]
+        wait(running, timeout=STOP_TIMEOUT_S)
+        for proc in procs:  # idle now (or stuck): end them rather than wait on the pool
+            if proc.is_alive():
+                proc.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _run_ray(
+    tasks: Sequence[RunTask], workers: int, report: Progress, out: Path, address: str | None
+) -> None:
+    try:
+        import ray
+    except ImportError:
+        raise ExperimentError(
+            "--backend ray: Ray is not installed; install the extra: pip install 'pidlab[ray]'"
+        ) from None
+    started_here = not ray.is_initialized()
+    if started_here:
+        if address:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    remote = ray.remote(num_cpus=1, max_retries=0)(execute)
+    pending = [remote.remote(t) for t in tasks]
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                report(ray.get(ref))
+    except KeyboardInterrupt:
+        (out / STOP_FILE).touch()
+        for ref in pending:
+            ray.cancel(ref)
+        raise
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    """Outcomes of a sweep, in task order."""
+
+    outcomes: tuple[RunOutcome, ...]
+    interrupted: bool
+
+    def count(self, status: str) -> int:
+        """How many runs ended with ``status``."""
+        return sum(o.status == status for o in self.outcomes)
+
+
+@contextmanager
+def _sweep_lock(out: Path) -> Iterator[None]:
+    with open(out / ".sweep.lock", "w") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ExperimentError(f"--out {out}: another sweep is running in this folder") from None
+        yield
+
+
+def _term_as_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def run_sweep(
+    p: Plan,
+    *,
+    backend: str = "process",
+    workers: int | None = None,
+    address: str | None = None,
+    argv: Sequence[str] = (),
+    progress_bar: bool = True,
+) -> SweepResult:
+    """Run every task of ``p`` that is not finished; resume the unfinished ones.
+
+    Parameters
+    ----------
+    p : Plan
+    backend : {"process", "ray"}
+    workers : int, optional
+        Parallel runs (default: the machine's cores; for Ray with an address, the cluster decides).
+    address : str, optional
+        A Ray cluster to join (``ray`` backend only).
+    argv : sequence of str
+        The command, recorded in ``experiment.json``.
+    progress_bar : bool
+
+    Returns
+    -------
+    SweepResult
+        ``interrupted`` when SIGINT/SIGTERM stopped it (runs checkpointed; the same command resumes).
+
+    Raises
+    ------
+    ExperimentError
+        Unknown backend, a folder of another experiment, another sweep running in it.
+    """
+    from tqdm.auto import tqdm
+
+    if backend not in BACKENDS:
+        raise ExperimentError(f"--backend {backend!r}: expected one of {', '.join(BACKENDS)}")
+    if address and backend != "ray":
+        raise ExperimentError("--address: only with --backend ray")
+    if workers is not None and workers < 1:
+        raise ExperimentError(f"--workers {workers}: expected 1 or more")
+    check_out_folder(p)
+    workers = workers or os.cpu_count() or 1
+    p.out.mkdir(parents=True, exist_ok=True)
+    with _sweep_lock(p.out):
+        write_experiment_record(p, argv, backend)
+        (p.out / STOP_FILE).unlink(missing_ok=True)
+        todo = [t for t in p.tasks if not finished(Path(t.run_dir), int(t.recipe["steps"]))]
+        outcomes: dict[tuple[str, str, int], RunOutcome] = {
+            (t.env_id, t.condition, t.seed): RunOutcome(t.env_id, t.condition, t.seed, "skipped")
+            for t in p.tasks
+            if t not in todo
+        }
+        bar = tqdm(total=len(p.tasks), initial=len(outcomes), unit="run", desc="experiment",
+                   disable=not progress_bar, dynamic_ncols=True)  # fmt: skip
+
+        def report(o: RunOutcome) -> None:
+            outcomes[(o.env_id, o.condition, o.seed)] = o
+            bar.update(1)
+            if o.status == "failed":
+                bar.write(f"pidlab: run {o.env_id}/{o.condition}/seed-{o.seed} failed: {o.error}")
+            bar.set_postfix_str(f"last {o.env_id} {o.condition} seed {o.seed}: {o.status}")
+
+        old = signal.signal(signal.SIGTERM, _term_as_interrupt)
+        interrupted = False
+        try:
+            if todo:
+                if backend == "process":
+                    _run_process_pool(todo, min(workers, len(todo)), report, p.out)
+                else:
+                    _run_ray(todo, workers, report, p.out, address)
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            signal.signal(signal.SIGTERM, old)
+            bar.close()
+    ordered = tuple(
+        outcomes.get((t.env_id, t.condition, t.seed), RunOutcome(t.env_id, t.condition, t.seed, "stopped"))
+        for t in p.tasks
+    )
+    return SweepResult(ordered, interrupted)

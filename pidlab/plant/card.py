@@ -1,0 +1,486 @@
+"""Model cards: per env, the operating point, the observation map and the termination limits.
+
+A model card is a TOML file in ``models/`` named after the env id (``models/Hopper-v5.toml``).
+It is data a user reads and edits; this module parses and validates it. The observation map
+names every entry of the Gymnasium observation by the MuJoCo quantity it is computed from,
+so that later stages (coach, regions of attraction, bounds) address signals by name.
+
+Schema ``pidlab.model-card/1``::
+
+    schema = "pidlab.model-card/1"
+    env_id = "InvertedPendulum-v5"
+    description = "..."
+
+    [operating_point]          # where the coach holds the system
+    name = "upright"
+    qpos = [0.0, 0.0]
+    qvel = [0.0, 0.0]
+    ctrl = [0.0]
+    note = "how it was chosen"
+
+    [[observation]]            # one table per observation entry, in observation order
+    name = "hinge_pos"         # unique; used by every later stage
+    source = "qpos"            # qpos | qvel | qfrc_constraint
+    joint = "hinge"            # joint whose coordinate is read
+    transform = "identity"     # identity | sin | cos
+    clip = [-10.0, 10.0]       # optional
+    unit = "rad"
+    description = "pole angle from upright"
+
+    [[termination]]            # the env terminates when any signal leaves its healthy range
+    signal = "hinge_pos"       # <joint>_pos, <joint>_vel, or site:<site>:x|y|z
+    low = -0.2
+    high = 0.2
+    interval = "closed"        # closed: healthy iff low <= v <= high; open: low < v < high
+
+    [tuning]                   # optional: how pidlab.controller.autotune structures a coach
+    refine_on_env = false      # true: refine the gains on the real env after the linear design
+                               # (soft contacts make the linear model kinked at the point)
+    [[tuning.loop]]            # one per loop, in order
+    name = "pole"
+    signal = "hinge_pos"       # the measured observation variable
+    rate_signal = "hinge_vel"  # optional: its rate, for the derivative term
+    actuators = { slide = 1.0 }  # actuator -> weight; {} = read off the LQR start
+    core = true                # false: dropped by presets that keep the core loops only
+
+    [region]                   # optional: how pidlab.region derives the takeover region
+    method = "lyapunov"        # lyapunov (certified level set) | simulation (recoverable box)
+
+    [paper]                    # optional: what the paper published for this env
+    win_target = 800           # the score a "win" needs
+    episodes_to_5_wins = { coached = 100, uncoached = 160 }     # Table II
+    episodes_to_average = { coached = 104, uncoached = 159 }    # Table II
+    savings_percent = { wins = 37.5, average = 34.6 }         # as printed
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import mujoco
+
+from pidlab.data import models_dir
+from pidlab.errors import ModelCardError
+from pidlab.files import read_toml
+
+CARD_SCHEMA = "pidlab.model-card/1"
+OBS_SOURCES = ("qpos", "qvel", "qfrc_constraint")
+OBS_TRANSFORMS = ("identity", "sin", "cos")
+INTERVALS = ("closed", "open")
+REGION_METHODS = ("lyapunov", "simulation")
+
+
+@dataclass(frozen=True)
+class ObservationVariable:
+    """One entry of a Gymnasium observation, named by the MuJoCo quantity it reads.
+
+    Attributes
+    ----------
+    name : str
+        Unique name used by every later stage, e.g. ``"hinge_vel"``.
+    source : {"qpos", "qvel", "qfrc_constraint"}
+        The ``MjData`` array read.
+    joint : str
+        The (hinge or slide) joint whose coordinate is read.
+    transform : {"identity", "sin", "cos"}
+        Function applied to the coordinate.
+    clip : tuple of float or None
+        ``(low, high)`` clipping applied by the env, if any.
+    unit : str
+        Physical unit, for tables.
+    description : str
+        What it is, in words.
+    """
+
+    name: str
+    source: str
+    joint: str
+    transform: str = "identity"
+    clip: tuple[float, float] | None = None
+    unit: str = ""
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class TerminationLimit:
+    """A healthy range of one signal; the env terminates when the signal leaves it.
+
+    Attributes
+    ----------
+    signal : str
+        ``<joint>_pos``, ``<joint>_vel`` or ``site:<site>:x|y|z``.
+    low, high : float
+        Healthy range (``-inf``/``inf`` for one-sided limits).
+    interval : {"closed", "open"}
+        Whether the bounds themselves are healthy.
+    description : str
+    """
+
+    signal: str
+    low: float
+    high: float
+    interval: str = "closed"
+    description: str = ""
+
+    def healthy(self, value: float) -> bool:
+        """Whether ``value`` lies in the healthy range."""
+        if self.interval == "closed":
+            return self.low <= value <= self.high
+        return self.low < value < self.high
+
+
+@dataclass(frozen=True)
+class CardOperatingPoint:
+    """The operating point recorded in a model card."""
+
+    name: str
+    qpos: tuple[float, ...]
+    qvel: tuple[float, ...]
+    ctrl: tuple[float, ...]
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class TuningLoop:
+    """One loop of an env's tuning template: what it measures and drives; the tuner finds the gains.
+
+    Attributes
+    ----------
+    name : str
+    signal : str
+        The measured observation variable.
+    rate_signal : str or None
+        Its rate, for the derivative term.
+    actuators : tuple of (str, float)
+        Actuator names and weights; empty: the weights are read off the LQR start.
+    core : bool
+        Kept by presets that keep the core loops only.
+    """
+
+    name: str
+    signal: str
+    rate_signal: str | None
+    actuators: tuple[tuple[str, float], ...]
+    core: bool = True
+
+    @property
+    def auto_weights(self) -> bool:
+        """No fixed actuators: the weights are read off the LQR start (e.g. torso pitch)."""
+        return not self.actuators
+
+
+@dataclass(frozen=True)
+class PaperNumbers:
+    """What the paper published for one env (Table II and the printed savings).
+
+    Attributes
+    ----------
+    win_target : float
+        The training score that counts as a win.
+    wins_coached, wins_uncoached : int
+        Episodes to 5 consecutive wins, with and without PID coaching.
+    average_coached, average_uncoached : int
+        Episodes until the moving average reached the target, with and without.
+    savings_wins, savings_average : float
+        The savings in percent as the paper prints them (not recomputed).
+    """
+
+    win_target: float
+    wins_coached: int
+    wins_uncoached: int
+    average_coached: int
+    average_uncoached: int
+    savings_wins: float
+    savings_average: float
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    """A parsed model card (see the module docstring for the schema).
+
+    Attributes
+    ----------
+    env_id : str
+    description : str
+    operating_point : CardOperatingPoint
+    observation : tuple of ObservationVariable
+        In observation order.
+    termination : tuple of TerminationLimit
+    terminate_on_nonfinite : bool
+        The env also terminates when the observation has a NaN or inf.
+    path : str
+        The file the card was read from.
+    tuning : tuple of TuningLoop
+        The auto-tuner's template (empty: the env has none).
+    refine_on_env : bool
+        The auto-tuner refines the gains on the real env (contact-rich envs).
+    region_method : {"lyapunov", "simulation"}
+        How the takeover region is derived.
+    paper : PaperNumbers or None
+        What the paper published for this env.
+    """
+
+    env_id: str
+    description: str
+    operating_point: CardOperatingPoint
+    observation: tuple[ObservationVariable, ...]
+    termination: tuple[TerminationLimit, ...]
+    terminate_on_nonfinite: bool
+    path: str
+    tuning: tuple[TuningLoop, ...] = ()
+    refine_on_env: bool = False
+    region_method: str = "lyapunov"
+    paper: PaperNumbers | None = None
+
+    @property
+    def observation_names(self) -> tuple[str, ...]:
+        """Names of the observation entries, in observation order."""
+        return tuple(v.name for v in self.observation)
+
+    def variable(self, name: str) -> ObservationVariable:
+        """The observation variable called ``name``.
+
+        Raises
+        ------
+        UnknownSignalError
+            With the list of valid names.
+        """
+        from pidlab.errors import UnknownSignalError
+
+        for v in self.observation:
+            if v.name == name:
+                return v
+        raise UnknownSignalError(
+            f"{name!r} is not an observation variable of {self.env_id}; "
+            f"valid names: {', '.join(self.observation_names)}"
+        )
+
+    def check_against(self, model: mujoco.MjModel, frame_skip: int) -> None:
+        """Check that every joint and site the card names exists in ``model``.
+
+        Raises
+        ------
+        ModelCardError
+        """
+        for v in self.observation:
+            _joint_id(model, v.joint, f"{self.path}: observation {v.name!r}")
+        for t in self.termination:
+            _check_signal(model, t.signal, f"{self.path}: termination signal {t.signal!r}")
+        op = self.operating_point
+        for field, values, n in (
+            ("qpos", op.qpos, model.nq),
+            ("qvel", op.qvel, model.nv),
+            ("ctrl", op.ctrl, model.nu),
+        ):
+            if len(values) != n:
+                raise ModelCardError(
+                    f"{self.path}: operating_point.{field} has {len(values)} entries; the model has {n}"
+                )
+
+
+def _joint_id(model: mujoco.MjModel, name: str, where: str) -> int:
+    jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+    if jid < 0:
+        names = [model.joint(j).name for j in range(model.njnt)]
+        raise ModelCardError(f"{where}: no joint {name!r} in the model; joints: {', '.join(names)}")
+    if int(model.jnt_type[jid]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
+        raise ModelCardError(f"{where}: joint {name!r} is not a hinge or slide joint")
+    return jid
+
+
+def _check_signal(model: mujoco.MjModel, signal: str, where: str) -> None:
+    if signal.startswith("site:"):
+        body, _, axis = signal[5:].rpartition(":")
+        if axis not in ("x", "y", "z"):
+            raise ModelCardError(f"{where}: expected site:<name>:x|y|z")
+        if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, body) < 0:
+            raise ModelCardError(f"{where}: no site {body!r} in the model")
+        return
+    joint, _, kind = signal.rpartition("_")
+    if kind not in ("pos", "vel"):
+        raise ModelCardError(f"{where}: expected <joint>_pos, <joint>_vel or site:<name>:x|y|z")
+    _joint_id(model, joint, where)
+
+
+def _require(table: dict[str, Any], key: str, typ: type | tuple[type, ...], where: str) -> Any:
+    if key not in table:
+        raise ModelCardError(f"{where}: missing field {key!r}")
+    value = table[key]
+    if not isinstance(value, typ) or (isinstance(value, bool) and typ is not bool):
+        names = typ.__name__ if isinstance(typ, type) else " or ".join(t.__name__ for t in typ)
+        raise ModelCardError(f"{where}.{key}: expected {names}, got {value!r}")
+    return value
+
+
+def _floats(values: Any, where: str) -> tuple[float, ...]:
+    if not isinstance(values, list) or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in values
+    ):
+        raise ModelCardError(f"{where}: expected a list of numbers, got {values!r}")
+    return tuple(float(v) for v in values)
+
+
+def _bound(value: Any, where: str) -> float:
+    if isinstance(value, str) and value in ("inf", "-inf"):
+        return float(value)
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    raise ModelCardError(f'{where}: expected a number or "inf"/"-inf", got {value!r}')
+
+
+def _parse_tuning(data: dict[str, Any], path: str) -> tuple[tuple[TuningLoop, ...], bool]:
+    table = data.get("tuning", {})
+    if not isinstance(table, dict):
+        raise ModelCardError(f"{path}: tuning: expected a table")
+    unknown = sorted(set(table) - {"refine_on_env", "loop"})
+    if unknown:
+        raise ModelCardError(f"{path}: tuning: unknown field(s) {unknown}; allowed: refine_on_env, loop")
+    refine = table.get("refine_on_env", False)
+    if not isinstance(refine, bool):
+        raise ModelCardError(f"{path}: tuning.refine_on_env: expected true or false, got {refine!r}")
+    loops = []
+    for i, lp in enumerate(table.get("loop", [])):
+        where = f"{path}: tuning.loop[{i}]"
+        if not isinstance(lp, dict):
+            raise ModelCardError(f"{where}: expected a table")
+        acts = _require(lp, "actuators", dict, where) if "actuators" in lp else {}
+        weights = tuple((str(k), _bound(v, f"{where}.actuators.{k}")) for k, v in acts.items())
+        rate = lp.get("rate_signal")
+        core = lp.get("core", True)
+        if (rate is not None and not isinstance(rate, str)) or not isinstance(core, bool):
+            raise ModelCardError(f"{where}: rate_signal must be a string and core true or false")
+        loops.append(TuningLoop(_require(lp, "name", str, where), _require(lp, "signal", str, where),
+                                rate, weights, core))  # fmt: skip
+    return tuple(loops), refine
+
+
+def _parse_region_method(data: dict[str, Any], path: str) -> str:
+    table = data.get("region", {})
+    method = table.get("method", "lyapunov") if isinstance(table, dict) else None
+    if method not in REGION_METHODS:
+        raise ModelCardError(f"{path}: region.method: {method!r}; allowed: {', '.join(REGION_METHODS)}")
+    return str(method)
+
+
+def _parse_paper(data: dict[str, Any], path: str) -> PaperNumbers | None:
+    if "paper" not in data:
+        return None
+    where = f"{path}: paper"
+    table = _require(data, "paper", dict, path)
+
+    def pair(key: str, a: str, b: str) -> tuple[float, float]:
+        sub = _require(table, key, dict, where)
+        return float(_require(sub, a, (int, float), f"{where}.{key}")), float(
+            _require(sub, b, (int, float), f"{where}.{key}")
+        )
+
+    wins = pair("episodes_to_5_wins", "coached", "uncoached")
+    average = pair("episodes_to_average", "coached", "uncoached")
+    savings = pair("savings_percent", "wins", "average")
+    target = _bound(_require(table, "win_target", (int, float), where), f"{where}.win_target")
+    return PaperNumbers(target, int(wins[0]), int(wins[1]), int(average[0]), int(average[1]), *savings)
+
+
+def parse_card(data: dict[str, Any], path: str) -> ModelCard:
+    """Build a :class:`ModelCard` from parsed TOML, validating every field.
+
+    Raises
+    ------
+    ModelCardError
+        Naming the field and what is allowed.
+    """
+    schema = data.get("schema")
+    if schema != CARD_SCHEMA:
+        raise ModelCardError(f"{path}: schema is {schema!r}; expected {CARD_SCHEMA!r}")
+    env_id = _require(data, "env_id", str, path)
+    opt = _require(data, "operating_point", dict, path)
+    op = CardOperatingPoint(
+        name=str(opt.get("name", "operating point")),
+        qpos=_floats(_require(opt, "qpos", list, f"{path}: operating_point"), "qpos"),
+        qvel=_floats(_require(opt, "qvel", list, f"{path}: operating_point"), "qvel"),
+        ctrl=_floats(_require(opt, "ctrl", list, f"{path}: operating_point"), "ctrl"),
+        note=str(opt.get("note", "")),
+    )
+    obs: list[ObservationVariable] = []
+    for i, t in enumerate(_require(data, "observation", list, path)):
+        where = f"{path}: observation[{i}]"
+        source = _require(t, "source", str, where)
+        if source not in OBS_SOURCES:
+            raise ModelCardError(f"{where}.source: {source!r}; allowed: {', '.join(OBS_SOURCES)}")
+        transform = t.get("transform", "identity")
+        if transform not in OBS_TRANSFORMS:
+            raise ModelCardError(f"{where}.transform: {transform!r}; allowed: {', '.join(OBS_TRANSFORMS)}")
+        clip = None
+        if "clip" in t:
+            lo, hi = _floats(t["clip"], f"{where}.clip")
+            clip = (lo, hi)
+        obs.append(
+            ObservationVariable(
+                name=_require(t, "name", str, where),
+                source=source,
+                joint=_require(t, "joint", str, where),
+                transform=transform,
+                clip=clip,
+                unit=str(t.get("unit", "")),
+                description=str(t.get("description", "")),
+            )
+        )
+    names = [v.name for v in obs]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ModelCardError(f"{path}: observation names must be unique; repeated: {dupes}")
+    term: list[TerminationLimit] = []
+    for i, t in enumerate(data.get("termination", [])):
+        where = f"{path}: termination[{i}]"
+        interval = t.get("interval", "closed")
+        if interval not in INTERVALS:
+            raise ModelCardError(f"{where}.interval: {interval!r}; allowed: closed, open")
+        low = _bound(t.get("low", "-inf"), f"{where}.low")
+        high = _bound(t.get("high", "inf"), f"{where}.high")
+        if not low < high:
+            raise ModelCardError(f"{where}: low ({low}) must be below high ({high})")
+        term.append(
+            TerminationLimit(
+                signal=_require(t, "signal", str, where),
+                low=low,
+                high=high,
+                interval=interval,
+                description=str(t.get("description", "")),
+            )
+        )
+    tuning, refine = _parse_tuning(data, path)
+    for lp in tuning:
+        for name in (lp.signal, lp.rate_signal):
+            if name is not None and name not in names:
+                raise ModelCardError(f"{path}: tuning.loop {lp.name!r}: {name!r} is not an observation name")
+    return ModelCard(
+        env_id=env_id,
+        description=str(data.get("description", "")),
+        operating_point=op,
+        observation=tuple(obs),
+        termination=tuple(term),
+        terminate_on_nonfinite=bool(data.get("terminate_on_nonfinite", True)),
+        path=path,
+        tuning=tuning,
+        refine_on_env=refine,
+        region_method=_parse_region_method(data, path),
+        paper=_parse_paper(data, path),
+    )
+
+
+def load_card(path: str | Path) -> ModelCard:
+    """Read and validate one model card file.
+
+    Raises
+    ------
+    ModelCardError
+    """
+    return parse_card(read_toml(path, "model card", ModelCardError), str(path))
+
+
+def find_card(env_id: str) -> ModelCard | None:
+    """The model card of ``env_id`` from :func:`models_dir`, or None when there is none."""
+    path = models_dir() / f"{env_id}.toml"
+    return load_card(path) if path.exists() else None

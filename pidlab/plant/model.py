@@ -1,0 +1,293 @@
+"""Resolve a Gymnasium MuJoCo env id or an MJCF file into a compiled MuJoCo model.
+
+The env's own ``MjModel`` and ``frame_skip`` are used, so that the linearization describes
+exactly the system the RL agent acts on. Names for states and inputs are derived here, once.
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from pidlab.errors import ModelCardError, ModelCompileError, UnknownEnvError
+from pidlab.plant.card import ModelCard, find_card
+
+_INTEGRATORS = {
+    int(mujoco.mjtIntegrator.mjINT_EULER): "Euler",
+    int(mujoco.mjtIntegrator.mjINT_RK4): "RK4",
+    int(mujoco.mjtIntegrator.mjINT_IMPLICIT): "implicit",
+    int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST): "implicitfast",
+}
+
+
+@dataclass(frozen=True)
+class LoadedModel:
+    """A compiled MuJoCo model with what pidlab needs to know about how it is stepped.
+
+    Attributes
+    ----------
+    model : mujoco.MjModel
+        The compiled model (for an env id: the env's own model).
+    source : str
+        The env id, or the absolute path of the MJCF file.
+    env_id : str or None
+        The Gymnasium env id, or None for a bare MJCF file.
+    frame_skip : int
+        MuJoCo steps per control period (the env's ``frame_skip``; 1 for a bare MJCF).
+    card : ModelCard or None
+        The model card from ``models/`` (observation map, operating point, termination
+        limits), when one exists for this env.
+    """
+
+    model: mujoco.MjModel
+    source: str
+    env_id: str | None
+    frame_skip: int
+    card: ModelCard | None
+
+    @property
+    def timestep(self) -> float:
+        """MuJoCo's physics timestep in seconds."""
+        return float(self.model.opt.timestep)
+
+    @property
+    def control_dt(self) -> float:
+        """Control period in seconds: ``timestep * frame_skip``."""
+        return self.timestep * self.frame_skip
+
+    @property
+    def integrator(self) -> str:
+        """Name of the model's numerical integrator (e.g. ``"RK4"``)."""
+        return _INTEGRATORS.get(int(self.model.opt.integrator), str(self.model.opt.integrator))
+
+    def require_card(self) -> ModelCard:
+        """The model card, which every stage after linearization needs.
+
+        Raises
+        ------
+        ModelCardError
+            The model has no card (a bare MJCF file, or an env without ``models/ENV.toml``).
+        """
+        if self.card is None:
+            raise ModelCardError(
+                f"{self.name}: has no model card (models/<env>.toml with its observation map and "
+                "termination limits); this step needs one"
+            )
+        return self.card
+
+    @property
+    def name(self) -> str:
+        """Short display name: the env id, or the MJCF file name."""
+        return self.env_id if self.env_id is not None else Path(self.source).name
+
+    @property
+    def position_names(self) -> tuple[str, ...]:
+        """Names of the ``nv`` tangent-space position coordinates."""
+        return dof_names(self.model)[0]
+
+    @property
+    def velocity_names(self) -> tuple[str, ...]:
+        """Names of the ``nv`` generalized velocities."""
+        return dof_names(self.model)[1]
+
+    @property
+    def activation_names(self) -> tuple[str, ...]:
+        """Names of the ``na`` actuator activation states."""
+        acts = actuator_names(self.model)
+        return tuple(f"{acts[i]}_act" for i in range(self.model.nu) if self.model.actuator_actadr[i] >= 0)
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Names of the ``2*nv + na`` tangent-space states: positions, velocities, activations."""
+        return self.position_names + self.velocity_names + self.activation_names
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Names of the ``nu`` actuators (controls)."""
+        return actuator_names(self.model)
+
+
+def joint_name(model: mujoco.MjModel, j: int) -> str:
+    """Name of joint ``j``, or ``joint<j>`` when the MJCF leaves it unnamed."""
+    return model.joint(j).name or f"joint{j}"
+
+
+_FREE_SUFFIX = ("x", "y", "z", "rx", "ry", "rz")
+_BALL_SUFFIX = ("rx", "ry", "rz")
+
+
+def dof_names(model: mujoco.MjModel) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Names of the tangent position coordinates and of the velocities, one per dof.
+
+    Hinge and slide joints give ``<joint>_pos`` / ``<joint>_vel``. Ball joints give
+    ``<joint>_pos_rx`` ... (rotation vector in the joint frame), free joints
+    ``<joint>_pos_x, _pos_y, _pos_z`` (world frame) and ``_pos_rx, _pos_ry, _pos_rz``
+    (body frame), matching ``mj_differentiatePos``. The separator is ``_`` because
+    python-control reserves ``.`` in signal names for ``system.signal``.
+
+    Returns
+    -------
+    positions, velocities : tuple of str, each of length ``nv``
+    """
+    pos: list[str] = []
+    vel: list[str] = []
+    for j in range(model.njnt):
+        name = joint_name(model, j)
+        jtype = int(model.jnt_type[j])
+        if jtype == int(mujoco.mjtJoint.mjJNT_FREE):
+            suffixes: tuple[str, ...] = _FREE_SUFFIX
+        elif jtype == int(mujoco.mjtJoint.mjJNT_BALL):
+            suffixes = _BALL_SUFFIX
+        else:
+            pos.append(f"{name}_pos")
+            vel.append(f"{name}_vel")
+            continue
+        pos.extend(f"{name}_pos_{s}" for s in suffixes)
+        vel.extend(f"{name}_vel_{s}" for s in suffixes)
+    return tuple(pos), tuple(vel)
+
+
+def actuator_names(model: mujoco.MjModel) -> tuple[str, ...]:
+    """Names of the actuators; an unnamed actuator is named after what it drives.
+
+    Hopper's and Walker2d's actuators are unnamed in their MJCF, so they become
+    ``thigh_joint``, ``leg_joint``, ... (the joint each one drives).
+    """
+    names: list[str] = []
+    for i in range(model.nu):
+        name = model.actuator(i).name
+        if not name:
+            target = int(model.actuator_trnid[i, 0])
+            trn = int(model.actuator_trntype[i])
+            obj = {
+                int(mujoco.mjtTrn.mjTRN_JOINT): mujoco.mjtObj.mjOBJ_JOINT,
+                int(mujoco.mjtTrn.mjTRN_JOINTINPARENT): mujoco.mjtObj.mjOBJ_JOINT,
+                int(mujoco.mjtTrn.mjTRN_TENDON): mujoco.mjtObj.mjOBJ_TENDON,
+                int(mujoco.mjtTrn.mjTRN_SITE): mujoco.mjtObj.mjOBJ_SITE,
+                int(mujoco.mjtTrn.mjTRN_BODY): mujoco.mjtObj.mjOBJ_BODY,
+            }.get(trn)
+            name = (mujoco.mj_id2name(model, obj, target) if obj is not None else None) or ""
+            if not name or name in names:
+                name = f"actuator{i}"
+        elif name in names:
+            name = f"{name}#{i}"
+        names.append(name)
+    return tuple(names)
+
+
+def _is_mjcf_path(target: str) -> bool:
+    return target.lower().endswith((".xml", ".mjcf", ".mjb")) or Path(target).exists()
+
+
+def load_model(target: str | Path) -> LoadedModel:
+    """Load a Gymnasium MuJoCo env id or an MJCF file.
+
+    Parameters
+    ----------
+    target : str or Path
+        A registered Gymnasium env id such as ``"InvertedPendulum-v5"``, or the path of an
+        MJCF (``.xml``) or compiled (``.mjb``) model.
+
+    Returns
+    -------
+    LoadedModel
+
+    Raises
+    ------
+    UnknownEnvError
+        ``target`` is neither an existing file nor a registered env id.
+    ModelCompileError
+        MuJoCo cannot load the file; the message carries MuJoCo's own text.
+    """
+    target = str(target)
+    if _is_mjcf_path(target):
+        return _load_mjcf(Path(target))
+    return _load_env(target)
+
+
+def _load_mjcf(path: Path) -> LoadedModel:
+    if not path.exists():
+        raise ModelCompileError(f"MJCF file {str(path)!r} does not exist; give an existing path")
+    try:
+        if path.suffix.lower() == ".mjb":
+            model = mujoco.MjModel.from_binary_path(str(path))
+        else:
+            model = mujoco.MjModel.from_xml_path(str(path))
+    except Exception as exc:  # MuJoCo raises ValueError with its compiler message
+        msg = " ".join(str(exc).split())
+        raise ModelCompileError(f"MuJoCo could not compile {str(path)!r}: {msg}") from exc
+    return LoadedModel(model=model, source=str(path.resolve()), env_id=None, frame_skip=1, card=None)
+
+
+def _mujoco_env_ids() -> list[str]:
+    import gymnasium as gym
+
+    ids = []
+    for env_id, spec in gym.registry.items():
+        entry = spec.entry_point if isinstance(spec.entry_point, str) else ""
+        if "mujoco" in entry:
+            ids.append(env_id)
+    return sorted(ids)
+
+
+def _load_env(env_id: str) -> LoadedModel:
+    import gymnasium as gym
+
+    known = _mujoco_env_ids()
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, known, n=3, cutoff=0.5)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise UnknownEnvError(
+            f"unknown env id or missing file {env_id!r}: expected a Gymnasium MuJoCo env id "
+            f"(e.g. InvertedPendulum-v5) or the path of an MJCF file{hint}"
+        )
+    if env_id not in known:
+        raise UnknownEnvError(
+            f"env {env_id!r} is not a MuJoCo env; expected one of the Gymnasium MuJoCo envs "
+            f"(e.g. InvertedPendulum-v5, Hopper-v5) or an MJCF file"
+        )
+    try:
+        env = gym.make(env_id)
+    except Exception as exc:  # e.g. deprecated versions that need mujoco-py
+        msg = " ".join(str(exc).split())
+        raise UnknownEnvError(f"cannot create env {env_id!r}: {msg}") from exc
+    try:
+        unwrapped = env.unwrapped
+        model = unwrapped.model  # type: ignore[attr-defined]
+        frame_skip = int(unwrapped.frame_skip)  # type: ignore[attr-defined]
+    finally:
+        env.close()
+    card = find_card(env_id)
+    if card is not None:
+        card.check_against(model, frame_skip)
+    return LoadedModel(model=model, source=env_id, env_id=env_id, frame_skip=frame_skip, card=card)
+
+
+def from_mjmodel(model: mujoco.MjModel, frame_skip: int = 1, name: str = "<MjModel>") -> LoadedModel:
+    """Wrap an already-compiled ``MjModel`` (e.g. built from an XML string in a notebook).
+
+    Parameters
+    ----------
+    model : mujoco.MjModel
+    frame_skip : int, default 1
+        MuJoCo steps per control period.
+    name : str
+        Display name.
+    """
+    if frame_skip < 1:
+        raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
+    return LoadedModel(model=model, source=name, env_id=None, frame_skip=frame_skip, card=None)
+
+
+def finite_or_raise(x: np.ndarray, what: str) -> np.ndarray:
+    """Return ``x`` as float array, raising OperatingPointError if any entry is not finite."""
+    from pidlab.errors import OperatingPointError
+
+    arr = np.asarray(x, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        raise OperatingPointError(f"{what} has non-finite entries {arr.tolist()}; expected finite numbers")
+    return arr

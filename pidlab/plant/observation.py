@@ -1,0 +1,172 @@
+"""Evaluate a model card on MuJoCo data: observations, named signals, termination.
+
+These functions reproduce the Gymnasium env's ``_get_obs`` and termination rule from the
+card alone, so a test can hold the card to the env, and later stages can map MuJoCo states
+to observation variables (and back, through the linearized output matrix).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from pidlab.errors import UnknownSignalError
+from pidlab.plant.card import ModelCard, ObservationVariable, TerminationLimit
+
+
+def _address(model: mujoco.MjModel, var: ObservationVariable) -> int:
+    jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, var.joint)
+    if var.source == "qpos":
+        return int(model.jnt_qposadr[jid])
+    return int(model.jnt_dofadr[jid])
+
+
+def observe(card: ModelCard, model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+    """The Gymnasium observation, computed from ``data`` through the card's map.
+
+    Parameters
+    ----------
+    card : ModelCard
+    model : mujoco.MjModel
+    data : mujoco.MjData
+        After ``mj_forward`` or ``mj_step`` (``qfrc_constraint`` must be current).
+
+    Returns
+    -------
+    obs : ndarray, shape (n_obs,)
+    """
+    out = np.empty(len(card.observation))
+    for i, var in enumerate(card.observation):
+        arr = getattr(data, var.source)
+        value = float(arr[_address(model, var)])
+        if var.transform == "sin":
+            value = float(np.sin(value))
+        elif var.transform == "cos":
+            value = float(np.cos(value))
+        if var.clip is not None:
+            value = float(np.clip(value, var.clip[0], var.clip[1]))
+        out[i] = value
+    return out
+
+
+def observe_at(card: ModelCard, model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """The observation at a state ``(qpos, qvel)`` (fresh ``MjData``, ``mj_forward``)."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    data.qvel[:] = qvel
+    mujoco.mj_forward(model, data)
+    return observe(card, model, data)
+
+
+def signal_value(model: mujoco.MjModel, data: mujoco.MjData, signal: str) -> float:
+    """Value of a named state signal: ``<joint>_pos``, ``<joint>_vel`` or ``site:<s>:x|y|z``.
+
+    Raises
+    ------
+    UnknownSignalError
+    """
+    if signal.startswith("site:"):
+        site, _, axis = signal[5:].rpartition(":")
+        sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
+        if sid < 0 or axis not in ("x", "y", "z"):
+            raise UnknownSignalError(f"no site signal {signal!r}; expected site:<site>:x|y|z")
+        return float(data.site_xpos[sid]["xyz".index(axis)])
+    joint, _, kind = signal.rpartition("_")
+    jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
+    if jid < 0 or kind not in ("pos", "vel"):
+        raise UnknownSignalError(f"no state signal {signal!r}; expected <joint>_pos or <joint>_vel")
+    if kind == "pos":
+        return float(data.qpos[model.jnt_qposadr[jid]])
+    return float(data.qvel[model.jnt_dofadr[jid]])
+
+
+@dataclass(frozen=True)
+class TerminationCheck:
+    """Which termination limits a state violates.
+
+    Attributes
+    ----------
+    terminated : bool
+    violated : tuple of TerminationLimit
+    values : tuple of float
+        The signal value of each violated limit.
+    nonfinite : bool
+        The observation held NaN or inf.
+    """
+
+    terminated: bool
+    violated: tuple[TerminationLimit, ...]
+    values: tuple[float, ...]
+    nonfinite: bool
+
+
+def check_termination(card: ModelCard, model: mujoco.MjModel, data: mujoco.MjData) -> TerminationCheck:
+    """Apply the card's termination rule to ``data`` (as the env does after a step)."""
+    violated: list[TerminationLimit] = []
+    values: list[float] = []
+    for limit in card.termination:
+        v = signal_value(model, data, limit.signal)
+        if not limit.healthy(v):
+            violated.append(limit)
+            values.append(v)
+    nonfinite = card.terminate_on_nonfinite and not bool(np.all(np.isfinite(observe(card, model, data))))
+    return TerminationCheck(
+        terminated=bool(violated) or nonfinite,
+        violated=tuple(violated),
+        values=tuple(values),
+        nonfinite=nonfinite,
+    )
+
+
+class CompiledCard:
+    """A model card's observation map and termination rule, compiled to index arrays.
+
+    Same results as :func:`observe` and :func:`check_termination`, without name lookups per
+    call: the form used in simulation loops (regions of attraction, rollouts).
+    """
+
+    def __init__(self, card: ModelCard, model: mujoco.MjModel) -> None:
+        self.card = card
+        n = len(card.observation)
+        self._source = [v.source for v in card.observation]
+        self._addr = np.array([_address(model, v) for v in card.observation])
+        self._sin = np.array([v.transform == "sin" for v in card.observation])
+        self._cos = np.array([v.transform == "cos" for v in card.observation])
+        self._lo = np.array([v.clip[0] if v.clip else -np.inf for v in card.observation])
+        self._hi = np.array([v.clip[1] if v.clip else np.inf for v in card.observation])
+        self._groups = {s: np.array([i for i in range(n) if self._source[i] == s]) for s in set(self._source)}
+        limits = []
+        for limit in card.termination:
+            if limit.signal.startswith("site:"):
+                site, _, axis = limit.signal[5:].rpartition(":")
+                sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
+                limits.append(("site", sid, "xyz".index(axis), limit))
+            else:
+                joint, _, kind = limit.signal.rpartition("_")
+                jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
+                adr = int(model.jnt_qposadr[jid]) if kind == "pos" else int(model.jnt_dofadr[jid])
+                limits.append((kind, adr, 0, limit))
+        self._limits = limits
+
+    def observe(self, data: mujoco.MjData) -> np.ndarray:
+        """The observation (as :func:`observe`)."""
+        out = np.empty(len(self._addr))
+        for source, idx in self._groups.items():
+            out[idx] = getattr(data, source)[self._addr[idx]]
+        out = np.where(self._sin, np.sin(out), np.where(self._cos, np.cos(out), out))
+        return np.clip(out, self._lo, self._hi)
+
+    def terminated(self, data: mujoco.MjData) -> bool:
+        """Whether the env would terminate (as :func:`check_termination`)."""
+        for kind, a, b, limit in self._limits:
+            if kind == "site":
+                v = float(data.site_xpos[a, b])
+            elif kind == "pos":
+                v = float(data.qpos[a])
+            else:
+                v = float(data.qvel[a])
+            if not limit.healthy(v):
+                return True
+        return bool(self.card.terminate_on_nonfinite and not np.all(np.isfinite(self.observe(data))))

@@ -1,0 +1,757 @@
+"""Regions of attraction of a coached closed loop, certified against MuJoCo.
+
+Pendulums (smooth dynamics)
+    ``V(X) = X' P X`` from the discrete closed-loop linearization (plant tangent state and the
+    coach's own states), with ``A_cl' P A_cl - P = -Q`` and ``Q = I`` in those coordinates
+    (SI units: m, rad, m/s, rad/s; every state direction weighted alike, so ``V`` measures the
+    plain squared deviation that the closed loop removes per step). Two estimates of the
+    largest level ``c`` with ``{V <= c}`` attracted:
+
+    - **optimization** (CasADi + IPOPT, multi-start): the symbolic cart-pole model of
+      :mod:`pidlab.linear.symbolic`, integrated with RK4 over one control period exactly as the env
+      does, closed by the coach's law with saturation: ``c_opt = min V(X)`` subject to
+      ``V(F(X)) >= V(X)``, ``V(X) >= delta``. Below ``c_opt``, ``V`` decreases every step;
+    - **simulation** (MuJoCo itself, the coach's real discrete law, saturation, the env's
+      termination rule): states sampled uniformly in ``{V <= c}`` (coach at reset), simulated
+      for a horizon; a sample fails if the episode would terminate or ``V`` has not decreased
+      by the end. Bisection on ``c`` (up to ``4 c_opt`` and the termination limits), then a final
+      check with ``N`` samples.
+
+    The certified level has zero failures among ``N`` samples: by the rule of three the
+    probability of failure from a uniformly drawn state in the set is below ``3/N`` at 95 %.
+
+Hopper and Walker2d (contacts)
+    A quadratic Lyapunov argument over contacts is not sound. The recoverable set is estimated
+    by simulation only, as a box over the coached variables (torso pitch and its rate) around
+    the standing pose: the largest box from whose corners and interior (sampled) the coach
+    recovers without termination within the horizon.
+
+Every result says which method produced it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import casadi as cs
+import mujoco
+import numpy as np
+import scipy.linalg
+
+from pidlab.controller.analysis import CoachAnalysis, analyze_coach
+from pidlab.controller.pid import N_LOOP_STATES, Coach, law
+from pidlab.controller.spec import CoachSpec
+from pidlab.errors import PidlabError, RegionError
+from pidlab.linear.linearize import Linearization
+from pidlab.plant.model import LoadedModel
+from pidlab.plant.observation import CompiledCard, observe_at
+
+OPTIMIZATION_HORIZON_S = 0.5
+"""Window of the finite-step decrease condition in the CasADi estimate, s."""
+
+METHOD_LYAPUNOV = "lyapunov level set, certified by simulation"
+METHOD_SIMULATION = "simulation: recoverable box over the coached variables (no Lyapunov argument)"
+
+
+Progress = Callable[[str, "float | None"], None]
+"""``progress(stage, fraction)``: what a long estimate is doing; fraction in [0, 1] or None."""
+
+
+def _no_progress(stage: str, fraction: float | None) -> None:
+    return None
+
+
+def _final_tick(report: Progress, samples: int) -> Callable[[int], None]:
+    every = max(1, samples // 50)
+
+    def tick(i: int) -> None:
+        if i % every == 0:
+            report(f"final check ({i}/{samples} samples)", i / samples)
+
+    return tick
+
+
+@dataclass(frozen=True)
+class Lyapunov:
+    """A quadratic Lyapunov function of the discrete closed loop.
+
+    Attributes
+    ----------
+    P : ndarray, shape (n, n)
+        Over ``X = (plant tangent deviation, coach state deviation)``.
+    Q : ndarray, shape (n, n)
+    A_cl : ndarray, shape (n, n)
+    variables : tuple of str
+        Observation variables that determine the plant state (in observation order).
+    center : ndarray, shape (k,)
+        Their values at the operating point.
+    to_state : ndarray, shape (n, k)
+        ``X = to_state @ (y - center)`` with the coach at reset.
+    P_y : ndarray, shape (k, k)
+        ``V`` in the observation variables: ``to_state' P to_state``.
+    """
+
+    P: np.ndarray
+    Q: np.ndarray
+    A_cl: np.ndarray
+    variables: tuple[str, ...]
+    center: np.ndarray
+    to_state: np.ndarray
+    P_y: np.ndarray
+
+    def value_y(self, y_dev: np.ndarray) -> float:
+        """``V`` at an observation deviation (coach at reset)."""
+        return float(y_dev @ self.P_y @ y_dev)
+
+
+@dataclass(frozen=True)
+class SimulationCheck:
+    """Outcome of simulating the coach from sampled initial states.
+
+    Attributes
+    ----------
+    level : float
+        The level (or box scale) checked.
+    samples, failures, terminated, not_converged : int
+    horizon_s : float
+    seed : int
+    """
+
+    level: float
+    samples: int
+    failures: int
+    terminated: int
+    not_converged: int
+    horizon_s: float
+    seed: int
+
+    @property
+    def failure_bound_95(self) -> float:
+        """Rule of three: upper 95 % bound on the failure probability with zero failures (3/N)."""
+        return 3.0 / self.samples if self.samples else 1.0
+
+
+@dataclass(frozen=True)
+class RegionOfAttraction:
+    """A certified region of attraction (or recoverable set) of a coach.
+
+    Attributes
+    ----------
+    env_id, spec_name, method : str
+    lyapunov : Lyapunov or None
+        None for the simulation-only method.
+    level : float
+        Certified level ``c`` of ``{V <= c}`` (Lyapunov method).
+    c_optimization : float or None
+        CasADi estimate (None where no symbolic model or the coach has states).
+    c_simulation : float
+        Bisection result before the final check.
+    box : dict of str to float
+        Simulation method: half-widths of the recoverable box, per coached variable.
+    check : SimulationCheck
+        The final certification run.
+    elapsed_s : float
+    """
+
+    env_id: str
+    spec_name: str
+    method: str
+    lyapunov: Lyapunov | None
+    level: float
+    c_optimization: float | None
+    c_simulation: float
+    check: SimulationCheck
+    elapsed_s: float
+    box: dict[str, float] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------------------------
+# Lyapunov function
+
+
+def _select_variables(C: np.ndarray, names: tuple[str, ...]) -> list[int]:
+    """Observation rows, in order, that together determine the plant state."""
+    chosen: list[int] = []
+    for i in range(C.shape[0]):
+        rows = C[[*chosen, i]]
+        if np.linalg.matrix_rank(rows, tol=1e-9) > len(chosen):
+            chosen.append(i)
+        if len(chosen) == C.shape[1]:
+            break
+    if len(chosen) < C.shape[1]:
+        raise RegionError(
+            f"the observation does not determine the plant state ({len(chosen)} of {C.shape[1]}); "
+            "no region in observation variables can be given"
+        )
+    return chosen
+
+
+def lyapunov_function(analysis: CoachAnalysis, coach: Coach, y_op: np.ndarray) -> Lyapunov:
+    """Solve the discrete Lyapunov equation of the closed loop, ``Q = I``.
+
+    Raises
+    ------
+    RegionError
+        The closed loop is not (strictly) stable.
+    """
+    if not analysis.stable:
+        bad = ", ".join(f"|z|={abs(p.value):.5f}" for p in analysis.discrete.poles if not p.stable)
+        raise RegionError(f"no region of attraction: closed loop is unstable; poles {bad}")
+    A = np.asarray(analysis.discrete.sys.A)
+    n = A.shape[0]
+    Q = np.eye(n)
+    P = scipy.linalg.solve_discrete_lyapunov(A.T, Q)
+    P = 0.5 * (P + P.T)
+    plant = analysis.plant
+    Cp = np.asarray(plant.C)
+    names = tuple(plant.output_labels)
+    chosen = _select_variables(Cp, names)
+    Csel_inv = np.linalg.inv(Cp[chosen])
+    rows = [Csel_inv]
+    lay = coach.layout
+    keep = lay.active_states()
+    for i, lp in enumerate(lay.spec.loops):
+        sig = names.index(lp.signal)
+        for k in range(N_LOOP_STATES):
+            if keep[N_LOOP_STATES * i + k]:
+                # at reset: integral 0, filter 0, previous measurement = the signal
+                rows.append((Cp[sig] @ Csel_inv)[None, :] if k == 2 else np.zeros((1, len(chosen))))
+    M = np.vstack(rows)
+    return Lyapunov(
+        P=P,
+        Q=Q,
+        A_cl=A,
+        variables=tuple(names[i] for i in chosen),
+        center=y_op[chosen],
+        to_state=M,
+        P_y=M.T @ P @ M,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Simulation with MuJoCo and the coach's real law
+
+
+class _Simulator:
+    def __init__(self, spec: CoachSpec, loaded: LoadedModel, lin: Linearization) -> None:
+        self.loaded = loaded
+        self.m = loaded.model
+        self.d = mujoco.MjData(self.m)
+        self.coach = Coach(spec, loaded)
+        self.lin = lin
+        card = loaded.require_card()
+        self.card = card
+        self.fast = CompiledCard(card, self.m)
+        self.y_op = observe_at(self.card, self.m, lin.op.qpos, lin.op.qvel)
+
+    def start(self, x_plant: np.ndarray) -> np.ndarray:
+        """Put MuJoCo at op (+) x_plant (tangent) and reset the coach; returns the observation."""
+        m, d, op = self.m, self.d, self.lin.op
+        mujoco.mj_resetData(m, d)
+        q = op.qpos.copy()
+        mujoco.mj_integratePos(m, q, x_plant[: m.nv], 1.0)
+        d.qpos[:] = q
+        d.qvel[:] = op.qvel + x_plant[m.nv : 2 * m.nv]
+        mujoco.mj_forward(m, d)
+        obs = self.fast.observe(d)
+        self.coach.reset(obs)
+        return obs
+
+    def coach_deviation(self) -> np.ndarray:
+        """The coach's active states minus their values at the operating point."""
+        lay = self.coach.layout
+        ref = np.zeros(lay.n_states)
+        for i, lp in enumerate(lay.spec.loops):
+            ref[N_LOOP_STATES * i + 2] = self.y_op[lay.observation_names.index(lp.signal)]
+        return (self.coach.state - ref)[lay.active_states()]
+
+    def plant_state(self) -> np.ndarray:
+        dq = np.zeros(self.m.nv)
+        mujoco.mj_differentiatePos(self.m, dq, 1.0, self.lin.op.qpos, self.d.qpos)
+        return np.concatenate([dq, self.d.qvel - self.lin.op.qvel])
+
+    def run(self, obs: np.ndarray, steps: int, record: list[int] | None = None) -> tuple[bool, np.ndarray]:
+        """Step the coached system; returns (terminated, recorded observation columns)."""
+        m, d = self.m, self.d
+        path = [obs[record]] if record is not None else []
+        for _ in range(steps):
+            d.ctrl[:] = self.coach.act(obs)
+            mujoco.mj_step(m, d, nstep=self.loaded.frame_skip)
+            obs = self.fast.observe(d)
+            if record is not None:
+                path.append(obs[record])
+            if self.fast.terminated(d):
+                return True, np.array(path)
+        return False, np.array(path)
+
+
+def ellipse_slice(
+    P: np.ndarray, center: np.ndarray, level: float, idx: tuple[int, int], points: int = 200
+) -> np.ndarray:
+    """Boundary of ``{y : (y - c)' P (y - c) <= level}`` cut by the plane of ``idx`` through ``c``.
+
+    Returns
+    -------
+    xy : ndarray, shape (2, points)
+        The two chosen coordinates along the boundary.
+    """
+    M = np.asarray(P)[np.ix_(idx, idx)]
+    t = np.linspace(0, 2 * np.pi, points)
+    pts = np.linalg.solve(np.linalg.cholesky(M / level).T, np.vstack([np.cos(t), np.sin(t)]))
+    return np.asarray(center)[list(idx), None] + pts
+
+
+def _sample_ellipsoid(P_y: np.ndarray, c: float, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Uniform samples in ``{y : y' P_y y <= c}``, shape ``(n, k)``."""
+    k = P_y.shape[0]
+    L = np.linalg.cholesky(P_y / c)  # y' P_y y / c = |L' y|^2
+    g = rng.standard_normal((n, k))
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    r = rng.random(n) ** (1.0 / k)
+    u = g * r[:, None]
+    return np.linalg.solve(L.T, u.T).T
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A simulated trajectory, for plots: recorded observation columns and its outcome."""
+
+    path: np.ndarray
+    recovered: bool
+
+
+def _check_level(
+    sim: _Simulator,
+    lyap: Lyapunov,
+    c: float,
+    n: int,
+    steps: int,
+    rng: np.random.Generator,
+    record: list[int] | None = None,
+    keep: int = 0,
+    tick: Callable[[int], None] | None = None,
+) -> tuple[int, int, list[Trajectory]]:
+    """(terminated, not converged, kept trajectories) among n samples in {V <= c}."""
+    terminated = not_converged = 0
+    kept: list[Trajectory] = []
+    plant_n = sim.lin.sysd.nstates
+    for i, y_dev in enumerate(_sample_ellipsoid(lyap.P_y, c, n, rng)):
+        if tick is not None:
+            tick(i)
+        X0 = lyap.to_state @ y_dev
+        obs = sim.start(X0[:plant_n])
+        v0 = float(X0 @ lyap.P @ X0)
+        term, path = sim.run(obs, steps, record)
+        failed = term
+        if term:
+            terminated += 1
+        else:
+            X = np.concatenate([sim.plant_state(), sim.coach_deviation()])
+            if float(X @ lyap.P @ X) >= v0:
+                not_converged += 1
+                failed = True
+        if len(kept) < keep:
+            kept.append(Trajectory(path, not failed))
+    return terminated, not_converged, kept
+
+
+def phase_portrait(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    variables: tuple[str, str],
+    extent: tuple[float, float],
+    grid: int = 7,
+    horizon_s: float = 3.0,
+) -> list[np.ndarray]:
+    """Coached MuJoCo trajectories, recorded in two variables, from a grid over ``+-extent``.
+
+    The two variables are set through the plant state (least-norm change), everything else
+    at the operating point.
+    """
+    from pidlab.controller.analysis import analyze_coach
+
+    coach = Coach(spec, loaded)
+    lin = analyze_coach(coach, loaded).linearization
+    sim = _Simulator(spec, loaded, lin)
+    card = loaded.require_card()
+    names = card.observation_names
+    idx = [names.index(v) for v in variables]
+    Cinv = np.linalg.pinv(np.asarray(lin.sysd.C))
+    steps = max(1, round(horizon_s / loaded.control_dt))
+    paths = []
+    for a in np.linspace(-extent[0], extent[0], grid):
+        for b in np.linspace(-extent[1], extent[1], grid):
+            x = Cinv[:, idx[0]] * a + Cinv[:, idx[1]] * b
+            obs = sim.start(x)
+            _, path = sim.run(obs, steps, idx)
+            paths.append(path)
+    return paths
+
+
+# --------------------------------------------------------------------------------------------
+# Optimization-based estimate (CasADi, symbolic pendulum)
+
+
+def optimization_level(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    lyap: Lyapunov,
+    coach: Coach,
+    lin: Linearization,
+    horizon_steps: int = 1,
+    starts: int = 16,
+    seed: int = 0,
+    c_scale: float = 1.0,
+) -> float | None:
+    """``min V(X)`` subject to ``V(F^k(X)) >= V(X)``, ``V(X) >= delta``, multi-start IPOPT.
+
+    ``F`` is one control period of the symbolic cart-pole model (RK4 at the model's timestep,
+    ``frame_skip`` times, control held), closed by the coach's law with saturation; ``k`` is
+    ``horizon_steps``. With ``k = 1`` this is the classical one-step decrease; a slow
+    closed-loop mode makes the one-step decrease tiny relative to ``V`` and the estimate
+    needlessly small, so ``k > 1`` uses the finite-step Lyapunov condition (``V`` decreases
+    over every ``k`` steps), which also implies attraction. Returns None when there is no
+    symbolic model (not a cart-pole chain) or the coach has states of its own (the static map
+    ``u(X)`` would not be the coach).
+    """
+    from pidlab.linear.symbolic import cart_pole_dynamics, cart_pole_parameters
+
+    lay = coach.layout
+    if np.any(lay.active_states()):
+        return None
+    try:
+        sym = cart_pole_dynamics(cart_pole_parameters(loaded.model))
+    except PidlabError:
+        return None
+    card = loaded.require_card()
+    m = loaded.model
+    nq = m.nq
+    x = cs.SX.sym("x", 2 * nq)
+    # observation as a symbolic function of the state (qfrc_constraint: zero away from limits)
+    ys = []
+    for var in card.observation:
+        jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, var.joint)
+        if var.source == "qfrc_constraint":
+            ys.append(cs.SX(0.0))
+            continue
+        idx = int(m.jnt_qposadr[jid]) if var.source == "qpos" else nq + int(m.jnt_dofadr[jid])
+        v = x[idx]
+        ys.append(cs.sin(v) if var.transform == "sin" else cs.cos(v) if var.transform == "cos" else v)
+    observe_sym = cs.Function("observe", [x], [cs.vertcat(*ys)])
+    _, u_const, _ = law(lay, np.zeros(lay.n_states), np.zeros(len(ys)), lay.setpoints, saturate=False)
+    K = np.asarray(coach.linear_model().D)[:, : len(ys)]
+    h = float(m.opt.timestep)
+    xk = x
+    for _ in range(horizon_steps):
+        u = cs.fmin(
+            cs.fmax(u_const[0] + cs.mtimes(cs.DM(K[0:1]), observe_sym(xk)), lay.ctrl_low[0]), lay.ctrl_high[0]
+        )
+        for _ in range(loaded.frame_skip):
+            k1 = sym.f(xk, u)
+            k2 = sym.f(xk + h / 2 * k1, u)
+            k3 = sym.f(xk + h / 2 * k2, u)
+            k4 = sym.f(xk + h * k3, u)
+            xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    x_op = np.concatenate([lin.op.qpos, lin.op.qvel])
+    P = lyap.P
+    V = cs.bilin(cs.DM(P), x - x_op, x - x_op)
+    V_next = cs.bilin(cs.DM(P), xk - x_op, xk - x_op)
+    # exclude a small ball: the symbolic model's closed-loop equilibrium sits a hair away from
+    # MuJoCo's (e.g. a few micrometres of cart offset under a slow cart loop), where V cannot
+    # decrease; below delta = 1e-4 c_scale that is all the optimizer would find
+    delta = 1e-4 * c_scale
+    nlp = {"x": x, "f": V, "g": cs.vertcat(V_next - V, V)}
+    solver = cs.nlpsol(
+        "roa",
+        "ipopt",
+        nlp,
+        {
+            "ipopt.print_level": 0,
+            "ipopt.sb": "yes",
+            "print_time": False,
+            "show_eval_warnings": False,
+            "ipopt.max_iter": 300,
+            "ipopt.tol": 1e-10,
+        },
+    )
+    rng = np.random.default_rng(seed)
+    best = math.inf
+    # start points on the level sets V = c_scale * 10^(-3..2), in random directions; the search
+    # stays within V <= 100 c_scale (None: no point without decrease found there)
+    for _ in range(starts):
+        d = rng.standard_normal(2 * nq)
+        d *= math.sqrt(c_scale * 10 ** rng.uniform(-3, 2) / float(d @ P @ d))
+        try:
+            sol = solver(x0=x_op + d, lbg=[0.0, delta], ubg=[cs.inf, 100.0 * c_scale])
+        except RuntimeError:  # pragma: no cover - IPOPT gives up on a start
+            continue
+        if solver.stats()["success"]:
+            g = np.array(sol["g"]).ravel()
+            if g[0] >= -1e-7 * g[1] and g[1] >= delta * 0.99:
+                best = min(best, float(sol["f"]))
+    return best if math.isfinite(best) else None
+
+
+# --------------------------------------------------------------------------------------------
+# The estimate
+
+
+def geometric_bisect(ok: Callable[[float], bool], rounds: int = 8) -> float:
+    """Largest factor in (0, 1] for which ``ok`` holds, by geometric bisection; 0 if none.
+
+    Tries 1 first; after a failure with nothing passed yet, quarters the factor; otherwise
+    takes the geometric mean of the largest pass and the smallest failure. ``1 + rounds``
+    calls of ``ok`` at most.
+    """
+    if ok(1.0):
+        return 1.0
+    lo, hi = 0.0, 1.0
+    r = 0.25
+    for _ in range(rounds):
+        if ok(r):
+            lo = r
+        else:
+            hi = r
+        r = math.sqrt(lo * hi) if lo > 0 else r / 4.0
+    return lo
+
+
+def _termination_cap(lyap: Lyapunov, loaded: LoadedModel) -> float:
+    """Largest c whose ellipsoid stays inside the termination limits on observed joint positions."""
+    card = loaded.require_card()
+    cap = math.inf
+    Pinv = np.linalg.inv(lyap.P_y)
+    for limit in card.termination:
+        if limit.signal in lyap.variables:
+            i = lyap.variables.index(limit.signal)
+            room = min(abs(limit.high - lyap.center[i]), abs(lyap.center[i] - limit.low))
+            cap = min(cap, room**2 / Pinv[i, i])
+    return cap
+
+
+def estimate_roa(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    samples: int = 1000,
+    seed: int = 0,
+    horizon_s: float = 3.0,
+    bisection_samples: int = 50,
+    bisection_rounds: int = 8,
+    keep_trajectories: int = 0,
+    record: tuple[str, str] | None = None,
+    progress: Progress | None = None,
+) -> tuple[RegionOfAttraction, list[Trajectory]]:
+    """Estimate and certify the region of attraction of ``spec`` on its env.
+
+    Parameters
+    ----------
+    spec : CoachSpec
+    loaded : LoadedModel
+    samples : int
+        Final certification: number of simulated initial states (N).
+    seed : int
+    horizon_s : float
+        Simulated time per trajectory, s.
+    bisection_samples, bisection_rounds : int
+        Budget of the bisection on the level.
+    keep_trajectories : int
+        How many final-check trajectories to return (for plots).
+    record : (str, str), optional
+        Two observation variables to record along those trajectories.
+    progress : callable, optional
+        Called as ``progress(stage, fraction)`` while the estimate runs (``fraction`` in [0, 1],
+        or None where the stage's length is unknown). It may raise to abandon the estimate.
+
+    Returns
+    -------
+    RegionOfAttraction, list of Trajectory
+
+    Raises
+    ------
+    RegionError
+        Unstable closed loop, or nothing certified.
+    """
+    t0 = time.perf_counter()
+    report = progress if progress is not None else _no_progress
+    coach = Coach(spec, loaded)
+    analysis = analyze_coach(coach, loaded)
+    if loaded.require_card().region_method == "simulation":
+        return _recoverable_box(
+            spec,
+            loaded,
+            analysis,
+            samples,
+            seed,
+            horizon_s,
+            bisection_samples,
+            bisection_rounds,
+            keep_trajectories,
+            record,
+            t0,
+            report,
+        )
+    lin = analysis.linearization
+    sim = _Simulator(spec, loaded, lin)
+    lyap = lyapunov_function(analysis, coach, sim.y_op)
+    steps = max(1, round(horizon_s / loaded.control_dt))
+    opt_steps = max(1, round(OPTIMIZATION_HORIZON_S / loaded.control_dt))
+    hi = _termination_cap(lyap, loaded)
+    report("level estimate (CasADi)", None)
+    c_opt = optimization_level(
+        spec,
+        loaded,
+        lyap,
+        coach,
+        lin,
+        horizon_steps=opt_steps,
+        seed=seed,
+        c_scale=hi if math.isfinite(hi) else 1.0,
+    )
+    if c_opt is not None:
+        hi = min(hi, 4.0 * c_opt)  # the simulation may certify somewhat beyond the estimate
+    if not math.isfinite(hi):
+        hi = 1e3 * float(np.max(lyap.center**2) + 1.0)
+    rng = np.random.default_rng(seed)
+    tried = [0]
+
+    def passes(fraction: float) -> bool:
+        tried[0] += 1
+        report(f"bisection on the level ({tried[0]}/{bisection_rounds})", tried[0] / bisection_rounds)
+        term, nonconv, _ = _check_level(sim, lyap, fraction * hi, bisection_samples, steps, rng)
+        return term + nonconv == 0
+
+    lo = hi * geometric_bisect(passes, bisection_rounds - 1)
+    if lo == 0.0:
+        smallest = hi * 0.25 ** max(bisection_rounds - 1, 0)
+        raise RegionError(
+            f"no region of attraction certified for {spec.name}: every level down to {smallest:.3g} had "
+            "failures in simulation (c -> 0); no useful bound can be written"
+        )
+    # final certification with N samples; shrink while anything fails
+    rec = [loaded.card.observation_names.index(v) for v in record] if record and loaded.card else None
+    level = lo
+    for _ in range(6):
+        term, nonconv, kept = _check_level(
+            sim,
+            lyap,
+            level,
+            samples,
+            steps,
+            np.random.default_rng(seed + 1),
+            rec,
+            keep_trajectories,
+            _final_tick(report, samples),
+        )
+        if term + nonconv == 0:
+            break
+        level *= 0.7
+    else:
+        raise RegionError(f"no region of attraction certified for {spec.name}: failures persist as c -> 0")
+    check = SimulationCheck(level, samples, term + nonconv, term, nonconv, horizon_s, seed)
+    roa = RegionOfAttraction(
+        env_id=spec.env_id,
+        spec_name=spec.name,
+        method=METHOD_LYAPUNOV,
+        lyapunov=lyap,
+        level=level,
+        c_optimization=c_opt,
+        c_simulation=lo,
+        check=check,
+        elapsed_s=time.perf_counter() - t0,
+    )
+    return roa, kept
+
+
+def _recoverable_box(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    analysis: CoachAnalysis,
+    samples: int,
+    seed: int,
+    horizon_s: float,
+    bisection_samples: int,
+    bisection_rounds: int,
+    keep: int,
+    record: tuple[str, str] | None,
+    t0: float,
+    report: Progress,
+) -> tuple[RegionOfAttraction, list[Trajectory]]:
+    """Largest box over (torso pitch, pitch rate) from which the coach recovers (simulation)."""
+    card = loaded.require_card()
+    lin = analysis.linearization
+    sim = _Simulator(spec, loaded, lin)
+    m = loaded.model
+    jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "rooty")
+    dof = int(m.jnt_dofadr[jid])
+    pitch_limit = min(abs(t.high) for t in card.termination if t.signal == "rooty_pos")
+    # box shape: pitch up to the termination limit, pitch rate up to 10x that per second
+    shape = np.array([pitch_limit, 10.0 * pitch_limit])
+    steps = max(1, round(horizon_s / loaded.control_dt))
+    rec = [card.observation_names.index(v) for v in record] if record else None
+
+    def check(
+        scale: float,
+        n: int,
+        rng: np.random.Generator,
+        kept_n: int = 0,
+        tick: Callable[[int], None] | None = None,
+    ) -> tuple[int, list[Trajectory]]:
+        failures = 0
+        kept: list[Trajectory] = []
+        corners = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float)
+        points = np.vstack([corners, rng.uniform(-1, 1, (max(n - 4, 0), 2))])[:n]
+        for i, p in enumerate(points):
+            if tick is not None:
+                tick(i)
+            x = np.zeros(2 * m.nv)
+            x[dof], x[m.nv + dof] = p * shape * scale
+            obs = sim.start(x)
+            term, path = sim.run(obs, steps, rec)
+            failures += term
+            if len(kept) < kept_n:
+                kept.append(Trajectory(path, not term))
+        return failures, kept
+
+    rng = np.random.default_rng(seed)
+    lo, hi = 0.0, 1.0
+    scale = hi
+    for r in range(bisection_rounds):
+        report(f"bisection on the box ({r + 1}/{bisection_rounds})", (r + 1) / bisection_rounds)
+        if check(scale, bisection_samples, rng)[0] == 0:
+            lo = scale
+            if scale == hi:
+                break
+        else:
+            hi = scale
+        scale = 0.5 * (lo + hi) if lo > 0 else hi / 2.0
+    if lo == 0.0:
+        raise RegionError(f"no recoverable set found for {spec.name}: the coach fails from every box tried")
+    level = lo
+    for _ in range(6):
+        failures, kept = check(
+            level, samples, np.random.default_rng(seed + 1), keep, _final_tick(report, samples)
+        )
+        if failures == 0:
+            break
+        level *= 0.8
+    else:
+        raise RegionError(
+            f"no recoverable set certified for {spec.name}: failures persist as the box shrinks"
+        )
+    box = {"rooty_pos": float(shape[0] * level), "rooty_vel": float(shape[1] * level)}
+    result = RegionOfAttraction(
+        env_id=spec.env_id,
+        spec_name=spec.name,
+        method=METHOD_SIMULATION,
+        lyapunov=None,
+        level=level,
+        c_optimization=None,
+        c_simulation=lo,
+        check=SimulationCheck(level, samples, 0, 0, 0, horizon_s, seed),
+        elapsed_s=time.perf_counter() - t0,
+        box=box,
+    )
+    return result, kept

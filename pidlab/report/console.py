@@ -1,0 +1,436 @@
+"""Text and JSON presentation of results (the CLI's output layer; no computation here)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from rich.console import Console, Group
+from rich.table import Table
+from rich.text import Text
+
+from pidlab.linear.linearize import Linearization
+from pidlab.linear.lti import LtiReport
+
+
+def _fmt(x: float) -> str:
+    if x == 0:
+        return "0"
+    return f"{x:.4g}"
+
+
+def matrix_table(title: str, M: np.ndarray, rows: Sequence[str], cols: Sequence[str]) -> Table:
+    """A named matrix as a table: one row per ``rows`` name, one column per ``cols`` name."""
+    table = Table(title=title, title_justify="left", min_width=len(title) + 4)
+    table.add_column("", style="bold", no_wrap=True)
+    for c in cols:
+        table.add_column(c, justify="right", no_wrap=True)
+    for name, row in zip(rows, M, strict=True):
+        table.add_row(name, *(_fmt(float(v)) for v in row))
+    return table
+
+
+def modes_table(report: LtiReport, title: str) -> Table:
+    """Eigenvalues with stability marked, damping, natural frequency and PBH results."""
+    table = Table(title=title, title_justify="left", min_width=len(title) + 4)
+    table.add_column("#", justify="right")
+    if report.discrete:
+        table.add_column("z", justify="right")
+        table.add_column("|z|", justify="right")
+        table.add_column("s = ln(z)/dt (rad/s)", justify="right")
+    else:
+        table.add_column("eigenvalue (rad/s)", justify="right")
+        table.add_column("|λ| (rad/s)", justify="right")
+        table.add_column("damping", justify="right")
+    table.add_column("stability")
+    table.add_column("controllable")
+    table.add_column("observable")
+    for i, m in enumerate(report.modes):
+        v = m.value
+        val = f"{v.real:.5g}" + (
+            f" {'+' if v.imag >= 0 else '-'} {abs(v.imag):.5g}j" if abs(v.imag) > 0 else ""
+        )
+        if report.discrete:
+            s = np.log(v + 0j) / report.dt if abs(v) > 0 else complex("-inf")
+            extra = [f"{abs(v):.6g}", f"{s.real:.4g}" + (f" ± {abs(s.imag):.4g}j" if abs(s.imag) > 0 else "")]
+        else:
+            extra = [f"{abs(v):.5g}", "" if not np.isfinite(m.damping) else f"{m.damping:.3f}"]
+        status = (
+            Text("UNSTABLE", style="bold red")
+            if m.unstable
+            else (Text("marginal", style="yellow") if m.marginal else Text("stable", style="green"))
+        )
+        table.add_row(
+            str(i),
+            val,
+            *extra,
+            status,
+            "yes" if m.controllable else Text(f"NO ({m.ctrb_margin:.1e})", style="red"),
+            "yes" if m.observable else Text(f"NO ({m.obsv_margin:.1e})", style="red"),
+        )
+    return table
+
+
+def linearization_view(lin: Linearization, report: LtiReport, discrete: bool) -> Group:
+    """Everything ``pidlab linearize`` prints, as a rich renderable."""
+    op = lin.op
+    head = Text()
+    head.append(f"{lin.source}", style="bold")
+    head.append(
+        f"  integrator {lin.integrator}, timestep {lin.timestep:g} s, frame_skip {lin.frame_skip}, "
+        f"control period {lin.control_dt:g} s\n"
+    )
+    head.append(f"operating point: {op.source}; ctrl: {op.ctrl_source}\n")
+    head.append(f"  qpos = {np.array2string(op.qpos, precision=6, separator=', ')}\n")
+    head.append(f"  qvel = {np.array2string(op.qvel, precision=6, separator=', ')}\n")
+    head.append(f"  ctrl = {np.array2string(op.ctrl, precision=6, separator=', ')}\n")
+    if op.equilibrium is not None:
+        eq = op.equilibrium
+        head.append(
+            f"  inverse-dynamics residual (force the actuators cannot supply): {eq.residual_norm:.3g}\n"
+        )
+        if eq.saturated:
+            head.append(f"  clamped to ctrlrange: {', '.join(eq.saturated)}\n", style="yellow")
+    how = (
+        "finite differences of mj_step x frame_skip"
+        if lin.discretization == "step"
+        else "zero-order hold of the continuous model"
+    )
+    head.append(f"method: {lin.method}; discrete model: {how}\n")
+    eq_err = lin.equilibrium_error
+    if eq_err <= 1e-6:
+        head.append(f"max |f(x0, u0)| = {eq_err:.3g} (an equilibrium)\n")
+    else:
+        head.append(
+            f"max |f(x0, u0)| = {eq_err:.3g} (NOT an equilibrium: the model drifts from this point)\n",
+            style="yellow",
+        )
+    if lin.ncon or lin.nefc:
+        head.append(
+            f"active contacts {lin.ncon}, constraint rows {lin.nefc}: "
+            "the model holds while the contact set does not change\n",
+            style="yellow",
+        )
+    if lin.kink > 1e-3:
+        head.append(
+            f"one-sided derivatives differ by {lin.kink:.2g} (relative): "
+            "the dynamics have a kink here; A is the average of both sides\n",
+            style="yellow",
+        )
+    sys = lin.sysd if discrete else lin.sys
+    kind = f"discrete (dt = {lin.control_dt:g} s)" if discrete else "continuous"
+    a_name, b_name = ("Ad", "Bd") if discrete else ("A", "B")
+    rows_are = "next state" if discrete else "time derivative of the state"
+    parts: list[Any] = [head]
+    parts.append(
+        matrix_table(
+            f"{a_name}: {kind} state matrix (rows: {rows_are})",
+            np.asarray(sys.A),
+            lin.state_names,
+            lin.state_names,
+        )
+    )
+    parts.append(
+        matrix_table(f"{b_name}: {kind} input matrix", np.asarray(sys.B), lin.state_names, lin.input_names)
+    )
+    if lin.output_names != lin.state_names:
+        parts.append(
+            matrix_table(
+                "C: observation variables from states (Jacobian of the observation)",
+                np.asarray(sys.C),
+                lin.output_names,
+                lin.state_names,
+            )
+        )
+    parts.append(modes_table(report, f"Eigenvalues of {a_name}"))
+    summary = Text()
+    summary.append(
+        f"unstable modes: {report.n_unstable}\n", style="bold red" if report.n_unstable else "green"
+    )
+    summary.append(
+        f"controllability rank: {report.controllable_dim} / {report.n}"
+        f" ({'controllable' if report.controllable else 'NOT controllable'};"
+        f" {'stabilizable' if report.stabilizable else 'NOT stabilizable'})\n"
+    )
+    summary.append(
+        f"observability rank:   {report.observable_dim} / {report.n} from the outputs"
+        f" ({'observable' if report.observable else 'NOT observable'};"
+        f" {'detectable' if report.detectable else 'NOT detectable'})\n"
+    )
+    parts.append(summary)
+    return Group(*parts)
+
+
+def wide_console(stderr: bool = False) -> Console:
+    """A console that does not squeeze wide matrices into the terminal width."""
+    return Console(width=max(Console().width, 240), stderr=stderr)
+
+
+def _db(x: float) -> str:
+    if x == float("inf"):
+        return "inf"
+    if x == float("-inf"):
+        return "-inf"
+    return f"{x:.2f}"
+
+
+def margins_table(title: str, margins: Sequence[Any]) -> Table:
+    """Per-actuator stability margins with units."""
+    t = Table(title=title, title_justify="left", min_width=len(title) + 4)
+    for col in (
+        "loop broken at",
+        "GM (dB)",
+        "lower GM (dB)",
+        "PM (deg)",
+        "delay margin (s)",
+        "disk margin",
+        "disk GM (dB)",
+        "disk PM (deg)",
+        "Ms (dB)",
+        "gain crossover (rad/s)",
+        "phase crossover (rad/s)",
+    ):
+        t.add_column(col, justify="right" if col != "loop broken at" else "left")
+    for m in margins:
+        t.add_row(
+            m.actuator,
+            _db(m.gain_margin_db),
+            _db(m.lower_gain_margin_db),
+            f"{m.phase_margin_deg:.1f}",
+            f"{m.delay_margin_s:.4g}",
+            f"{m.disk_margin:.3f}",
+            f"{m.disk_gain_margin_db:.2f}",
+            f"{m.disk_phase_margin_deg:.1f}",
+            _db(m.ms_db),
+            f"{m.gain_crossover:.4g}",
+            f"{m.phase_crossover:.4g}",
+        )
+    return t
+
+
+def poles_table(title: str, poles: Sequence[Any], discrete: bool) -> Table:
+    """Closed-loop poles with damping and natural frequency."""
+    t = Table(title=title, title_justify="left", min_width=len(title) + 4)
+    t.add_column("#", justify="right")
+    if discrete:
+        t.add_column("z", justify="right")
+        t.add_column("|z|", justify="right")
+    t.add_column("s (rad/s)", justify="right")
+    t.add_column("damping", justify="right")
+    t.add_column("wn (rad/s)", justify="right")
+    t.add_column("")
+    for i, p in enumerate(poles):
+        s = p.s
+        s_txt = f"{s.real:.4g}" + (f" ± {abs(s.imag):.4g}j" if abs(s.imag) > 1e-12 else "")
+        row = [str(i)]
+        if discrete:
+            z = p.value
+            row += [
+                f"{z.real:.5g}"
+                + (f" {'+' if z.imag >= 0 else '-'} {abs(z.imag):.4g}j" if abs(z.imag) > 1e-12 else ""),
+                f"{abs(z):.6f}",
+            ]
+        row += [s_txt, f"{p.damping:.3f}", f"{p.natural_frequency:.4g}"]
+        t.add_row(*row, Text("stable", style="green") if p.stable else Text("UNSTABLE", style="bold red"))
+    return t
+
+
+def responses_table(responses: Sequence[Any]) -> Table:
+    """Step and initial-condition response metrics."""
+    t = Table(title="Closed-loop responses (discrete, linear)", title_justify="left")
+    for col in (
+        "response",
+        "loop",
+        "signal",
+        "overshoot (%)",
+        "settling 2% (s)",
+        "rise 10-90% (s)",
+        "peak |u| / half-range",
+    ):
+        t.add_column(col, justify="left" if col in ("response", "loop", "signal") else "right")
+    for r in responses:
+        what = "unit setpoint step" if r.kind == "step" else f"initial deviation {r.size:g}"
+        t.add_row(
+            what,
+            r.loop,
+            r.signal,
+            f"{r.overshoot_pct:.1f}",
+            f"{r.settling_time_s:.3g}",
+            "" if r.rise_time_s != r.rise_time_s else f"{r.rise_time_s:.3g}",
+            f"{r.peak_control:.3g}",
+        )
+    return t
+
+
+def score_table(score: Any) -> Table:
+    """Coach-alone episodes summary: return statistics and failure causes."""
+    t = Table(
+        title=f"Coach alone on {score.env_id}: {len(score.episodes)} episodes (seeds "
+        f"{score.episodes[0].seed}..{score.episodes[-1].seed})",
+        title_justify="left",
+    )
+    t.add_column("mean return", justify="right")
+    t.add_column("std", justify="right")
+    t.add_column("min", justify="right")
+    t.add_column("max", justify="right")
+    t.add_column("mean length (steps)", justify="right")
+    t.add_column("how episodes ended")
+    r = score.returns
+    causes = "; ".join(f"{n}x {c}" for c, n in sorted(score.causes.items(), key=lambda kv: -kv[1]))
+    t.add_row(
+        f"{score.mean:.1f}",
+        f"{score.std:.1f}",
+        f"{r.min():.1f}",
+        f"{r.max():.1f}",
+        f"{score.mean_length:.0f}",
+        causes,
+    )
+    return t
+
+
+def analysis_view(analysis: Any, score: Any | None) -> Group:
+    """Everything ``pidlab analyze`` prints."""
+    parts: list[Any] = []
+    head = Text()
+    head.append(f"{analysis.env_id} / {analysis.spec_name}", style="bold")
+    head.append(
+        f"  control period {analysis.dt:g} s; plant linearized at {analysis.linearization.op.source}\n"
+    )
+    if analysis.unobservable:
+        head.append(f"left out (unobservable from the observation): {', '.join(analysis.unobservable)}\n")
+    if analysis.linearization.kink > 1e-3:
+        head.append(
+            "contacts at the operating point: the linear analysis is an averaged local picture, "
+            "the coach-alone score is the real test\n",
+            style="yellow",
+        )
+    if analysis.stable:
+        head.append("closed loop (discrete, linear): STABLE\n", style="bold green")
+    else:
+        bad = [p for p in analysis.discrete.poles if not p.stable]
+        listing = ", ".join(f"|z|={abs(p.value):.5f}" for p in bad)
+        head.append(
+            f"closed loop (discrete, linear): UNSTABLE - {len(bad)} pole(s) on or outside the unit "
+            f"circle ({listing}); the margins below do not certify anything\n",
+            style="bold red",
+        )
+    parts.append(head)
+    parts.append(
+        margins_table(
+            "Margins, discrete (what runs), each loop broken at its actuator", analysis.discrete.margins
+        )
+    )
+    parts.append(
+        margins_table(
+            "Margins, continuous (coach by inverse Tustin, sampling ignored)", analysis.continuous.margins
+        )
+    )
+    parts.append(poles_table("Closed-loop poles (discrete)", analysis.discrete.poles, True))
+    parts.append(responses_table(analysis.responses))
+    parts.append(
+        Text(
+            f"pole cross-check: python-control interconnect vs hand-assembled A_cl: "
+            f"max difference {analysis.discrete.pole_check:.2g} (discrete), "
+            f"{analysis.continuous.pole_check:.2g} (continuous)"
+        )
+    )
+    if score is not None:
+        parts.append(score_table(score))
+    return Group(*parts)
+
+
+def roa_view(result: Any, units: dict[str, str] | None = None) -> Group:
+    """What ``pidlab roa`` prints: method, levels, samples, confidence, extents with units."""
+    head = Text()
+    head.append(f"{result.env_id} / {result.spec_name}: region of attraction\n", style="bold")
+    head.append(f"method: {result.method}\n")
+    chk = result.check
+    if result.lyapunov is not None:
+        opt = "not available" if result.c_optimization is None else f"{result.c_optimization:.4g}"
+        head.append(
+            f"level c (V = X' P X, Q = I): certified {result.level:.4g}; CasADi estimate {opt}; "
+            f"simulation bisection {result.c_simulation:.4g}\n"
+        )
+    head.append(
+        f"certification: {chk.samples} simulated initial states, {chk.failures} failures "
+        f"({chk.terminated} terminated, {chk.not_converged} not converged) over {chk.horizon_s:g} s; "
+        f"failure probability < {chk.failure_bound_95:.2g} at 95 % (rule of three)\n"
+    )
+    head.append(f"computed in {result.elapsed_s:.1f} s\n")
+    parts: list[Any] = [head]
+    t = Table(
+        title="Extent of the certified region per variable (others free within the set)", title_justify="left"
+    )
+    t.add_column("variable")
+    t.add_column("unit")
+    t.add_column("operating point", justify="right")
+    t.add_column("half-width", justify="right")
+    if result.lyapunov is not None:
+        L = result.lyapunov
+        Pinv = np.linalg.inv(L.P_y)
+        for i, v in enumerate(L.variables):
+            t.add_row(
+                v, (units or {}).get(v, ""), f"{L.center[i]:.4g}", f"{np.sqrt(result.level * Pinv[i, i]):.4g}"
+            )
+    else:
+        for v, h in result.box.items():
+            t.add_row(v, (units or {}).get(v, ""), "", f"{h:.4g}")
+    parts.append(t)
+    return Group(*parts)
+
+
+def bounds_view(b: Any) -> Group:
+    """What ``pidlab bounds`` prints."""
+    head = Text()
+    head.append(f"critical-state bounds ({b.method})\n", style="bold")
+    frac = b.provenance.get("one_step_action_fraction", 1.0)
+    if b.variables:
+        head.append(
+            f"ellipsoid: V <= rho c with rho = {b.rho:.4g} (c = {b.level:.4g}) over "
+            f"{', '.join(b.variables)}\n"
+        )
+    else:
+        head.append(f"box scaled to {b.rho:.4g} of the recoverable box for the one-step margin\n")
+    if frac < 1.0:
+        head.append(
+            f"one-step margin sized for agent actions up to {frac:.0%} of the action range: "
+            "from the operating point, one full-range action is more than this coach recovers from\n",
+            style="yellow",
+        )
+    samples, escapes = b.one_step_check
+    head.append(f"one-step check in MuJoCo: {samples} boundary states, {escapes} not recovered\n")
+    t = Table(title="Box: the coach takes over outside", title_justify="left")
+    t.add_column("variable")
+    t.add_column("low", justify="right")
+    t.add_column("high", justify="right")
+    for v, (lo, hi) in b.box.items():
+        t.add_row(v, f"{lo:.4g}", f"{hi:.4g}")
+    return Group(head, t)
+
+
+def train_view(result: Any, win_target: float) -> Group:
+    """What ``pidlab train`` prints at the end: step accounts and the agent-alone score."""
+    t = Table(title=f"Training run {result.run_dir}", title_justify="left")
+    t.add_column("quantity")
+    t.add_column("value", justify="right")
+    env = max(result.env_steps, 1)
+    t.add_row("env steps (agent + coach)", f"{result.env_steps:,}")
+    t.add_row("agent steps", f"{result.agent_steps:,}")
+    t.add_row("coach steps", f"{result.coach_steps:,} ({100 * result.coach_steps / env:.1f} %)")
+    t.add_row("interventions", f"{result.interventions:,}")
+    t.add_row("training episodes", f"{result.episodes:,}")
+    if result.wall_s > 0:
+        t.add_row("wall time (this session)", f"{result.wall_s:.1f} s")
+    ev = result.final_evaluation
+    if ev is not None:
+        wins = sum(r >= win_target for r in ev.returns)
+        t.add_row(
+            "agent alone (coach off, deterministic)",
+            f"{ev.mean:.1f} +- {ev.std:.1f} over {len(ev.returns)} seeds; {wins} >= {win_target:g}",
+        )
+    status = Text(
+        "completed" if result.completed else "stopped: resume with --resume " + str(result.run_dir),
+        style="green" if result.completed else "yellow",
+    )
+    return Group(t, status)

@@ -1,0 +1,355 @@
+"""The report of ``pidlab run``: what each stage of the pipeline found, on one page (Markdown).
+
+Pure functions: :func:`tune_summary` and :func:`roa_summary` turn results into the JSON the
+pipeline keeps between runs; :func:`render_markdown` turns :class:`PipelineFacts` into the
+report. Writing files is :mod:`pidlab.pipeline`'s job.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pidlab.controller.analysis import MARGIN_COLUMNS, CoachAnalysis, margin_table
+from pidlab.controller.rollout import CoachScore
+from pidlab.controller.spec import CoachSpec
+from pidlab.experiment.analysis import BASELINE, Analysis
+from pidlab.linear.lti import LtiReport
+from pidlab.report.experiment import VERSIONS, cell_metric, markdown_table, reading
+from pidlab.rl.recipe import PipelineSettings
+
+
+@dataclass(frozen=True)
+class PipelineFacts:
+    """Everything the report shows (figure paths relative to the report)."""
+
+    env_id: str
+    settings: PipelineSettings
+    record: dict[str, Any]
+    coaching: dict[str, Any]
+    lti: LtiReport
+    control_dt: float
+    tuning: dict[str, Any]
+    spec: CoachSpec
+    analysis: CoachAnalysis
+    score: CoachScore | None
+    roa: dict[str, Any]
+    units: dict[str, str]
+    results: Analysis
+    figures: tuple[str, ...]
+    roa_figure: str
+    curves_figure: str | None
+
+
+def tune_summary(result: Any) -> dict[str, Any]:
+    """What the auto-tuner was asked and achieved, as JSON.
+
+    ``result`` is a :class:`pidlab.controller.autotune.TuneResult`.
+    """
+    return {
+        "preset": result.preset,
+        "asked_bandwidth_rad_s": result.asked_bandwidth,
+        "achieved_bandwidth_rad_s": result.achieved_bandwidth,
+        "asked_phase_margin_deg": result.asked_phase_margin,
+        "achieved_phase_margin_deg": result.achieved_phase_margin,
+        "achieved_ms": result.achieved_ms,
+        "spectral_radius": result.spectral_radius,
+        "evaluations": result.evaluations,
+        "refined_return": result.refined_return,
+    }
+
+
+def roa_summary(region: Any, bounds: Any, pair: tuple[str, str]) -> dict[str, Any]:
+    """A certified region (:class:`pidlab.region.roa.RegionOfAttraction`) and its bounds, as JSON."""
+    check = region.check
+    return {
+        "method": region.method,
+        "level": region.level,
+        "c_optimization": region.c_optimization,
+        "c_simulation": region.c_simulation,
+        "variables": list(region.lyapunov.variables) if region.lyapunov is not None else [],
+        "check": {
+            "samples": check.samples,
+            "failures": check.failures,
+            "terminated": check.terminated,
+            "not_converged": check.not_converged,
+            "horizon_s": check.horizon_s,
+            "seed": check.seed,
+            "failure_bound_95": check.failure_bound_95,
+        },
+        "elapsed_s": region.elapsed_s,
+        "recoverable_box": {k: float(v) for k, v in region.box.items()},
+        "bounds": {
+            "method": bounds.method,
+            "rho": bounds.rho,
+            "box": {k: [float(lo), float(hi)] for k, (lo, hi) in bounds.box.items()},
+            "one_step_check": list(bounds.one_step_check),
+            "one_step_action_fraction": float(bounds.provenance.get("one_step_action_fraction", 1.0)),
+        },
+        "slice": list(pair),
+    }
+
+
+def _num(x: float | None, fmt: str = ".4g") -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "-"
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return format(x, fmt)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def _eig(value: complex) -> str:
+    if abs(value.imag) < 1e-9:
+        return f"{value.real:.4g}"
+    return f"{value.real:.4g} {'+' if value.imag >= 0 else '-'} {abs(value.imag):.4g}j"
+
+
+def _header(f: PipelineFacts) -> list[str]:
+    rec = f.record
+    git = rec.get("git", {})
+    versions = rec.get("versions", {})
+    s = f.settings
+    lines = [
+        f"# pidlab run: {f.env_id}",
+        "",
+        f"Command: `{' '.join(rec.get('command', [])) or 'pidlab run ' + f.env_id}`; created "
+        f"{rec.get('created', '')}; git {str(git.get('sha') or '?')[:12]}"
+        f"{' (dirty)' if git.get('dirty') else ''}; resumed {len(rec.get('resumes', []))} time(s).",
+        "",
+        f"Settings (the recipe's `[pipeline]` table and the command's overrides): {_count(s.seeds, 'seed')} "
+        f"per condition, {s.steps:,} env steps per run, preset {s.preset}, {s.roa_samples} simulated states "
+        f"certifying the region, {_count(s.episodes, 'coach-alone episode')}.",
+        "",
+        "Versions: " + ", ".join(f"{k} {versions[k]}" for k in VERSIONS if k in versions) + ".",
+        "",
+    ]
+    stages = rec.get("stages", {})
+    if stages:
+        rows = [[name, f"{v['seconds']:.1f}"] for name, v in stages.items()]
+        lines += [markdown_table(["stage", "time of its last run (s)"], rows), ""]
+    return lines
+
+
+def _linear_model(f: PipelineFacts) -> list[str]:
+    r = f.lti
+    unstable = [m for m in r.modes if m.unstable]
+    lines = [
+        "## 1. The linear model",
+        "",
+        f"{r.n} states, linearized at the model card's operating point; the coach runs every "
+        f"{1000 * f.control_dt:.4g} ms (the env's control period). "
+        f"{_count(len(unstable), 'unstable open-loop eigenvalue')}"
+        + (": " + ", ".join(f"{_eig(m.value)} rad/s" for m in unstable) if unstable else "")
+        + f". Controllable subspace: {r.controllable_dim} of {r.n}; "
+        f"{'stabilizable' if r.stabilizable else 'NOT stabilizable'}.",
+        "",
+        "Full tables: `linearization.json` beside this report (or `pidlab linearize " + f.env_id + "`).",
+        "",
+    ]
+    return lines
+
+
+def _coach(f: PipelineFacts) -> list[str]:
+    t = f.tuning
+    rows = []
+    for lp in f.spec.loops:
+        acts = ", ".join(f"{a} ({w:+g})" for a, w in lp.actuators)
+        rows.append(
+            [lp.name, lp.signal, lp.rate_signal or "-", acts, _num(lp.kp), _num(lp.ki), _num(lp.kd),
+             _num(lp.setpoint)]
+        )  # fmt: skip
+    lines = [
+        f"## 2. The coach (auto-tuned, preset {t['preset']})",
+        "",
+        markdown_table(
+            ["loop", "signal", "rate signal", "actuator (weight)", "Kp", "Ki (1/s)", "Kd (s)", "setpoint"],
+            rows,
+        ),
+        "",
+        f"Asked: gain crossover {_num(t['asked_bandwidth_rad_s'])} rad/s, phase margin "
+        f"{_num(t['asked_phase_margin_deg'], '.1f')} deg. The tuner's own figures: crossover "
+        f"{_num(t['achieved_bandwidth_rad_s'])} rad/s, phase margin "
+        f"{_num(t['achieved_phase_margin_deg'], '.1f')} deg, Ms {_num(t['achieved_ms'], '.3g')}, "
+        "closed-loop spectral radius "
+        f"{_num(t['spectral_radius'], '.5f')}, {t['evaluations']} evaluations"
+        + (
+            f", mean return {t['refined_return']:.1f} on the real env after refinement"
+            if t.get("refined_return") is not None
+            else ""
+        )
+        + ".",
+        "",
+        "### Stability margins",
+        "",
+        "The discrete loop (what runs), broken at each actuator in turn, the other loops closed.",
+        "",
+    ]
+    formats = {"gm_db": ".2f", "lower_gm_db": ".2f", "pm_deg": ".1f", "delay_ms": ".1f", "disk_alpha": ".3f",
+               "disk_gm_db": ".2f", "disk_pm_deg": ".1f", "ms_db": ".2f"}  # fmt: skip
+    mrows = [
+        [row["actuator"], *(_num(row[key], formats.get(key, ".4g")) for key, _ in MARGIN_COLUMNS[1:])]
+        for row in margin_table(f.analysis.discrete.margins)
+    ]
+    lines += [markdown_table([label for _, label in MARGIN_COLUMNS], mrows)]
+    poles = f.analysis.discrete.poles
+    radius = max(abs(p.value) for p in poles) if poles else float("nan")
+    damp = [p.damping for p in poles if not np.isnan(p.damping)]
+    lines += [
+        "",
+        f"Closed loop: {'stable' if f.analysis.stable else 'UNSTABLE'}, {len(poles)} poles, largest |z| "
+        f"{radius:.5f}, smallest damping ratio {min(damp):.3f}."
+        if damp
+        else "",
+        "",
+    ]
+    for fig in f.figures:
+        kind, _, actuator = fig.rsplit("/", 1)[-1].removesuffix(".png").partition("_")
+        lines += [f"![{kind}{f', loop broken at {actuator}' if actuator else ''}]({fig})", ""]
+    if f.score is not None:
+        sc = f.score
+        causes = ", ".join(f"{n} {c}" for c, n in sorted(sc.causes.items()))
+        n = len(sc.episodes)
+        episodes = f"{_count(n, 'seeded episode')}, " + (f"seeds 0-{n - 1}" if n > 1 else "seed 0")
+        lines += [
+            "### The coach alone on the real env",
+            "",
+            f"Return {sc.mean:.1f} +- {sc.std:.1f} (mean +- std over {episodes}); "
+            f"mean length {sc.mean_length:.0f} steps; how they ended: {causes}.",
+            "",
+        ]
+    return lines
+
+
+def _region(f: PipelineFacts) -> list[str]:
+    r = f.roa
+    c = r["check"]
+    b = r["bounds"]
+    check = (
+        f"Simulation check in MuJoCo: {c['samples']} sampled initial states, {c['horizon_s']:g} s each, "
+        f"{c['failures']} failed ({c['terminated']} terminated, {c['not_converged']} did not converge); "
+        f"with no failure, the failure probability over the set is below {100 * c['failure_bound_95']:.2g} % "
+        "at 95 % confidence (rule of three). A statistical statement about sampled states, not a proof."
+    )
+    one_step = (
+        f"one-step check in MuJoCo: {b['one_step_check'][0]} boundary states, "
+        f"{b['one_step_check'][1]} not recovered"
+    )
+    fraction = float(b.get("one_step_action_fraction", 1.0))
+    step = "one agent step from its edge is still recovered"
+    if fraction < 1.0:
+        step += (
+            f" for agent actions up to {100 * fraction:.0f} % of the action range (a full-range step "
+            "is more than this coach recovers from)"
+        )
+    lines = ["## 3. Region of attraction and critical-state bounds", "", f"Method: {r['method']}.", ""]
+    if r["variables"]:
+        lines += [
+            f"Certified level c = {_num(r['level'])} of V = x' P x"
+            + (
+                f" (CasADi's estimate {_num(r['c_optimization'])})"
+                if r.get("c_optimization") is not None
+                else ""
+            )
+            + f". {check}",
+            "",
+            f"Critical-state bounds: the takeover ellipsoid is V <= rho c with rho = {_num(b['rho'])}, "
+            + f"sized so that {step} ({one_step}).",
+        ]
+    else:
+        half = ", ".join(
+            f"{k} +-{_num(v)} {f.units.get(k, '')}".rstrip() for k, v in r.get("recoverable_box", {}).items()
+        )
+        lines += [
+            "Recoverable box about the operating point (contacts: no Lyapunov argument)"
+            + (f": {half}" if half else "")
+            + f". {check}",
+            "",
+            f"Critical-state bounds: that box scaled by {_num(b['rho'])}, so that {step} ({one_step}).",
+        ]
+    lines += [
+        "",
+        f"The critical box (this run's coaching rule: mode {f.coaching.get('mode')}, region "
+        f"{f.coaching.get('region')}; with region box the coach takes over when the state leaves it). "
+        "It is the largest box inside the projection of the takeover set on these variables; it does "
+        "not constrain the others, so in the slice below it can reach beyond the drawn ellipse:",
+        "",
+    ]
+    rows = [[k, f.units.get(k, ""), _num(lo), _num(hi)] for k, (lo, hi) in b["box"].items()]
+    lines += [markdown_table(["variable", "unit", "low", "high"], rows), ""]
+    lines += [f"![Region of attraction, the slice through {' and '.join(r['slice'])}]({f.roa_figure})", ""]
+    return lines
+
+
+def _training(f: PipelineFacts) -> list[str]:
+    a = f.results
+    env = f.env_id
+    budget = a.budgets.get(env, f.settings.steps)
+    rule = f"mode {f.coaching.get('mode')}, region {f.coaching.get('region')}"
+    recipe = f.record.get("recipe", f"coach/{env}.toml")
+    lines = [
+        "## 4. Training with and without the coach",
+        "",
+        f"The recipe's agent ({recipe}), {_count(f.settings.seeds, 'seed')} per condition, "
+        f"{budget:,} env steps per run (agent and coach steps both count). "
+        "`coached`: the coach above takes over as the recipe's coaching rule says "
+        f"({rule}); its steps are hidden from the agent. "
+        f"Target {a.targets.get(env, 0):g}.",
+        "",
+    ]
+    if a.missing:
+        lines += [f"Not finished (not counted): {', '.join(a.missing)}.", ""]
+    if f.curves_figure:
+        lines += [f"![Learning curves]({f.curves_figure})", ""]
+    lines += [
+        "### The agent alone",
+        "",
+        "Deterministic policy, coach off, fixed evaluation seeds. IQM over seeds with its 95 % "
+        "stratified bootstrap interval; P: probability of improvement over no coach (0.5: no difference).",
+        "",
+    ]
+    rows = []
+    for cond in a.conditions:
+        cell = a.cells.get((env, cond))
+        if cell is None:
+            continue
+        per_seed = ", ".join(f"{r.metrics.final_score:.0f}" for r in cell.runs)
+        p = cell.improvement.get("final_score")
+        rows.append(
+            [cond, cell_metric(cell, "final_score"), per_seed, cell_metric(cell, "env_steps_to_target"),
+             cell_metric(cell, "intervention_rate"), f"{cell.coach_dependent}/{len(cell.runs)}",
+             "-" if cond == BASELINE or p is None else f"{p.value:.2f} [{p.low:.2f}, {p.high:.2f}]"]
+        )  # fmt: skip
+    lines += [
+        markdown_table(
+            [
+                "condition",
+                "final agent-alone score",
+                "per seed",
+                "env steps to target (agent alone)",
+                "coach's share of env steps",
+                "coach-dependent",
+                "P(higher final score)",
+            ],
+            rows,
+        ),
+        "",
+        *(f"- {s}" for s in reading(a, env)),
+        "",
+        "The full experiment report, with the paper's measures beside its Table II: "
+        "[experiment/report.html](experiment/report.html) ([Markdown](experiment/report.md)).",
+        "",
+    ]
+    return lines
+
+
+def render_markdown(f: PipelineFacts) -> str:
+    """The pipeline's report as Markdown."""
+    lines = _header(f) + _linear_model(f) + _coach(f) + _region(f) + _training(f)
+    return "\n".join(lines).rstrip() + "\n"
