@@ -1,8 +1,9 @@
 """Write the tables of docs/results/README.md from the committed experiment reports.
 
 Reads docs/results/ENV/summary.csv and experiment.json (copied there by benchmarks/experiments.sh)
-and replaces the text between the markers in docs/results/README.md, so the numbers there are
-never typed by hand. Run: .venv/bin/python benchmarks/results_table.py
+and the paper's published numbers from the model cards (models/ENV.toml, ``[paper]``), and replaces
+the text between the markers in docs/results/README.md, so the numbers there are never typed by
+hand. Run: .venv/bin/python benchmarks/results_table.py
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import math
 from pathlib import Path
 
 from pidlab.files import atomic_write_text, read_json
-from pidlab.report.experiment import PAPER_TABLE_II, format_value
+from pidlab.report.experiment import format_value, paper_numbers
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"
@@ -66,7 +67,12 @@ def tables() -> str:
             continue
         rows, record = loaded
         ident = record["identity"]
-        target, w, wo, aw, awo = PAPER_TABLE_II[env]
+        paper = paper_numbers(env)
+        if paper is None:
+            raise SystemExit(f"models/{env}.toml has no [paper] table: the paper's numbers come from there")
+        target = paper.win_target
+        w, wo = paper.wins_coached, paper.wins_uncoached
+        aw, awo = paper.average_coached, paper.average_uncoached
         command = " ".join(record["command"])
         budgets.append(f"- **{env}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} conditions; "
                        f"`{command}`")  # fmt: skip

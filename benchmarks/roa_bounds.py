@@ -18,7 +18,8 @@ from pidlab.controller.pid import Coach
 from pidlab.controller.spec import load_spec
 from pidlab.plant.model import load_model
 from pidlab.region.bounds import derive_bounds
-from pidlab.region.roa import _Simulator, estimate_roa
+from pidlab.region.roa import estimate_roa
+from pidlab.region.simulate import Simulator
 
 ROOT = Path(__file__).resolve().parents[1]
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")
@@ -37,7 +38,7 @@ def recovery_from(
     """Fraction of episodes the coach survives from ``variable = +-value``, others at reset-noise scale."""
     coach = Coach(spec, loaded)
     lin = analyze_coach(coach, loaded).linearization
-    sim = _Simulator(spec, loaded, lin)
+    sim = Simulator(spec, loaded, lin)
     names = loaded.card.observation_names
     C = np.asarray(lin.sysd.C)
     Cinv = np.linalg.pinv(C)

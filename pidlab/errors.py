@@ -53,6 +53,10 @@ class NonFiniteJacobianError(PidlabError, ArithmeticError):
     """Finite differences produced NaN or inf: the dynamics are not differentiable there."""
 
 
+class LinearizationError(PidlabError, ValueError):
+    """A linearization that cannot be computed as asked (finite-difference step, discretization)."""
+
+
 class ModelCardError(PidlabError, ValueError):
     """A model card in ``models/`` that is malformed or does not match its model."""
 

@@ -55,6 +55,10 @@ def read_json(path: str | Path) -> Any:
 def save_figure(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
     """Write a matplotlib figure as PNG, atomically, and close it (the one way pidlab saves figures).
 
+    Works for a bare :class:`~matplotlib.figure.Figure` (what pidlab's ``plot_*`` functions make)
+    and for a figure made through pyplot, which is also removed from pyplot's list of open figures.
+    Neither imports pyplot nor chooses a backend.
+
     Parameters
     ----------
     fig : matplotlib.figure.Figure
@@ -62,11 +66,11 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
         The PNG file; its folder is created.
     dpi : int
     """
-    import matplotlib.pyplot as plt
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
-    plt.close(fig)
+    pyplot = sys.modules.get("matplotlib.pyplot")
+    if pyplot is not None:  # a figure pyplot manages: let it go (a no-op for a bare Figure)
+        pyplot.close(fig)
     return atomic_write_bytes(path, buf.getvalue())
 
 

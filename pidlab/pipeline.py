@@ -16,6 +16,7 @@ Everything lands in one folder::
 
     OUT/
       pipeline.json        the settings, the command, versions, git SHA, each stage's time
+                           (a pidlab.provenance.Record)
       linearization.json   the linear model (as ``pidlab linearize --json``)
       tuned.toml           the auto-tuned coach; tune.json: what was asked and achieved
       coach.toml           the same coach with its derived [bounds]: the one that trains
@@ -31,27 +32,38 @@ folder that holds a pipeline with other settings is refused and left untouched.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pidlab.data import source_root
 from pidlab.errors import PipelineError
 from pidlab.files import atomic_write_text, read_json, write_json
-from pidlab.provenance import git_state, package_versions
+from pidlab.provenance import Record, Refusals, add_resume, check_folder, new_record, now, write_record
 from pidlab.rl.recipe import (
     PRESETS,
     PipelineSettings,
+    Recipe,
     default_recipe_path,
     load_pipeline_settings,
     load_recipe,
     recipe_envs,
     recipe_to_dict,
 )
+
+if TYPE_CHECKING:
+    from pidlab.controller.analysis import CoachAnalysis
+    from pidlab.controller.rollout import CoachScore
+    from pidlab.controller.spec import CoachSpec
+    from pidlab.experiment.sweep import Plan, SweepResult
+    from pidlab.linear.linearize import Linearization
+    from pidlab.linear.lti import LtiReport
+    from pidlab.plant.model import LoadedModel
+    from pidlab.region.bounds import CriticalBounds
+    from pidlab.region.roa import RegionOfAttraction
 
 PIPELINE_SCHEMA = "pidlab.pipeline/1"
 STAGES = ("linearize", "tune", "analyze", "bounds", "train", "report")
@@ -104,16 +116,17 @@ def settings_for(
     path = default_recipe_path(env_id)
     if not path.is_file():
         raise PipelineError(
-            f"ENV {env_id!r}: no recipe {path}; recipes exist for: {', '.join(recipe_envs())}"
+            f"env_id={env_id!r}: no recipe {path}; recipes exist for: {', '.join(recipe_envs())}",
+            param="env_id",
         )
     base = load_pipeline_settings(path)
-    checks = {"--seeds": (seeds, 1), "--steps": (steps, 1), "--samples": (roa_samples, 1),
-              "--episodes": (episodes, 0)}  # fmt: skip
-    for flag, (value, low) in checks.items():
+    checks = {"seeds": (seeds, 1), "steps": (steps, 1), "roa_samples": (roa_samples, 1),
+              "episodes": (episodes, 0)}  # fmt: skip
+    for name, (value, low) in checks.items():
         if value is not None and value < low:
-            raise PipelineError(f"{flag} {value}: expected an integer >= {low}")
+            raise PipelineError(f"{name}={value}: expected an integer >= {low}", param=name)
     if preset is not None and preset not in PRESETS:
-        raise PipelineError(f"--preset {preset!r}: expected one of {', '.join(PRESETS)}")
+        raise PipelineError(f"preset={preset!r}: expected one of {', '.join(PRESETS)}", param="preset")
     given: dict[str, Any] = {"seeds": seeds, "steps": steps, "preset": preset, "roa_samples": roa_samples,
                              "episodes": episodes}  # fmt: skip
     return replace(base, **{k: v for k, v in given.items() if v is not None})
@@ -125,41 +138,41 @@ def _identity(env_id: str, settings: PipelineSettings) -> dict[str, Any]:
     return {"schema": PIPELINE_SCHEMA, "env_id": env_id, "settings": kept}
 
 
-def check_out_folder(out: Path, identity: dict[str, Any]) -> dict[str, Any] | None:
-    """The folder's existing record, if it holds this pipeline.
+def _differences(old: Record, identity: dict[str, Any]) -> str:
+    """What differs between a folder's pipeline and the one asked for, e.g. ``steps 1024 (now 2048)``."""
+    was = old.identity or {}
+    diffs = []
+    if old.schema != PIPELINE_SCHEMA:
+        diffs.append(f"schema {old.schema}")
+    elif was.get("schema") != identity["schema"]:
+        diffs.append(f"schema {was.get('schema')}")
+    if was.get("env_id") != identity["env_id"]:
+        diffs.append(f"env {was.get('env_id')}")
+    for key, value in identity["settings"].items():
+        before = was.get("settings", {}).get(key)
+        if before != value:
+            diffs.append(f"{key} {before} (now {value})")
+    return ", ".join(diffs)
+
+
+def check_out_folder(out: Path, identity: dict[str, Any]) -> Record | None:
+    """The folder's existing record, if it holds this pipeline (nothing is written).
 
     Raises
     ------
     PipelineError
         The folder holds something else: another pipeline, or files that are not a pipeline's.
     """
-    if out.exists() and not out.is_dir():
-        raise PipelineError(f"--out {out}: exists and is not a folder")
-    record_path = out / "pipeline.json"
-    if record_path.exists():
-        try:
-            record = read_json(record_path)
-        except (OSError, json.JSONDecodeError):
-            record = None
-        if not isinstance(record, dict):
-            raise PipelineError(f"--out {out}: pipeline.json is not a pipeline record; use another folder")
-        old = record.get("identity", {})
-        if old != identity:
-            diffs = []
-            if old.get("env_id") != identity["env_id"]:
-                diffs.append(f"env {old.get('env_id')}")
-            for key, value in identity["settings"].items():
-                was = old.get("settings", {}).get(key)
-                if was != value:
-                    diffs.append(f"{key} {was} (now {value})")
-            raise PipelineError(
-                f"--out {out}: holds a pipeline run with other settings ({', '.join(diffs)}); "
-                "run with the same settings to resume, or choose another --out"
-            )
-        return dict(record)
-    if out.exists() and any(out.iterdir()):
-        raise PipelineError(f"--out {out}: not empty and holds no pipeline.json; choose another folder")
-    return None
+    refusals = Refusals(
+        not_a_folder=f"out={out}: exists and is not a folder",
+        not_a_record=f"out={out}: pipeline.json is not a pipeline record; use another folder",
+        not_ours=f"out={out}: not empty and holds no pipeline.json; choose another folder",
+        another=lambda old: (
+            f"out={out}: holds a pipeline run with other settings ({_differences(old, identity)}); "
+            "run with the same settings to resume, or choose another folder"
+        ),
+    )
+    return check_folder(out, "pipeline.json", PIPELINE_SCHEMA, identity, refusals, PipelineError, "out")
 
 
 @contextmanager
@@ -176,7 +189,7 @@ def _stage(
     t0 = time.perf_counter()
     yield
     seconds = time.perf_counter() - t0
-    records.append(StageRecord(name, "done", seconds, time.strftime("%Y-%m-%dT%H:%M:%S%z")))
+    records.append(StageRecord(name, "done", seconds, now()))
     say(f"[{index}/{len(STAGES)}] {name}: {seconds:.1f} s")
 
 
@@ -197,6 +210,250 @@ def _write_conditions(out: Path, coach_file: Path) -> Path:
     }
     header = "# Written by pidlab run: the two conditions it trains (see pidlab.experiment.conditions).\n"
     return atomic_write_text(out / "conditions.toml", header + tomli_w.dumps(table))
+
+
+@dataclass(frozen=True)
+class _Session:
+    """What every stage of one pipeline session needs; ``stages`` grows as stages end."""
+
+    env_id: str
+    folder: Path
+    settings: PipelineSettings
+    loaded: LoadedModel
+    progress_bar: bool
+    say: Callable[[str], None]
+    stages: list[StageRecord]
+
+    def stage(self, name: str, done_before: bool = False) -> AbstractContextManager[None]:
+        """Time stage ``name`` (or say it was done before) and record it."""
+        return _stage(name, self.stages, done_before, self.say)
+
+
+def _start(
+    env_id: str, out: str | Path, settings: PipelineSettings, argv: Sequence[str]
+) -> tuple[Path, Record, Recipe]:
+    """Check the folder, create it and write (or extend, on resume) ``pipeline.json``."""
+    folder = Path(out).resolve()
+    identity = _identity(env_id, settings)
+    old = check_out_folder(folder, identity)
+    recipe = load_recipe(default_recipe_path(env_id))
+    try:
+        (folder / "figures").mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PipelineError(f"out={out}: cannot create the folder ({exc.strerror})", param="out") from None
+    if old is None:
+        record = new_record(PIPELINE_SCHEMA, argv, identity=identity, extra={"recipe": _shown(recipe.path)})
+    else:
+        record = add_resume(old, argv)
+    write_record(folder / "pipeline.json", record)
+    return folder, record, recipe
+
+
+def _linearize(s: _Session) -> tuple[Linearization, LtiReport]:
+    """Stage 1 (seconds; the JSON is rewritten only when missing)."""
+    from pidlab.linear.linearize import linearize
+    from pidlab.linear.lti import analyze_lti
+    from pidlab.linear.serialize import linearization_to_dict
+
+    path = s.folder / "linearization.json"
+    with s.stage("linearize"):
+        lin = linearize(s.loaded)
+        report_c, report_d = analyze_lti(lin.sys), analyze_lti(lin.sysd)
+        if not path.exists():
+            write_json(path, linearization_to_dict(lin, report_c, report_d))
+    return lin, report_c
+
+
+def _tune(s: _Session, lin: Linearization) -> tuple[CoachSpec, dict[str, Any], Path]:
+    """Stage 2: the auto-tuned spec, what was asked and achieved, and its file."""
+    from tqdm.auto import tqdm
+
+    from pidlab.controller.autotune import tune
+    from pidlab.controller.spec import load_spec, save_spec
+    from pidlab.report.pipeline import tune_summary
+
+    tuned_path, tune_json = s.folder / "tuned.toml", s.folder / "tune.json"
+    done = tuned_path.exists() and tune_json.exists()
+    with s.stage("tune", done):
+        if not done:
+            desc = f"tuning ({s.settings.preset})"
+            with tqdm(desc=desc, unit="eval", disable=not s.progress_bar) as bar:
+
+                def tick(n: int) -> None:
+                    bar.update(n - bar.n)
+
+                result = tune(s.loaded, preset=s.settings.preset, lin=lin, progress=tick)
+            write_json(tune_json, tune_summary(result))
+            save_spec(result.spec, tuned_path)
+    return load_spec(tuned_path), read_json(tune_json), tuned_path
+
+
+def _analyze(
+    s: _Session, spec: CoachSpec, tuned_path: Path
+) -> tuple[CoachAnalysis, list[Path], CoachScore | None]:
+    """Stage 3 (fast and deterministic: recomputed each time, so the report always matches the code)."""
+    from tqdm.auto import tqdm
+
+    from pidlab.controller.analysis import analyze_coach
+    from pidlab.controller.pid import Coach
+    from pidlab.controller.rollout import coach_alone
+    from pidlab.report.plots import write_plots
+
+    with s.stage("analyze"):
+        coach = Coach(spec, s.loaded)
+        analysis = analyze_coach(coach, s.loaded)
+        if not analysis.stable:
+            unstable = f"{s.env_id}: the auto-tuned coach's closed loop is unstable; see {tuned_path}"
+            raise PipelineError(unstable)
+        written = write_plots(analysis, coach, s.folder / "figures")
+        score = None
+        if s.settings.episodes:
+            with tqdm(total=1, desc="coach alone", unit="run", disable=not s.progress_bar) as bar:
+                score = coach_alone(spec, s.loaded, episodes=s.settings.episodes)
+                bar.update(1)
+    return analysis, written, score
+
+
+def _region(
+    s: _Session, spec: CoachSpec, pair: tuple[str, str]
+) -> tuple[RegionOfAttraction, list[Any], CriticalBounds]:
+    """The certified region (with trajectories to draw) and the bounds derived from it."""
+    from tqdm.auto import tqdm
+
+    from pidlab.region.bounds import derive_bounds
+    from pidlab.region.roa import estimate_roa
+
+    with tqdm(total=100, desc="region", unit="%", disable=not s.progress_bar) as bar:
+        shown = {"phase": ""}
+
+        def roa_progress(stage: str, fraction: float | None) -> None:
+            # each phase (CasADi level, bisection, final check) runs from 0 to 100 %
+            phase = stage.split(" (")[0]
+            if phase != shown["phase"]:
+                shown["phase"] = phase
+                bar.set_description_str(f"region: {phase}")
+            bar.n = int(100 * (fraction or 0.0))
+            bar.refresh()
+
+        region, kept = estimate_roa(
+            spec, s.loaded, samples=s.settings.roa_samples, seed=0, keep_trajectories=80,
+            record=pair if pair[0] != pair[1] else None, progress=roa_progress,
+        )  # fmt: skip
+        bar.set_description_str("region: deriving the critical bounds")
+        bar.n = 0
+        bar.refresh()
+        crit = derive_bounds(region, spec, s.loaded, seed=0)
+        bar.n = 100
+        bar.refresh()
+    return region, kept, crit
+
+
+def _bounds(
+    s: _Session, spec: CoachSpec, units: dict[str, str]
+) -> tuple[CoachSpec, dict[str, Any], Path, Path]:
+    """Stage 4: the coach with its bounds, the region's facts, the coach's file and the region figure.
+
+    Redone when the tuned coach changed since (``roa.json`` records the spec it was derived for).
+    """
+    from pidlab.controller.spec import load_spec, save_spec
+    from pidlab.files import save_figure
+    from pidlab.region.bounds import with_bounds
+    from pidlab.report.pipeline import roa_summary
+    from pidlab.report.plots import plot_roa_slice
+    from pidlab.rl.rundir import spec_digest
+
+    coach_path, roa_json = s.folder / "coach.toml", s.folder / "roa.json"
+    roa_png = s.folder / "figures" / "roa.png"
+    lp0 = spec.loops[0]
+    pair = (lp0.signal, lp0.rate_signal or lp0.signal)
+    tuned_digest = spec_digest(spec)
+    done = (
+        coach_path.exists()
+        and roa_png.exists()
+        and roa_json.exists()
+        and read_json(roa_json).get("tuned_sha256") == tuned_digest
+    )
+    with s.stage("bounds", done):
+        if not done:
+            region, kept, crit = _region(s, spec, pair)
+            save_figure(plot_roa_slice(region, pair, kept, units, bounds=crit), roa_png)
+            write_json(roa_json, {**roa_summary(region, crit, pair), "tuned_sha256": tuned_digest})
+            save_spec(with_bounds(spec, crit), coach_path)
+    return load_spec(coach_path), read_json(roa_json), coach_path, roa_png
+
+
+def _train(
+    s: _Session, coach_path: Path, workers: int | None, argv: Sequence[str]
+) -> tuple[Plan, SweepResult]:
+    """Stage 5: train with and without the coach (a resumable sweep in ``experiment/``)."""
+    from pidlab.experiment.sweep import plan, run_sweep
+
+    conditions = _write_conditions(s.folder, coach_path)
+    sweep_plan = plan(
+        [s.env_id], list(CONDITIONS), list(range(s.settings.seeds)), s.folder / "experiment",
+        conditions_file=conditions, steps=s.settings.steps,
+    )  # fmt: skip
+    with s.stage("train"):
+        sweep = run_sweep(sweep_plan, workers=workers, argv=argv, progress_bar=s.progress_bar)
+    return sweep_plan, sweep
+
+
+@dataclass(frozen=True)
+class _Made:
+    """What stages 1-4 made, for the report."""
+
+    recipe: Recipe
+    lin: Linearization
+    lti: LtiReport
+    tuning: dict[str, Any]
+    analysis: CoachAnalysis
+    figures: list[Path]
+    score: CoachScore | None
+    coached: CoachSpec
+    roa: dict[str, Any]
+    roa_png: Path
+    units: dict[str, str]
+
+
+def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple[Path, Path]:
+    """Stage 6: the experiment's own report, the learning curves and the pipeline's report."""
+    from pidlab.experiment.analysis import analyze
+    from pidlab.files import save_figure
+    from pidlab.report.curves import plot_learning_curves
+    from pidlab.report.experiment import render_html, write_report
+    from pidlab.report.pipeline import PipelineFacts, render_markdown
+
+    folder, env_id = s.folder, s.env_id
+    with s.stage("report"):
+        exp_record = read_json(sweep_plan.out / "experiment.json")
+        results = analyze(exp_record["identity"], sweep_plan.out, sweep_plan.recipes)
+        write_report(sweep_plan, progress_bar=False, analysis=results)
+        curves = folder / "figures" / "learning-curves.png"
+        if (env_id, "none") in results.cells or (env_id, "coached") in results.cells:
+            save_figure(plot_learning_curves(results, env_id), curves)
+        _finish_record(folder, record, s.stages)
+        facts = PipelineFacts(
+            env_id=env_id,
+            settings=s.settings,
+            record=read_json(folder / "pipeline.json"),
+            coaching=recipe_to_dict(made.recipe)["coaching"],
+            lti=made.lti,
+            control_dt=float(made.lin.control_dt),
+            tuning=made.tuning,
+            spec=made.coached,
+            analysis=made.analysis,
+            score=made.score,
+            roa=made.roa,
+            units=made.units,
+            results=results,
+            figures=tuple(p.relative_to(folder).as_posix() for p in made.figures),
+            roa_figure=made.roa_png.relative_to(folder).as_posix(),
+            curves_figure=curves.relative_to(folder).as_posix() if curves.exists() else None,
+        )
+        text = render_markdown(facts)
+        md = atomic_write_text(folder / "report.md", text)
+        page = atomic_write_text(folder / "report.html", render_html(text, f"pidlab run {env_id}"))
+    return md, page
 
 
 def run_pipeline(
@@ -237,176 +494,27 @@ def run_pipeline(
     PipelineError, RecipeError, SpecError, RegionError, ExperimentError
         One line naming what is wrong; nothing already finished is lost.
     """
-    from tqdm.auto import tqdm
-
-    from pidlab.controller.analysis import analyze_coach
-    from pidlab.controller.autotune import tune
-    from pidlab.controller.pid import Coach
-    from pidlab.controller.rollout import coach_alone
-    from pidlab.controller.spec import load_spec, save_spec
-    from pidlab.experiment.analysis import analyze
-    from pidlab.experiment.sweep import plan, run_sweep
-    from pidlab.files import save_figure
-    from pidlab.linear.linearize import linearize
-    from pidlab.linear.lti import analyze_lti
-    from pidlab.linear.serialize import linearization_to_dict
     from pidlab.plant.model import load_model
-    from pidlab.region.bounds import derive_bounds, with_bounds
-    from pidlab.region.roa import estimate_roa
-    from pidlab.report.curves import plot_learning_curves
-    from pidlab.report.experiment import render_html, write_report
-    from pidlab.report.pipeline import PipelineFacts, render_markdown, roa_summary, tune_summary
-    from pidlab.report.plots import plot_roa_slice, write_plots
-    from pidlab.rl.rundir import spec_digest
 
-    folder = Path(out).resolve()
-    identity = _identity(env_id, settings)
-    record = check_out_folder(folder, identity)
-    recipe = load_recipe(default_recipe_path(env_id))
-    try:
-        (folder / "figures").mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PipelineError(f"--out {out}: cannot create the folder ({exc.strerror})") from None
-    now = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    if record is None:
-        record = {"identity": identity, "created": now, "command": list(argv), "resumes": [],
-                  "versions": package_versions(), "git": git_state(),
-                  "recipe": _shown(recipe.path)}  # fmt: skip
-    else:
-        record.setdefault("resumes", []).append(
-            {"at": now, "command": list(argv), "versions": package_versions(), "git": git_state()}
-        )
-    write_json(folder / "pipeline.json", record)
-    records: list[StageRecord] = []
+    folder, record, recipe = _start(env_id, out, settings, argv)
     loaded = load_model(env_id)
-    card = loaded.require_card()
-    units = {v.name: v.unit for v in card.observation}
-
-    # 1. linearize (seconds; the JSON is rewritten only when missing)
-    lin_path = folder / "linearization.json"
-    with _stage("linearize", records, False, say):
-        lin = linearize(loaded)
-        report_c, report_d = analyze_lti(lin.sys), analyze_lti(lin.sysd)
-        if not lin_path.exists():
-            write_json(lin_path, linearization_to_dict(lin, report_c, report_d))
-
-    # 2. tune
-    tuned_path, tune_json = folder / "tuned.toml", folder / "tune.json"
-    with _stage("tune", records, tuned_path.exists() and tune_json.exists(), say):
-        if not (tuned_path.exists() and tune_json.exists()):
-            with tqdm(desc=f"tuning ({settings.preset})", unit="eval", disable=not progress_bar) as bar:
-
-                def tick(n: int) -> None:
-                    bar.update(n - bar.n)
-
-                result = tune(loaded, preset=settings.preset, lin=lin, progress=tick)
-            write_json(tune_json, tune_summary(result))
-            save_spec(result.spec, tuned_path)
-    spec = load_spec(tuned_path)
-    tuning = read_json(tune_json)
-
-    # 3. analyze (fast and deterministic: recomputed each time, so the report always matches the code)
-    with _stage("analyze", records, False, say):
-        coach = Coach(spec, loaded)
-        analysis = analyze_coach(coach, loaded)
-        if not analysis.stable:
-            raise PipelineError(f"{env_id}: the auto-tuned coach's closed loop is unstable; see {tuned_path}")
-        written = write_plots(analysis, coach, folder / "figures")
-        score = None
-        if settings.episodes:
-            with tqdm(total=1, desc="coach alone", unit="run", disable=not progress_bar) as bar:
-                score = coach_alone(spec, loaded, episodes=settings.episodes)
-                bar.update(1)
-
-    # 4. region of attraction and bounds
-    coach_path, roa_json = folder / "coach.toml", folder / "roa.json"
-    roa_png = folder / "figures" / "roa.png"
-    lp0 = spec.loops[0]
-    pair = (lp0.signal, lp0.rate_signal or lp0.signal)
-    tuned_digest = spec_digest(spec)
-    done = (
-        coach_path.exists()
-        and roa_png.exists()
-        and roa_json.exists()
-        and read_json(roa_json).get("tuned_sha256") == tuned_digest
-    )
-    with _stage("bounds", records, done, say):
-        if not done:
-            with tqdm(total=100, desc="region", unit="%", disable=not progress_bar) as bar:
-                shown = {"phase": ""}
-
-                def roa_progress(stage: str, fraction: float | None) -> None:
-                    # each phase (CasADi level, bisection, final check) runs from 0 to 100 %
-                    phase = stage.split(" (")[0]
-                    if phase != shown["phase"]:
-                        shown["phase"] = phase
-                        bar.set_description_str(f"region: {phase}")
-                    bar.n = int(100 * (fraction or 0.0))
-                    bar.refresh()
-
-                region, kept = estimate_roa(
-                    spec, loaded, samples=settings.roa_samples, seed=0, keep_trajectories=80,
-                    record=pair if pair[0] != pair[1] else None, progress=roa_progress,
-                )  # fmt: skip
-                bar.set_description_str("region: deriving the critical bounds")
-                bar.n = 0
-                bar.refresh()
-                crit = derive_bounds(region, spec, loaded, seed=0)
-                bar.n = 100
-                bar.refresh()
-            fig = plot_roa_slice(region, pair, kept, units, bounds=crit)
-            save_figure(fig, roa_png)
-            write_json(roa_json, {**roa_summary(region, crit, pair), "tuned_sha256": tuned_digest})
-            save_spec(with_bounds(spec, crit), coach_path)
-    coached = load_spec(coach_path)
-    roa_facts = read_json(roa_json)
-
-    # 5. train with and without the coach
-    conditions = _write_conditions(folder, coach_path)
-    sweep_plan = plan(
-        [env_id], list(CONDITIONS), list(range(settings.seeds)), folder / "experiment",
-        conditions_file=conditions, steps=settings.steps,
-    )  # fmt: skip
-    with _stage("train", records, False, say):
-        sweep = run_sweep(sweep_plan, workers=workers, argv=argv, progress_bar=progress_bar)
+    units = {v.name: v.unit for v in loaded.require_card().observation}
+    s = _Session(env_id, folder, settings, loaded, progress_bar, say, [])
+    lin, lti = _linearize(s)
+    spec, tuning, tuned_path = _tune(s, lin)
+    analysis, figures, score = _analyze(s, spec, tuned_path)
+    coached, roa, coach_path, roa_png = _bounds(s, spec, units)
+    sweep_plan, sweep = _train(s, coach_path, workers, argv)
+    failed = sweep.count("failed")
     if sweep.interrupted:
-        records[-1] = replace(records[-1], status="interrupted")
-        _finish_record(folder, record, records)
-        return PipelineResult(folder, folder / "report.md", folder / "report.html", tuple(records), True,
-                              sweep.count("failed"))  # fmt: skip
-
-    # 6. report
-    with _stage("report", records, False, say):
-        exp_record = read_json(sweep_plan.out / "experiment.json")
-        results = analyze(exp_record["identity"], sweep_plan.out, sweep_plan.recipes)
-        write_report(sweep_plan, progress_bar=False, analysis=results)
-        curves = folder / "figures" / "learning-curves.png"
-        if (env_id, "none") in results.cells or (env_id, "coached") in results.cells:
-            save_figure(plot_learning_curves(results, env_id), curves)
-        _finish_record(folder, record, records)
-        facts = PipelineFacts(
-            env_id=env_id,
-            settings=settings,
-            record=read_json(folder / "pipeline.json"),
-            coaching=recipe_to_dict(recipe)["coaching"],
-            lti=report_c,
-            control_dt=float(lin.control_dt),
-            tuning=tuning,
-            spec=coached,
-            analysis=analysis,
-            score=score,
-            roa=roa_facts,
-            units=units,
-            results=results,
-            figures=tuple(p.relative_to(folder).as_posix() for p in written),
-            roa_figure=roa_png.relative_to(folder).as_posix(),
-            curves_figure=curves.relative_to(folder).as_posix() if curves.exists() else None,
-        )
-        text = render_markdown(facts)
-        md = atomic_write_text(folder / "report.md", text)
-        page = atomic_write_text(folder / "report.html", render_html(text, f"pidlab run {env_id}"))
-    _finish_record(folder, record, records)
-    return PipelineResult(folder, md, page, tuple(records), False, sweep.count("failed"))
+        s.stages[-1] = replace(s.stages[-1], status="interrupted")
+        _finish_record(folder, record, s.stages)
+        md, page = folder / "report.md", folder / "report.html"
+        return PipelineResult(folder, md, page, tuple(s.stages), True, failed)
+    made = _Made(recipe, lin, lti, tuning, analysis, figures, score, coached, roa, roa_png, units)
+    md, page = _report(s, record, made, sweep_plan)
+    _finish_record(folder, record, s.stages)
+    return PipelineResult(folder, md, page, tuple(s.stages), False, failed)
 
 
 def _shown(path: str | None) -> str:
@@ -416,27 +524,28 @@ def _shown(path: str | None) -> str:
     return p.relative_to(root).as_posix() if root is not None and p.is_relative_to(root) else str(p)
 
 
-def _finish_record(folder: Path, record: dict[str, Any], records: list[StageRecord]) -> None:
-    """Write the stage times into ``pipeline.json``.
+def with_stage_times(record: Record, stages: Sequence[StageRecord]) -> Record:
+    """``record`` (as this session started) with the times of ``stages`` added.
 
     Each stage keeps the time of its last run; training is summed over the sessions that trained
-    (a resumed sweep only trains what was left).
+    (a resumed sweep only trains what was left): an interrupted session's training time waits in
+    ``pending_train_s`` for the session that finishes it.
     """
-    stages = dict(record.get("stages", {}))
-    pending = dict(record.get("pending_train_s", {}))
-    for r in records:
+    times = dict(record.extra.get("stages", {}))
+    pending = dict(record.extra.get("pending_train_s", {}))
+    for r in stages:
         if r.name == "train" and r.status in ("done", "interrupted"):
             total = float(pending.get("seconds", 0.0)) + r.seconds
             if r.status == "interrupted":
                 pending = {"seconds": round(total, 2)}
                 continue
             pending = {}
-            stages[r.name] = {"seconds": round(total, 2), "at": r.at}
+            times[r.name] = {"seconds": round(total, 2), "at": r.at}
         elif r.status == "done":
-            stages[r.name] = {"seconds": round(r.seconds, 2), "at": r.at}
-    record["stages"] = stages
-    if pending:
-        record["pending_train_s"] = pending
-    else:
-        record.pop("pending_train_s", None)
-    write_json(folder / "pipeline.json", record)
+            times[r.name] = {"seconds": round(r.seconds, 2), "at": r.at}
+    return record.with_extra(stages=times, pending_train_s=pending or None)
+
+
+def _finish_record(folder: Path, record: Record, stages: Sequence[StageRecord]) -> None:
+    """Write the stage times into ``pipeline.json`` (``record`` is the session's start)."""
+    write_record(folder / "pipeline.json", with_stage_times(record, stages))

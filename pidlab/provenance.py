@@ -1,13 +1,40 @@
-"""Provenance: what a run, an experiment or a pipeline records so that it can be reproduced."""
+"""Provenance: what a run, an experiment or a pipeline records so that it can be reproduced.
+
+One record type serves all three (``run.json``, ``experiment.json``, ``pipeline.json``)::
+
+    schema     what kind of record, versioned ("pidlab.run/1", "pidlab.experiment/1", ...)
+    created    when the folder was started (local time, ISO 8601)
+    command    the command line that started it
+    versions   Python, the platform and the packages (:func:`package_versions`)
+    git        pidlab's commit and whether its tree was dirty (:func:`git_state`)
+    identity   what makes two folders the same (experiments, pipelines); absent for a run
+    ...        the kind's own fields (a run's seed, an experiment's backend, a pipeline's stages)
+    resumes    one entry per later session: at, command, versions, git and the kind's own fields
+
+:func:`check_folder` is the one folder guard: it says whether a folder is new, holds this very
+record (to resume), or must be refused. :func:`digest` is the one digest of settings and specs.
+
+Records written before this module (run.json with ``started``, experiment.json resumes keyed
+``time``, pipeline.json without a top-level ``schema``) are read with the new names and written
+back with them on the next write (:func:`record_from_dict`).
+"""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import platform
 import subprocess
 import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 from typing import Any
+
+from pidlab.errors import PidlabError
+from pidlab.files import read_json, write_json
 
 PACKAGES = (
     "pidlab",
@@ -21,6 +48,9 @@ PACKAGES = (
     "casadi",
     "tensorboard",
 )
+TIME_FORMAT = "%Y-%m-%dT%H:%M:%S%z"
+COMMON_FIELDS = ("schema", "created", "command", "versions", "git", "identity", "resumes")
+RESUME_FIELDS = ("at", "command", "versions", "git")
 
 
 def package_versions() -> dict[str, str]:
@@ -53,3 +83,280 @@ def git_state(folder: str | Path | None = None) -> dict[str, Any]:
     sha = git("rev-parse", "HEAD")
     status = git("status", "--porcelain", "--untracked-files=no") if sha else None
     return {"sha": sha, "dirty": bool(status) if status is not None else None}
+
+
+def now() -> str:
+    """The local time as records write it, e.g. ``2026-11-22T21:25:07+0000``."""
+    return time.strftime(TIME_FORMAT)
+
+
+def digest(data: Any, length: int | None = None) -> str:
+    """SHA-256 (hex) of ``data``: the one digest of settings, specs and identities.
+
+    Parameters
+    ----------
+    data : str, bytes or JSON-able
+        A ``str`` is hashed as its UTF-8 text, ``bytes`` as they are, anything else as
+        ``json.dumps(data, sort_keys=True, default=str)`` (so key order does not matter).
+    length : int, optional
+        Keep the first ``length`` hex digits (default: all 64).
+    """
+    if isinstance(data, bytes):
+        raw = data
+    elif isinstance(data, str):
+        raw = data.encode("utf-8")
+    else:
+        raw = json.dumps(data, sort_keys=True, default=str).encode("utf-8")
+    return hashlib.sha256(raw).hexdigest()[:length]
+
+
+@dataclass(frozen=True)
+class Resume:
+    """One later session of a run, an experiment or a pipeline.
+
+    ``versions`` is None in entries written before resumes recorded them; ``extra`` holds the
+    kind's own fields (an experiment's ``backend``, a run's ``from_env_steps``).
+    """
+
+    at: str
+    command: tuple[str, ...]
+    versions: dict[str, str] | None
+    git: dict[str, Any]
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The entry as JSON writes it."""
+        out: dict[str, Any] = {"at": self.at, "command": list(self.command)}
+        if self.versions is not None:
+            out["versions"] = dict(self.versions)
+        return {**out, "git": dict(self.git), **self.extra}
+
+
+@dataclass(frozen=True)
+class Record:
+    """What a run directory, an experiment or a pipeline folder records about itself.
+
+    Attributes
+    ----------
+    schema : str
+        E.g. ``"pidlab.experiment/1"``.
+    created : str
+        When it was started.
+    command : tuple of str
+    versions : dict
+        :func:`package_versions` at the start.
+    git : dict
+        :func:`git_state` at the start.
+    identity : dict or None
+        What makes two folders the same (compared by :func:`check_folder`).
+    extra : dict
+        The kind's own fields, written beside the common ones.
+    resumes : tuple of Resume
+    """
+
+    schema: str
+    created: str
+    command: tuple[str, ...]
+    versions: dict[str, str]
+    git: dict[str, Any]
+    identity: dict[str, Any] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+    resumes: tuple[Resume, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """The record as JSON writes it (common fields first, resumes last)."""
+        out: dict[str, Any] = {"schema": self.schema, "created": self.created, "command": list(self.command),
+                               "versions": dict(self.versions), "git": dict(self.git)}  # fmt: skip
+        if self.identity is not None:
+            out["identity"] = self.identity
+        return {**out, **self.extra, "resumes": [r.to_dict() for r in self.resumes]}
+
+    def with_extra(self, **fields: Any) -> Record:
+        """The same record with the kind's fields ``fields`` set (a value of None removes one)."""
+        extra = {**self.extra, **fields}
+        return replace(self, extra={k: v for k, v in extra.items() if v is not None})
+
+
+def _kind_fields(fields: Mapping[str, Any], common: Sequence[str]) -> dict[str, Any]:
+    clash = set(fields) & set(common)
+    if clash:
+        raise ValueError(f"extra fields {sorted(clash)} would overwrite the record's own")
+    return dict(fields)
+
+
+def new_record(
+    schema: str,
+    command: Sequence[str],
+    *,
+    identity: dict[str, Any] | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> Record:
+    """A new record, started now, with this machine's versions and pidlab's git state.
+
+    Parameters
+    ----------
+    schema : str
+    command : sequence of str
+        The command line to record.
+    identity : dict, optional
+        What makes two folders the same.
+    extra : mapping, optional
+        The kind's own fields (must not reuse a common field's name).
+    """
+    return Record(
+        schema=schema,
+        created=now(),
+        command=tuple(command),
+        versions=package_versions(),
+        git=git_state(),
+        identity=identity,
+        extra=_kind_fields(extra or {}, COMMON_FIELDS),
+    )
+
+
+def add_resume(record: Record, command: Sequence[str], **extra: Any) -> Record:
+    """``record`` with one more resume: now, ``command``, versions, git state and ``extra``."""
+    entry = Resume(now(), tuple(command), package_versions(), git_state(), _kind_fields(extra, RESUME_FIELDS))
+    return replace(record, resumes=(*record.resumes, entry))
+
+
+def _resume_from_dict(data: Mapping[str, Any]) -> Resume:
+    at = data.get("at", data.get("time", ""))  # "time": experiment.json and run.json before 2026-11
+    extra = {k: v for k, v in data.items() if k not in (*RESUME_FIELDS, "time")}
+    versions = data.get("versions")
+    return Resume(str(at), tuple(data.get("command", ())), dict(versions) if versions is not None else None,
+                  dict(data.get("git", {})), extra)  # fmt: skip
+
+
+def record_from_dict(data: Mapping[str, Any], schema: str) -> Record:
+    """A record from its JSON, with the names of records written before this module migrated.
+
+    ``started`` (old run.json) becomes ``created``, a resume's ``time`` becomes ``at``, and a
+    record without ``schema`` (old run.json and pipeline.json) gets ``schema``. Every other field
+    is kept as it was, in ``extra`` (an ``identity`` that is not a JSON object reads as None).
+
+    Parameters
+    ----------
+    data : mapping
+        The parsed JSON object.
+    schema : str
+        The schema of the kind of record expected (given to records that have none).
+    """
+    created = data.get("created", data.get("started", ""))
+    extra = {k: v for k, v in data.items() if k not in (*COMMON_FIELDS, "started")}
+    identity = data.get("identity")
+    return Record(
+        schema=str(data.get("schema", schema)),
+        created=str(created),
+        command=tuple(data.get("command", ())),
+        versions=dict(data.get("versions", {})),
+        git=dict(data.get("git", {})),
+        identity=dict(identity) if isinstance(identity, Mapping) else None,
+        extra=extra,
+        resumes=tuple(_resume_from_dict(r) for r in data.get("resumes", ()) if isinstance(r, Mapping)),
+    )
+
+
+def _load(path: Path, schema: str) -> Record | None:
+    """The record in ``path``, or None when it is unreadable or not a JSON object."""
+    try:
+        data = read_json(path)
+    except (OSError, ValueError):
+        return None
+    return record_from_dict(data, schema) if isinstance(data, dict) else None
+
+
+def read_record(path: str | Path, schema: str, error: type[PidlabError] = PidlabError) -> Record:
+    """Read a record file (migrating old field names, see :func:`record_from_dict`).
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``: the file is unreadable or holds no JSON object.
+    """
+    record = _load(Path(path), schema)
+    if record is None:
+        raise error(f"{path}: not a pidlab record (unreadable, or not a JSON object)")
+    return record
+
+
+def write_record(path: str | Path, record: Record) -> Path:
+    """Write ``record`` to ``path`` atomically, with the current field names."""
+    return write_json(path, record.to_dict())
+
+
+@dataclass(frozen=True)
+class Refusals:
+    """The caller's one-line messages for a folder :func:`check_folder` refuses.
+
+    Attributes
+    ----------
+    not_a_folder : str
+        The path exists and is a file.
+    not_a_record : str
+        The record file is unreadable or holds no JSON object.
+    not_ours : str
+        The folder holds files but no record file.
+    another : callable
+        ``another(record)``: the folder holds another run, experiment or pipeline; the message
+        says what differs.
+    """
+
+    not_a_folder: str
+    not_a_record: str
+    not_ours: str
+    another: Callable[[Record], str]
+
+
+def check_folder(
+    folder: str | Path,
+    filename: str,
+    schema: str,
+    identity: dict[str, Any] | None,
+    refusals: Refusals,
+    error: type[PidlabError],
+    param: str | None = None,
+) -> Record | None:
+    """The one folder guard: may ``folder`` hold this run, experiment or pipeline? Nothing is written.
+
+    Parameters
+    ----------
+    folder : path
+    filename : str
+        The record's file in it, e.g. ``"experiment.json"``.
+    schema : str
+        The record's schema (records without one are taken as this kind's old records).
+    identity : dict or None
+        What the record must say to be this folder's (compared with ``Record.identity``).
+    refusals : Refusals
+        The caller's messages.
+    error : type
+        The caller's error class.
+    param : str, optional
+        The parameter that named the folder (the errors carry it).
+
+    Returns
+    -------
+    Record or None
+        The folder's record when it holds this very one (resume); None when the folder does
+        not exist or is empty (new).
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``, with one of ``refusals``' messages.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise error(refusals.not_a_folder, param=param)
+    path = folder / filename
+    if path.exists():
+        record = _load(path, schema)
+        if record is None:
+            raise error(refusals.not_a_record, param=param)
+        if record.schema != schema or record.identity != identity:
+            raise error(refusals.another(record), param=param)
+        return record
+    if folder.exists() and any(folder.iterdir()):
+        raise error(refusals.not_ours, param=param)
+    return None

@@ -15,9 +15,7 @@ from pathlib import Path
 import pytest
 
 from pidlab.plant.model import LoadedModel, load_model
-
-PAPER_ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")
-DATA = Path(__file__).parent / "data"
+from tests.helpers import DATA, PAPER_ENVS
 
 
 @pytest.fixture(scope="session")
@@ -28,19 +26,3 @@ def models() -> dict[str, LoadedModel]:
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     return DATA
-
-
-def cli_in_process(*args: str) -> tuple[int, str]:
-    """Run the ``pidlab`` command line in this process: (exit code, stderr).
-
-    The parametrized bad-input tests use it (a subprocess costs ~5 s of imports each); one
-    case per verb still runs the real ``pidlab`` executable.
-    """
-    from typer.testing import CliRunner
-
-    from pidlab.cli import app
-
-    result = CliRunner().invoke(app, list(args))
-    if result.exception is not None and not isinstance(result.exception, SystemExit):
-        raise result.exception
-    return result.exit_code, result.stderr

@@ -193,3 +193,65 @@ def test_gain_crossovers_are_real_crossovers(models, env, name):
         assert result.discrete.margins[0].phase_margin_deg == pytest.approx(59.73, abs=0.01)
     if (env, name) == ("Hopper-v5", "paper"):  # python-control misses this phase crossover
         assert result.discrete.margins[0].phase_crossover == pytest.approx(10.16, abs=0.01)
+
+
+@pytest.fixture(scope="module")
+def walker(models):
+    """Walker2d's robust coach (six actuator loops) and its analysis."""
+    loaded = models["Walker2d-v5"]
+    coach = Coach(load_spec(TUNING / "Walker2d-v5.pidlab-robust.toml"), loaded)
+    return analyze_coach(coach, loaded), coach
+
+
+def test_loop_responses_equal_python_controls_frequency_response(walker):
+    from pidlab.controller.analysis import loop_at_actuator, loop_responses, omega_grid
+
+    analysis, coach = walker
+    responses = loop_responses(analysis, coach, points=300)
+    assert tuple(r.margins for r in responses) == analysis.discrete.margins
+    top = np.pi / analysis.dt
+    omega = omega_grid(analysis.dt, 300)
+    assert omega[0] == pytest.approx(1e-4 * top) and top * (1 - 1e-5) < omega[-1] < top
+    coach_d = coach.linear_model()
+    plant = analysis.plant
+    for r in responses:
+        assert r.dt == analysis.dt and np.array_equal(r.omega, omega) and r.response.shape == (300,)
+        L = loop_at_actuator(plant, coach_d, list(plant.input_labels).index(r.actuator))
+        ref = np.asarray(L.frequency_response(omega).complex).ravel()
+        assert np.allclose(r.response, ref, rtol=1e-9, atol=0)
+        assert np.allclose(r.magnitude_db, 20 * np.log10(np.abs(ref)), rtol=0, atol=1e-9)
+        assert np.allclose(np.exp(1j * np.deg2rad(r.phase_deg)), ref / np.abs(ref), rtol=0, atol=1e-9)
+        assert np.all(np.abs(np.diff(r.phase_deg)) < 180)  # unwrapped
+
+
+def test_closed_loop_responses_equal_python_controls_forced_and_initial_response(walker):
+    import warnings
+
+    from pidlab.controller.analysis import INITIAL_DEVIATION, closed_loop_responses
+
+    analysis, coach = walker
+    r = closed_loop_responses(analysis, coach, horizon_s=2.0)
+    cl, plant = analysis.discrete.sys, analysis.plant
+    n, steps = len(coach.spec.loops), round(2.0 / analysis.dt)
+    assert r.loops == tuple(lp.name for lp in coach.spec.loops) and r.deviation == INITIAL_DEVIATION
+    assert r.outputs == tuple(plant.output_labels) + tuple(plant.input_labels)
+    assert np.array_equal(r.timepts, np.arange(steps) * analysis.dt)
+    assert r.step.shape == r.initial.shape == (n, steps, cl.noutputs)
+    for j, signal in enumerate(r.signals):
+        sig = list(plant.output_labels).index(signal)
+        x0 = np.zeros(cl.nstates)
+        x0[: plant.nstates] = np.linalg.pinv(np.asarray(plant.C))[:, sig] * INITIAL_DEVIATION
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            forced = ct.forced_response(cl, T=r.timepts, U=np.outer(np.eye(n)[j], np.ones(steps)))
+            initial = ct.initial_response(cl, T=r.timepts, X0=x0)
+        assert np.allclose(r.step[j], np.asarray(forced.outputs).T, rtol=1e-9, atol=1e-12)
+        assert np.allclose(r.initial[j], np.asarray(initial.outputs).T, rtol=1e-9, atol=1e-12)
+        assert np.array_equal(r.signal_step(j), r.step[j, :, sig])
+        assert r.signal_initial(j)[0] == pytest.approx(INITIAL_DEVIATION)
+
+
+def test_open_loop_poles_are_the_discrete_plants(walker):
+    analysis, _ = walker
+    ref = np.sort_complex(np.asarray(ct.poles(analysis.linearization.sysd)))
+    assert np.allclose(np.sort_complex(analysis.open_loop_poles), ref, atol=1e-9)

@@ -24,7 +24,7 @@ from pidlab.app.live import (
 from pidlab.controller.analysis import analyze_coach
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import load_spec
-from tests.conftest import cli_in_process
+from tests.helpers import cli_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 TUNING = ROOT / "tuning"

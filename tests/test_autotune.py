@@ -45,8 +45,10 @@ def test_weak_preset_drops_the_cart_loop(models):
     ],
 )
 def test_bad_targets(models, kwargs, message):
-    with pytest.raises(PidlabError, match=message):
+    with pytest.raises(PidlabError, match=message) as err:
         tune(models["InvertedPendulum-v5"], **kwargs)
+    (param,) = kwargs  # the message names the Python parameter, for the CLI to map to its flag
+    assert err.value.param == param and str(err.value).startswith(f"{param}={kwargs[param]!r}: ")
 
 
 def test_contact_rich_refinement_runs_on_the_real_env(models):

@@ -9,8 +9,7 @@ import pytest
 from pidlab.errors import ModelCardError, UnknownSignalError
 from pidlab.plant.card import load_card, parse_card
 from pidlab.plant.observation import CompiledCard, check_termination, observe
-
-from .conftest import PAPER_ENVS
+from tests.helpers import PAPER_ENVS
 
 
 @pytest.mark.parametrize("env_id", PAPER_ENVS)

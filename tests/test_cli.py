@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import PAPER_ENVS
+from tests.helpers import PAPER_ENVS
 
 PIDLAB = [sys.executable, "-m", "pidlab"]
 
@@ -118,3 +118,58 @@ def test_version_and_help():
     assert run("--version").stdout.startswith("pidlab ")
     help_text = run("linearize", "--help").stdout
     assert "ENV_OR_MJCF" in help_text and "--equilibrium-ctrl" in help_text
+
+
+@pytest.mark.parametrize(
+    ("call", "library", "cli"),
+    [
+        (
+            lambda: _check_port(0),
+            "port=0: expected a TCP port",
+            "--port 0: expected a TCP port",
+        ),
+        (
+            lambda: _select(["none", "telepathy"]),
+            "condition_names='none,telepathy': unknown condition(s) telepathy;",
+            "--conditions 'none,telepathy': unknown condition(s) telepathy;",
+        ),
+        (
+            lambda: _resolve("arm.xml", "card"),
+            "at='card': arm.xml has no model card; expected qpos0 or a keyframe name",
+            "--at 'card': arm.xml has no model card",
+        ),
+    ],
+)
+def test_library_names_parameters_the_cli_names_flags(call, library, cli, tmp_path, monkeypatch):
+    """A Python caller reads its own parameter; the command line maps it to the flag it gave."""
+    from pidlab.cli.main import cli_message
+    from pidlab.errors import PidlabError
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "arm.xml").write_text(
+        "<mujoco><worldbody><body><joint name='j' type='hinge'/><geom type='sphere' size='0.1'/>"
+        "</body></worldbody><actuator><motor joint='j'/></actuator></mujoco>"
+    )
+    with pytest.raises(PidlabError) as err:
+        call()
+    assert str(err.value).startswith(library) and "--" not in str(err.value)
+    assert cli_message(err.value).startswith(cli)
+
+
+def _check_port(port):
+    from pidlab.app.serve import check_port
+
+    check_port(port)
+
+
+def _select(names):
+    from pidlab.experiment.conditions import load_conditions, select
+
+    return select(load_conditions(), names, "coach/conditions.toml")
+
+
+def _resolve(target, at):
+    from pidlab.plant.model import load_model
+    from pidlab.plant.operating_point import resolve_operating_point
+
+    return resolve_operating_point(load_model(target), at)

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import typer
 
-from pidlab.cli.clidoc import cli_markdown
 from pidlab.cli import app
+from pidlab.cli.clidoc import cli_markdown
 
 ROOT = Path(__file__).resolve().parent.parent
 

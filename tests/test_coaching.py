@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from pidlab.controller.spec import load_spec
-from pidlab.rl.coaching import CoachingError, CoachingWrapper
+from pidlab.errors import CoachingError
+from pidlab.rl.coaching import CoachingWrapper
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
 IP = "InvertedPendulum-v5"

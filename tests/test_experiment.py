@@ -24,7 +24,7 @@ from pidlab.files import read_json
 from pidlab.report.experiment import write_report
 from pidlab.rl.recipe import load_recipe
 from pidlab.rl.rundir import read_csv_rows
-from tests.conftest import cli_in_process
+from tests.helpers import cli_in_process
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -253,6 +253,11 @@ def test_sweep_killed_and_restarted_loses_no_finished_run(tmp_path):
             assert [int(r["episode"]) for r in eps] == list(range(len(eps)))  # no lost or doubled rows
     record = read_json(out / "experiment.json")
     assert len(record["resumes"]) == 1
+    assert record["schema"] == "pidlab.experiment/1" and record["created"]
+    assert record["identity"]["seeds"] == [0, 1]
+    assert record["resumes"][0]["at"] and record["resumes"][0]["backend"] == "process"
+    assert record["resumes"][0]["command"] == record["command"] and record["resumes"][0]["versions"]
+    assert info["resumes"][0]["at"] and "started" not in info
     assert (out / "report.md").exists() and (out / "report.html").exists()
 
 

@@ -15,7 +15,7 @@ import pytest
 from pidlab.controller.spec import load_spec
 from pidlab.rl.recipe import RecipeError, load_pipeline_settings, parse_pipeline
 from pidlab.rl.rundir import spec_digest
-from tests.conftest import cli_in_process
+from tests.helpers import cli_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--seeds", "1", "--steps", "1024", "--samples", "40", "--episodes", "1", "--workers", "2"]
@@ -114,6 +114,9 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     record = json.loads((out / "pipeline.json").read_text())
     assert record["identity"]["settings"]["steps"] == 1024 and len(record["resumes"]) == 1
     assert record["git"]["sha"] and record["versions"]["mujoco"]
+    assert record["schema"] == "pidlab.pipeline/1" and record["created"]
+    assert record["command"][:2] == ["pidlab", "run"]
+    assert record["resumes"][0]["at"] and record["resumes"][0]["versions"] and record["resumes"][0]["git"]
     assert set(record["stages"]) == {"linearize", "tune", "analyze", "bounds", "train", "report"}
 
     # the same command again: tune and bounds are not redone, no run is retrained, same report

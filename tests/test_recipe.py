@@ -8,8 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from pidlab.rl.recipe import RecipeError, load_recipe, parse_recipe, recipe_to_dict, with_overrides
-from pidlab.rl.schedule import Schedule, ScheduleError, parse_schedule
+from pidlab.controller.autotune import PRESETS as TUNING_PRESETS
+from pidlab.errors import RecipeError, ScheduleError
+from pidlab.rl.recipe import PRESETS, load_recipe, parse_recipe, recipe_to_dict, with_overrides
+from pidlab.rl.schedule import Schedule, parse_schedule
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -96,3 +98,23 @@ def test_overrides():
     without_sac = parse_recipe({k: v for k, v in base().items() if k != "sac"})
     with pytest.raises(RecipeError, match=r"no \[sac\] table"):
         with_overrides(without_sac, algo="sac")
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "param", "message"),
+    [
+        ({"algo": "td3"}, "algo", "algo='td3': expected one of ppo, sac"),
+        ({"steps": 0}, "steps", "steps=0: expected a positive number of env steps"),
+        ({"n_envs": 0}, "n_envs", "n_envs=0: expected 1 or more"),
+        ({"seed": -1}, "seed", "seed=-1: expected a non-negative integer"),
+    ],
+)
+def test_overrides_name_the_python_parameter(kwargs, param, message):
+    r = load_recipe(ROOT / "coach" / "InvertedPendulum-v5.toml")
+    with pytest.raises(RecipeError) as err:
+        with_overrides(r, **kwargs)
+    assert str(err.value) == message and err.value.param == param
+
+
+def test_one_list_of_presets():
+    assert PRESETS == tuple(TUNING_PRESETS) == ("robust", "weak")

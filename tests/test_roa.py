@@ -13,7 +13,7 @@ from pidlab.controller.spec import dumps_spec, load_spec, loads_spec
 from pidlab.errors import UnknownSignalError
 from pidlab.region.bounds import derive_bounds, with_bounds
 from pidlab.region.roa import METHOD_LYAPUNOV, METHOD_SIMULATION, RegionError, estimate_roa
-from tests.conftest import cli_in_process
+from tests.helpers import cli_in_process
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
 
@@ -51,11 +51,12 @@ def test_independent_samples_inside_the_certified_set_recover(ip_region, models)
     """A fresh seed: states drawn in {V <= c} do not fail either (what the certificate claims)."""
     from pidlab.controller.analysis import analyze_coach
     from pidlab.controller.pid import Coach
-    from pidlab.region.roa import _check_level, _Simulator
+    from pidlab.region.roa import _check_level
+    from pidlab.region.simulate import Simulator
 
     spec, roa, _ = ip_region
     loaded = models["InvertedPendulum-v5"]
-    sim = _Simulator(spec, loaded, analyze_coach(Coach(spec, loaded), loaded).linearization)
+    sim = Simulator(spec, loaded, analyze_coach(Coach(spec, loaded), loaded).linearization)
     term, nonconv, _ = _check_level(sim, roa.lyapunov, roa.level, 100, 75, np.random.default_rng(12345))
     assert term == 0 and nonconv == 0
     # and far outside it the coach does fail: the check can fail
@@ -125,3 +126,37 @@ def test_cli_roa_and_bounds_bad_input(tmp_path):
         "roa", str(TUNING / "InvertedPendulum-v5.pidlab-robust.toml"), "--samples", "0"
     )
     assert code == 2 and "positive" in stderr
+
+
+def test_shrink_until_clean_keeps_each_call_sites_factor():
+    """The one final-check loop: value, value*f, value*f*f, ... (the same floats as `value *= f`)."""
+    from pidlab.region.shrink import shrink_until_clean
+
+    seen = []
+
+    def check(value):
+        seen.append(value)
+        return 3 if value > 0.3 else 0
+
+    found = shrink_until_clean(check, lambda failures: failures == 0, 1.0, 0.7)
+    expected = [1.0]
+    for _ in range(4):
+        expected.append(expected[-1] * 0.7)
+    assert seen == expected and found is not None
+    assert (found.value, found.outcome, found.tries) == (expected[-1], 0, 5)
+    # failures persist: at most six checks, then None (the caller raises)
+    seen.clear()
+    assert shrink_until_clean(check, lambda failures: failures == 0, 1.0, 0.99) is None
+    assert len(seen) == 6
+
+
+def test_bisections_find_the_largest_passing_factor():
+    from pidlab.region.shrink import geometric_bisect, halving_bisect
+
+    assert geometric_bisect(lambda r: True) == 1.0 and halving_bisect(lambda r: True, 8) == 1.0
+    assert geometric_bisect(lambda r: False) == 0.0 and halving_bisect(lambda r: False, 8) == 0.0
+    assert 0.2 < geometric_bisect(lambda r: r <= 0.3, 12) <= 0.3
+    assert 0.28 < halving_bisect(lambda r: r <= 0.3, 12) <= 0.3
+    calls = []
+    halving_bisect(lambda r: calls.append(r) or r <= 0.3, 5)
+    assert calls == [1.0, 0.5, 0.25, 0.375, 0.3125]

@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from pidlab.controller.pid import Coach, SpecError
+from pidlab.controller.pid import Coach
 from pidlab.controller.spec import dumps_spec, load_spec, loads_spec, save_spec
+from pidlab.errors import SpecError
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
 SHIPPED = sorted(TUNING.glob("*.toml"))
@@ -72,6 +73,12 @@ def test_malformed_spec_names_the_field(old, new, message):
     assert old in BASE
     with pytest.raises(SpecError, match=__import__("re").escape(message)):
         loads_spec(BASE.replace(old, new, 1))
+
+
+def test_an_analysis_table_is_refused_not_dropped():
+    """A table the spec would not write back is refused, so load -> save loses nothing."""
+    with pytest.raises(SpecError, match=r"unknown field\(s\) \['analysis'\]; allowed: .*'bounds'"):
+        loads_spec(BASE + "\n[analysis]\nbandwidth = 1.0\n")
 
 
 @pytest.mark.parametrize(

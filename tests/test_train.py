@@ -20,7 +20,7 @@ from pidlab.controller.spec import load_spec
 from pidlab.rl.recipe import load_recipe, parse_recipe
 from pidlab.rl.rundir import read_csv_rows
 from pidlab.rl.train import resume, train
-from tests.conftest import cli_in_process
+from tests.helpers import cli_in_process
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -92,6 +92,7 @@ def test_run_directory_records_what_reproduces_it(tmp_path, ip_spec):
     assert info["seed"] == 0 and info["command"] == ["pidlab", "train", "x"]
     assert {"torch", "stable-baselines3", "gymnasium", "mujoco", "pidlab"} <= set(info["versions"])
     assert "sha" in info["git"]
+    assert info["schema"] == "pidlab.run/1" and info["created"] and info["resumes"] == []
     config = tomllib.loads((tmp_path / "run" / "config.toml").read_text())
     again = parse_recipe(config["recipe"])
     assert again.steps == recipe.steps and again.algorithms == recipe.algorithms
@@ -194,6 +195,29 @@ def test_resume_after_a_kill_loses_no_episode(tmp_path, ip_spec):
     assert full.completed
     info = json.loads((run / "run.json").read_text())
     assert info["resumes"][0]["from_env_steps"] == state["env_steps"]
+    entry = info["resumes"][0]
+    assert entry["at"] and entry["versions"]["mujoco"] and "time" not in entry
+
+
+def test_a_run_written_before_the_provenance_module_resumes(tmp_path):
+    """run.json as pidlab wrote it before (``started``, resumes keyed ``time``): resumed and migrated."""
+    import json
+
+    every = {"every": 200}
+    path = tiny_recipe(tmp_path, steps=400, checkpoint=every, evaluation={**every, "episodes": 1})
+    run = tmp_path / "run"
+    train(load_recipe(path), None, run, progress_bar=False)
+    info = json.loads((run / "run.json").read_text())
+    old = {k: info[k] for k in ("seed", "env_id", "coach", "algo", "command")}
+    old |= {"started": info["created"], "versions": info["versions"], "git": info["git"],
+            "resumes": [{"time": "2026-11-22T22:00:00+0000", "from_env_steps": 200, "budget_env_steps": 400,
+                         "command": ["pidlab", "train"], "git": info["git"]}]}  # fmt: skip
+    (run / "run.json").write_text(json.dumps(old))
+    assert resume(run, steps=600, progress_bar=False).completed
+    new = json.loads((run / "run.json").read_text())
+    assert new["created"] == info["created"] and "started" not in new and new["schema"] == "pidlab.run/1"
+    assert new["resumes"][0]["at"] == "2026-11-22T22:00:00+0000" and len(new["resumes"]) == 2
+    assert new["resumes"][1]["budget_env_steps"] == 600 and all("time" not in r for r in new["resumes"])
 
 
 def test_sigterm_stops_with_a_checkpoint_and_resumes(tmp_path):

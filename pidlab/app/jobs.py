@@ -166,7 +166,8 @@ def rollout_preview(
         returns.append(ep.total_return)
         lengths.append(ep.length)
         causes[ep.cause] = causes.get(ep.cause, 0) + 1
-    assert first is not None
+    if first is None:
+        raise PidlabError(f"episodes={episodes}: expected 1 or more", param="episodes")
     report("drawing the rollout", episodes / (episodes + 1))
     frames = render_frames(loaded, first.qpos, backend=backend)
     return RolloutPreview(
@@ -329,7 +330,8 @@ class JobRunner:
     _manager: Any = None
     _updates: Any = None
 
-    def _start(self) -> None:
+    def _start(self) -> tuple[ProcessPoolExecutor, Any]:
+        """The worker pool and the manager, started on first use."""
         if self._pool is None:
             ctx = mp.get_context("spawn")
             self._manager = SyncManager(ctx=ctx)
@@ -338,6 +340,7 @@ class JobRunner:
             self._pool = ProcessPoolExecutor(
                 max_workers=self.workers, mp_context=ctx, initializer=_init_worker
             )
+        return self._pool, self._manager
 
     def submit(self, owner: str, kind: str, *args: Any, **kwargs: Any) -> int:
         """Start a ``kind`` job (a key of :data:`JOBS`) for ``owner``, abandoning its previous one.
@@ -347,12 +350,11 @@ class JobRunner:
         int
             The job's id; its updates carry it.
         """
-        self._start()
-        assert self._pool is not None and self._manager is not None
+        pool, manager = self._start()
         self.cancel(owner, kind)
         job_id = next(self._next)
-        cancel = self._manager.Event()
-        future = self._pool.submit(_run, job_id, kind, args, kwargs, self._updates, cancel)
+        cancel = manager.Event()
+        future = pool.submit(_run, job_id, kind, args, kwargs, self._updates, cancel)
         self._jobs[(owner, kind)] = Job(job_id, kind, future, cancel)
         return job_id
 

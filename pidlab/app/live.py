@@ -20,20 +20,22 @@ import control as ct
 import numpy as np
 
 from pidlab.controller.analysis import (
+    INITIAL_DEVIATION,
     LoopMargins,
     Pole,
     ResponseMetrics,
     closed_loop_report,
     initial_response,
-    loop_at_actuator,
+    loop_frequency_response,
     margin_table,
+    omega_grid,
     response_metrics,
     step_response,
 )
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec, Loop
 from pidlab.linear.linearize import Linearization, linearize
-from pidlab.linear.lti import observable_part, siso_frequency_response
+from pidlab.linear.lti import observable_part
 from pidlab.plant.model import LoadedModel
 
 GAIN_FIELDS = ("kp", "ki", "kd", "tf")
@@ -46,9 +48,6 @@ FIELD_LABELS = {"kp": "Kp", "ki": "Ki (1/s)", "kd": "Kd (s)", "tf": "derivative 
 
 RESPONSE_HORIZON_S = 20.0
 """Length of the step and initial-condition responses, s."""
-
-INITIAL_DEVIATION = 0.05
-"""Initial deviation of the loop's signal in the initial-condition response (its unit)."""
 
 BODE_POINTS = 400
 
@@ -89,8 +88,7 @@ def tuner_context(loaded: LoadedModel) -> TunerContext:
     card = loaded.require_card()
     lin = linearize(loaded)
     plant, _ = observable_part(lin.sysd)
-    top = math.pi / loaded.control_dt
-    omega = np.logspace(math.log10(top) - 4, math.log10(top) - 1e-6, BODE_POINTS)
+    omega = omega_grid(loaded.control_dt, BODE_POINTS)
     units = {v.name: v.unit for v in card.observation}
     return TunerContext(loaded=loaded, lin=lin, plant=plant, omega=omega, units=units)
 
@@ -197,7 +195,8 @@ class LinearViews:
     step, step_u : ndarray, shape (steps,)
         The loop's signal after a unit setpoint step, and the actuator command (deviation).
     initial, initial_u : ndarray, shape (steps,)
-        The loop's signal from an initial deviation :data:`INITIAL_DEVIATION`, and the command.
+        The loop's signal from an initial deviation
+        (:data:`pidlab.controller.analysis.INITIAL_DEVIATION`), and the command.
     metrics : tuple of ResponseMetrics
         Step and initial-condition metrics of the loop.
     elapsed_s : float
@@ -264,8 +263,7 @@ def linear_views(ctx: TunerContext, spec: CoachSpec, loop: str) -> LinearViews:
     report = closed_loop_report(plant, coach_d, names)
     actuator = loop_actuator(spec, loop)
     i = list(plant.input_labels).index(actuator)
-    L = loop_at_actuator(plant, coach_d, i)
-    response = siso_frequency_response(L, ctx.omega)
+    response = loop_frequency_response(plant, coach_d, actuator, ctx.omega)
     j = names.index(loop)
     lp = spec.loop(loop)
     lay = coach.layout

@@ -33,14 +33,14 @@ class _ClosedSocketNoise(logging.Filter):
 def check_port(port: int) -> None:
     """Raise :class:`PidlabError` unless ``port`` can be bound on 127.0.0.1."""
     if not 0 < port < 65536:
-        raise PidlabError(f"--port {port}: expected a TCP port between 1 and 65535")
+        raise PidlabError(f"port={port!r}: expected a TCP port between 1 and 65535", param="port")
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind(("127.0.0.1", port))
         except OSError as exc:
             raise PidlabError(
-                f"--port {port}: cannot listen there ({exc.strerror}); pick another port"
+                f"port={port!r}: cannot listen there ({exc.strerror}); pick another port", param="port"
             ) from None
 
 

@@ -158,6 +158,13 @@ class Tuner:
     # ------------------------------------------------------------------ widgets and layout
 
     def _build_widgets(self) -> None:
+        self._build_gain_widgets()
+        self._build_tuning_widgets()
+        self._build_file_widgets()
+        self._build_views()
+
+    def _build_gain_widgets(self) -> None:
+        """The loop selector, and a slider, a text field and a message per gain."""
         self.title = _html(sizing_mode="stretch_width")
         self.loop_select = pn.widgets.Select(label="Loop", options=[], css_classes=["pidlab-loop"])
         self.loop_select.param.watch(self._on_loop, "value")
@@ -181,6 +188,9 @@ class Tuner:
             t.param.watch(lambda ev, f=f: self._on_text(f, ev.new), "value")
             self.sliders[f], self.inputs[f] = s, t
             self.messages[f] = _html("", css_classes=[f"pidlab-msg-{f}"], sizing_mode="stretch_width")
+
+    def _build_tuning_widgets(self) -> None:
+        """Automatic tuning (response time, robustness) and the critical bounds' scale and button."""
         self.response_time = pn.widgets.FloatSlider(
             label="Response time (s)",
             start=0.01,
@@ -214,6 +224,9 @@ class Tuner:
             label="Derive bounds", color="primary", css_classes=["pidlab-derive"]
         )
         self.bounds_button.on_click(lambda ev: self._derive_bounds())
+
+    def _build_file_widgets(self) -> None:
+        """Save and Load, with their messages."""
         self.name_input = pn.widgets.TextInput(label="Spec name", width=200, css_classes=["pidlab-name"])
         self.name_msg = _html("", css_classes=["pidlab-msg-name"])
         self.overwrite = pn.widgets.Checkbox(label="overwrite an existing file", value=False)
@@ -227,6 +240,9 @@ class Tuner:
         self.load_button = pn.widgets.Button(label="Load", css_classes=["pidlab-load"])
         self.load_button.on_click(lambda ev: self._load())
         self.file_msg = _html("", css_classes=["pidlab-file-msg"], sizing_mode="stretch_width")
+
+    def _build_views(self) -> None:
+        """The text panes, the slow jobs' status and progress, and the figures."""
         self.margins = _html("", css_classes=["pidlab-margins"], sizing_mode="stretch_width")
         self.summary = _html("", css_classes=["pidlab-summary"], sizing_mode="stretch_width")
         self.bounds_info = _html("", css_classes=["pidlab-bounds"], sizing_mode="stretch_width")
@@ -251,11 +267,19 @@ class Tuner:
         pn.state.add_periodic_callback(self._poll, period=POLL_MS)
         if pn.state.curdoc is not None and getattr(pn.state.curdoc, "session_context", None) is not None:
             pn.state.on_session_destroyed(lambda ctx: self.runner.cancel(self.owner))
+        return pn.Row(
+            self._controls(),
+            self._views_column(),
+            sizing_mode="stretch_width",
+        )
+
+    def _controls(self) -> Any:
+        """The left column: gains, automatic tuning, critical bounds, spec file."""
         gains = []
         for f in GAIN_FIELDS:
             gains.append(pn.Row(self.sliders[f], self.inputs[f], sizing_mode="stretch_width"))
             gains.append(self.messages[f])
-        controls = pn.Column(
+        return pn.Column(
             "### Coach",
             self.loop_select,
             *gains,
@@ -279,7 +303,10 @@ class Tuner:
             self.file_msg,
             width=400,
         )
-        views = pn.Column(
+
+    def _views_column(self) -> Any:
+        """The right column: linear views, margins, region of attraction, the coach alone."""
+        return pn.Column(
             self.title,
             pn.Row(
                 pn.Column(
@@ -312,11 +339,6 @@ class Tuner:
                 ),
                 sizing_mode="stretch_width",
             ),
-            sizing_mode="stretch_width",
-        )
-        return pn.Row(
-            controls,
-            views,
             sizing_mode="stretch_width",
         )
 
@@ -680,67 +702,72 @@ class Tuner:
         if u.state == "error":
             self.status[kind].object = f"<span class='pidlab-msg' {RED}>{html.escape(u.stage)}</span>"
             return
-        r = u.result
-        if kind == "roa":
-            self._roa_preview = r
-            boundary, paths = F.roa_data(r)
+        show = {"roa": self._show_roa, "rollout": self._show_rollout, "autotune": self._show_autotune,
+                "bounds": self._show_bounds}  # fmt: skip
+        if kind in show:
+            show[kind](u.result)
 
-            def draw() -> None:
-                self.sources.roa_set.data, self.sources.roa_paths.data = boundary, paths
+    def _show_roa(self, r: Any) -> None:
+        self._roa_preview = r
+        boundary, paths = F.roa_data(r)
 
-            self._push(draw)
-            ok = sum(r.recovered)
-            self.status["roa"].object = (
-                f"preview: {html.escape(r.roa.method)}; level {r.roa.level:.4g}, {r.roa.check.samples} "
-                "samples, "
-                f"{r.roa.check.failures} failures; {ok}/{len(r.recovered)} trajectories shown recovered "
-                f"({r.roa.elapsed_s:.1f} s)"
-            )
-        elif kind == "rollout":
-            causes = ", ".join(f"{n} × {html.escape(c)}" for c, n in r.causes.items())
-            self.score.object = (
-                f"<div id='coach-score'>mean return <b>{r.mean:.1f}</b> ± {r.std:.1f} over {r.episodes} "
-                "episodes "
-                f"(seeds 0-{r.episodes - 1}); mean length {r.mean_length:.0f} steps; ended by: {causes}</div>"
-            )
-            data = base64.b64encode(r.gif).decode("ascii")
-            self.animation_pane.object = (
-                f"<img id='rollout-animation' data-backend='{r.backend}' src='data:image/gif;base64,{data}' "
-                "style='max-width:100%'><div style='font-size:0.8em'>episode seed 0 · "
-                f"{html.escape(r.note)}</div>"
-            )
-            self.status["rollout"].object = ""
-        elif kind == "autotune":
-            tuned = r.spec
-            self._adopt(
-                tuned, f"auto-tune (asked {r.asked_bandwidth:.3g} rad/s, {r.asked_phase_margin:.0f} deg)"
-            )
-            self.status["autotune"].object = (
-                f"achieved: crossover {r.achieved_bandwidth:.3g} rad/s, phase margin "
-                f"{r.achieved_phase_margin:.1f} "
-                f"deg, Ms {r.achieved_ms:.3g} ({r.evaluations} evaluations)"
-            )
-        elif kind == "bounds":
-            job_spec = self._bounds_job_spec
-            if job_spec is None or _gains_only(job_spec) != _gains_only(self.spec):
-                self.status["bounds"].object = (
-                    f"<span class='pidlab-msg' {RED}>bounds were derived for gains that have changed since; "
-                    "press Derive bounds again</span>"
-                )
-                return
-            self.base_bounds = r.bounds.to_table()
-            self._bounds_gains = _gains_only(self.spec)
-            self._guard = True
-            try:
-                self.scale.value = 1.0
-            finally:
-                self._guard = False
-            self._draw_bounds()
-            chk = r.roa.check
+        def draw() -> None:
+            self.sources.roa_set.data, self.sources.roa_paths.data = boundary, paths
+
+        self._push(draw)
+        ok = sum(r.recovered)
+        self.status["roa"].object = (
+            f"preview: {html.escape(r.roa.method)}; level {r.roa.level:.4g}, {r.roa.check.samples} "
+            "samples, "
+            f"{r.roa.check.failures} failures; {ok}/{len(r.recovered)} trajectories shown recovered "
+            f"({r.roa.elapsed_s:.1f} s)"
+        )
+
+    def _show_rollout(self, r: Any) -> None:
+        causes = ", ".join(f"{n} × {html.escape(c)}" for c, n in r.causes.items())
+        self.score.object = (
+            f"<div id='coach-score'>mean return <b>{r.mean:.1f}</b> ± {r.std:.1f} over {r.episodes} "
+            "episodes "
+            f"(seeds 0-{r.episodes - 1}); mean length {r.mean_length:.0f} steps; ended by: {causes}</div>"
+        )
+        data = base64.b64encode(r.gif).decode("ascii")
+        self.animation_pane.object = (
+            f"<img id='rollout-animation' data-backend='{r.backend}' src='data:image/gif;base64,{data}' "
+            "style='max-width:100%'><div style='font-size:0.8em'>episode seed 0 · "
+            f"{html.escape(r.note)}</div>"
+        )
+        self.status["rollout"].object = ""
+
+    def _show_autotune(self, r: Any) -> None:
+        tuned = r.spec
+        self._adopt(tuned, f"auto-tune (asked {r.asked_bandwidth:.3g} rad/s, {r.asked_phase_margin:.0f} deg)")
+        self.status["autotune"].object = (
+            f"achieved: crossover {r.achieved_bandwidth:.3g} rad/s, phase margin "
+            f"{r.achieved_phase_margin:.1f} "
+            f"deg, Ms {r.achieved_ms:.3g} ({r.evaluations} evaluations)"
+        )
+
+    def _show_bounds(self, r: Any) -> None:
+        job_spec = self._bounds_job_spec
+        if job_spec is None or _gains_only(job_spec) != _gains_only(self.spec):
             self.status["bounds"].object = (
-                f"certified: level {r.roa.level:.4g}, {chk.samples} samples, {chk.failures} failures "
-                f"(failure probability &lt; {chk.failure_bound_95:.3g} at 95 %)"
+                f"<span class='pidlab-msg' {RED}>bounds were derived for gains that have changed since; "
+                "press Derive bounds again</span>"
             )
+            return
+        self.base_bounds = r.bounds.to_table()
+        self._bounds_gains = _gains_only(self.spec)
+        self._guard = True
+        try:
+            self.scale.value = 1.0
+        finally:
+            self._guard = False
+        self._draw_bounds()
+        chk = r.roa.check
+        self.status["bounds"].object = (
+            f"certified: level {r.roa.level:.4g}, {chk.samples} samples, {chk.failures} failures "
+            f"(failure probability &lt; {chk.failure_bound_95:.3g} at 95 %)"
+        )
 
     # ------------------------------------------------------------------ files
 
@@ -759,8 +786,7 @@ class Tuner:
         """The spec *Save* writes: current gains, valid (scaled) bounds, honest provenance."""
         spec = replace(self.spec, name=name, bounds=self._current_bounds())
         if _gains_only(self.spec) != _gains_only(self.origin):
-            v = self._views
-            assert v is not None
+            v = self._views if self._views is not None else linear_views(self.ctx, self.spec, self.loop)
             prov: dict[str, Any] = {
                 "tool": f"pidlab {__version__} tune --ui",
                 "date": _dt.date.today().isoformat(),
@@ -794,7 +820,7 @@ class Tuner:
         text = dumps_spec(spec)
         try:
             again = loads_spec(text, "tuner")
-            validate_against(again, self.loaded.card.observation_names, self.loaded.input_names)  # type: ignore[union-attr]
+            validate_against(again, self.loaded.require_card().observation_names, self.loaded.input_names)
         except PidlabError as exc:
             self.file_msg.object = f"<span class='pidlab-msg' {RED}>not saved: {html.escape(str(exc))}</span>"
             return
@@ -828,7 +854,7 @@ class Tuner:
             spec = load_spec(path)
             if spec.env_id != self.env_id:
                 raise PidlabError(f"{path} is a coach for {spec.env_id}, not {self.env_id}")
-            validate_against(spec, self.loaded.card.observation_names, self.loaded.input_names)  # type: ignore[union-attr]
+            validate_against(spec, self.loaded.require_card().observation_names, self.loaded.input_names)
         except PidlabError as exc:
             self.file_msg.object = (
                 f"<span class='pidlab-msg' {RED}>not loaded: {html.escape(str(exc))}</span>"

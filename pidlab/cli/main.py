@@ -11,7 +11,7 @@ import functools
 import json
 import sys
 from collections.abc import Callable
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, NoReturn, TypeVar
 
 import numpy as np
 import typer
@@ -31,13 +31,13 @@ app = typer.Typer(
 F = TypeVar("F", bound=Callable[..., Any])
 
 
-def _fail(message: str) -> None:
+def _fail(message: str) -> NoReturn:
     typer.echo(f"pidlab: error: {message}", err=True)
     raise typer.Exit(code=2)
 
 
 FLAGS = {"env_id": "ENV", "roa_samples": "--samples", "conditions_file": "--conditions-file",
-         "recipe_files": "--recipe"}  # fmt: skip
+         "recipe_files": "--recipe", "condition_names": "--conditions"}  # fmt: skip
 """Python parameter -> the flag that sets it, where the flag is not ``--`` + the name with dashes."""
 
 
@@ -71,7 +71,6 @@ def _vector(text: str | None, what: str) -> list[float] | None:
         return [float(v) for v in text.replace(";", ",").split(",") if v.strip()]
     except ValueError:
         _fail(f"--{what} {text!r}: expected comma-separated numbers, e.g. --{what} 0,0.1")
-    return None
 
 
 def _version(value: bool) -> None:
@@ -141,7 +140,6 @@ def linearize(
     from pidlab.linear.lti import analyze_lti
     from pidlab.linear.serialize import linearization_to_dict
     from pidlab.plant.model import load_model
-    from pidlab.plant.operating_point import resolve_operating_point
     from pidlab.report.console import linearization_view, wide_console
 
     if discretization not in ("step", "zoh"):
@@ -149,22 +147,8 @@ def linearize(
     if not eps > 0:
         _fail(f"--eps {eps}: expected a positive step, e.g. 1e-6")
     loaded = load_model(target)
-    op = resolve_operating_point(
-        loaded,
-        at,
-        qpos=_vector(qpos, "qpos"),
-        qvel=_vector(qvel, "qvel"),
-        ctrl=_vector(ctrl, "ctrl"),
-        equilibrium_ctrl=equilibrium_ctrl,
-    )
-    if settle_joints:
-        from pidlab.plant.operating_point import settle
-
-        free = [name.strip() for name in settle_joints.split(",") if name.strip()]
-        settled = settle(loaded, op.qpos, free)
-        base = op.source
-        op = resolve_operating_point(loaded, at, qpos=settled.qpos, qvel=op.qvel, equilibrium_ctrl=True)
-        op = dataclasses.replace(op, source=f"{base}+settled {'/'.join(free)}")
+    vectors = {"qpos": _vector(qpos, "qpos"), "qvel": _vector(qvel, "qvel"), "ctrl": _vector(ctrl, "ctrl")}
+    op = _operating_point(loaded, at, vectors, equilibrium_ctrl, settle_joints)
     lin = run_linearize(loaded, op, eps=eps, discretization=discretization)  # type: ignore[arg-type]
     report_c = analyze_lti(lin.sys)
     report_d = analyze_lti(lin.sysd)
@@ -172,6 +156,22 @@ def linearize(
         typer.echo(json.dumps(linearization_to_dict(lin, report_c, report_d), indent=2))
         return
     wide_console().print(linearization_view(lin, report_d if discrete else report_c, discrete))
+
+
+def _operating_point(
+    loaded: Any, at: str | None, vectors: dict[str, Any], equilibrium_ctrl: bool, settle_joints: str | None
+) -> Any:
+    """``linearize``'s operating point: ``--at`` with explicit vectors, then ``--settle`` if given."""
+    from pidlab.plant.operating_point import resolve_operating_point, settle
+
+    op = resolve_operating_point(loaded, at, **vectors, equilibrium_ctrl=equilibrium_ctrl)
+    if settle_joints:
+        free = [name.strip() for name in settle_joints.split(",") if name.strip()]
+        settled = settle(loaded, op.qpos, free)
+        base = op.source
+        op = resolve_operating_point(loaded, at, qpos=settled.qpos, qvel=op.qvel, equilibrium_ctrl=True)
+        op = dataclasses.replace(op, source=f"{base}+settled {'/'.join(free)}")
+    return op
 
 
 @app.command()
@@ -202,6 +202,7 @@ def tune(
     """Tune a PID coach for ENV: automatically (--auto) or interactively in the browser (--ui)."""
     from rich.progress import Progress
 
+    from pidlab.controller.autotune import PRESETS
     from pidlab.controller.autotune import tune as run_tune
     from pidlab.controller.spec import save_spec
     from pidlab.plant.model import load_model
@@ -212,8 +213,8 @@ def tune(
     if ui:
         _tune_ui(env, spec, port, tuning_dir, animation, bounds_samples)
         return
-    if preset not in ("robust", "weak"):
-        _fail(f"--preset {preset!r}: expected robust or weak")
+    if preset not in PRESETS:
+        _fail(f"--preset {preset!r}: expected {' or '.join(PRESETS)}")
     loaded = load_model(env)
     out = output or f"tuning/{env}.pidlab-{preset}.toml"
     with Progress(transient=True) as bar:
@@ -341,20 +342,8 @@ def roa(
         _fail(f"--horizon {horizon}: expected a positive time in s")
     spec = load_spec(spec_file)
     loaded = load_model(spec.env_id)
-    card = loaded.require_card()
-    units = {v.name: v.unit for v in card.observation}
-    pair: tuple[str, str] | None = None
-    if plots:
-        from pidlab.region.bounds import check_variables
-
-        lp0 = spec.loops[0]
-        chosen = (
-            [v.strip() for v in slice_vars.split(",")] if slice_vars else [lp0.signal, lp0.rate_signal or ""]
-        )
-        if len(chosen) != 2 or not all(chosen):
-            _fail("--slice: expected two observation variables, e.g. --slice hinge_pos,hinge_vel")
-        check_variables(chosen, loaded)
-        pair = (chosen[0], chosen[1])
+    units = {v.name: v.unit for v in loaded.require_card().observation}
+    pair = _slice_pair(spec, loaded, slice_vars) if plots else None
     result, kept = estimate_roa(
         spec,
         loaded,
@@ -367,38 +356,65 @@ def roa(
     con = wide_console()
     con.print(roa_view(result, units))
     if plots and pair is not None:
-        from pathlib import Path
-
-        import matplotlib.pyplot as plt
-
-        from pidlab.region.roa import phase_portrait
-        from pidlab.report.plots import plot_phase_portrait, plot_roa_slice
-
-        folder = Path(plots)
-        folder.mkdir(parents=True, exist_ok=True)
-        fig = plot_roa_slice(result, pair, kept, units)
-        fig.savefig(folder / f"roa_{pair[0]}_{pair[1]}.png", dpi=110)
-        plt.close(fig)
-        if result.lyapunov is not None:
-            L = result.lyapunov
-            ext = [
-                2
-                * float(
-                    np.sqrt(result.level * np.linalg.inv(L.P_y)[L.variables.index(v)][L.variables.index(v)])
-                )
-                if v in L.variables
-                else 0.1
-                for v in pair
-            ]
-        else:
-            ext = [2 * result.box.get(v, 0.1) for v in pair]
-        paths = phase_portrait(spec, loaded, pair, (ext[0], ext[1]), horizon_s=horizon)
-        fig = plot_phase_portrait(
-            paths, pair, units, f"{spec.env_id} / {spec.name}: coached phase portrait (MuJoCo)"
-        )
-        fig.savefig(folder / f"phase_{pair[0]}_{pair[1]}.png", dpi=110)
-        plt.close(fig)
+        folder = _write_roa_plots(spec, loaded, (result, kept), pair, units, horizon, plots)
         con.print(f"wrote 2 plots to {folder}")
+
+
+def _slice_pair(spec: Any, loaded: Any, slice_vars: str | None) -> tuple[str, str]:
+    """``roa --slice``: two observation variables (default: the first loop's signal and rate)."""
+    from pidlab.region.bounds import check_variables
+
+    lp0 = spec.loops[0]
+    chosen = [v.strip() for v in slice_vars.split(",")] if slice_vars else [lp0.signal, lp0.rate_signal or ""]
+    if len(chosen) != 2 or not all(chosen):
+        _fail("--slice: expected two observation variables, e.g. --slice hinge_pos,hinge_vel")
+    check_variables(chosen, loaded)
+    return (chosen[0], chosen[1])
+
+
+def _portrait_extent(result: Any, pair: tuple[str, str]) -> tuple[float, float]:
+    """Half-widths of the phase portrait: twice the region's extent along each variable."""
+    if result.lyapunov is not None:
+        L = result.lyapunov
+        P_inv = np.linalg.inv(L.P_y)
+        ext = [
+            2 * float(np.sqrt(result.level * P_inv[L.variables.index(v)][L.variables.index(v)]))
+            if v in L.variables
+            else 0.1
+            for v in pair
+        ]
+    else:
+        ext = [2 * result.box.get(v, 0.1) for v in pair]
+    return (ext[0], ext[1])
+
+
+def _write_roa_plots(
+    spec: Any,
+    loaded: Any,
+    estimate: tuple[Any, Any],
+    pair: tuple[str, str],
+    units: dict[str, str],
+    horizon: float,
+    plots: str,
+) -> Any:
+    """``roa --plots``: the region's slice and the coached phase portrait as PNG; returns the folder."""
+    from pathlib import Path
+
+    from pidlab.files import save_figure
+    from pidlab.region.roa import phase_portrait
+    from pidlab.report.plots import plot_phase_portrait, plot_roa_slice
+
+    result, kept = estimate
+    folder = Path(plots)
+    folder.mkdir(parents=True, exist_ok=True)
+    fig = plot_roa_slice(result, pair, kept, units)
+    save_figure(fig, folder / f"roa_{pair[0]}_{pair[1]}.png")
+    paths = phase_portrait(spec, loaded, pair, _portrait_extent(result, pair), horizon_s=horizon)
+    fig = plot_phase_portrait(
+        paths, pair, units, f"{spec.env_id} / {spec.name}: coached phase portrait (MuJoCo)"
+    )
+    save_figure(fig, folder / f"phase_{pair[0]}_{pair[1]}.png")
+    return folder
 
 
 @app.command()
@@ -501,31 +517,18 @@ def train(
     """Train an agent with SB3, coached by a PID coach (or not); evaluate it alone as it learns."""
     from pidlab.report.console import train_view, wide_console
     from pidlab.rl.recipe import default_recipe_path, load_recipe, with_overrides
-    from pidlab.rl.rundir import default_run_dir, load_run_config
+    from pidlab.rl.rundir import default_run_dir
     from pidlab.rl.train import resume as resume_run
     from pidlab.rl.train import train as run_train
 
     argv = ["pidlab", *sys.argv[1:]]
     if resume_dir is not None:
-        saved, saved_spec, _ = load_run_config(resume_dir)
-        given = {"ENV": (env, saved.env_id), "--algo": (algo, saved.algo), "--seed": (seed, saved.seed),
-                 "--n-envs": (n_envs, saved.n_envs),
-                 "--coach": (None if coach is None else _resolve_coach(env, coach)[0],
-                             saved_spec)}  # fmt: skip
-        for flag, (asked, had) in given.items():
-            if asked is not None and asked != had:
-                shown = getattr(had, "name", had)
-                _fail(f"{flag} differs from the run in {resume_dir} ({shown!r}); a resumed run keeps them")
-        if coach == "none" and saved_spec is not None:
-            _fail(f"--coach none: the run in {resume_dir} was coached by {saved_spec.name}")
-        if recipe_file is not None:
-            _fail("--recipe: a resumed run keeps the recipe it started with (see its config.toml)")
+        asked = {"ENV": env, "--algo": algo, "--seed": seed, "--n-envs": n_envs}
+        recipe = _resumed_recipe(resume_dir, asked, coach, recipe_file)
         result = resume_run(resume_dir, steps=steps, progress_bar=progress, argv=argv)
-        recipe = saved
     else:
         if coach is None:
             _fail("--coach: required; a spec file, a spec name in tuning/ (e.g. pidlab-robust), or none")
-        assert coach is not None
         spec, source = _resolve_coach(env, coach)
         path = recipe_file or str(default_recipe_path(env))
         recipe = load_recipe(path)
@@ -537,6 +540,28 @@ def train(
     wide_console().print(train_view(result, recipe.win.target))
     if not result.completed:
         raise typer.Exit(code=130)
+
+
+def _resumed_recipe(
+    resume_dir: str, asked: dict[str, Any], coach: str | None, recipe_file: str | None
+) -> Any:
+    """``train --resume``: the run's recipe; a flag given with another value than the run's fails."""
+    from pidlab.rl.rundir import load_run_config
+
+    saved, saved_spec, _ = load_run_config(resume_dir)
+    env = asked["ENV"]
+    given = {"ENV": (env, saved.env_id), "--algo": (asked["--algo"], saved.algo),
+             "--seed": (asked["--seed"], saved.seed), "--n-envs": (asked["--n-envs"], saved.n_envs),
+             "--coach": (None if coach is None else _resolve_coach(env, coach)[0], saved_spec)}  # fmt: skip
+    for flag, (value, had) in given.items():
+        if value is not None and value != had:
+            shown = getattr(had, "name", had)
+            _fail(f"{flag} differs from the run in {resume_dir} ({shown!r}); a resumed run keeps them")
+    if coach == "none" and saved_spec is not None:
+        _fail(f"--coach none: the run in {resume_dir} was coached by {saved_spec.name}")
+    if recipe_file is not None:
+        _fail("--recipe: a resumed run keeps the recipe it started with (see its config.toml)")
+    return saved
 
 
 def _names(text: str) -> list[str]:
@@ -598,7 +623,7 @@ def experiment(
     Killed or interrupted, the same command resumes: finished runs are skipped, unfinished ones
     continue from their last checkpoint.
     """
-    from pidlab.experiment.sweep import parse_seeds, plan, run_sweep
+    from pidlab.experiment.sweep import parse_seeds, plan
 
     env_list = _names(envs)
     folder = out or f"results/{'+'.join(env_list)}"
@@ -606,28 +631,34 @@ def experiment(
         env_list, _names(conditions), parse_seeds(seeds), folder,
         conditions_file=conditions_file, recipe_files=recipe or [], algo=algo, steps=steps,
     )  # fmt: skip
-    failed = 0
-    if not report_only:
-        argv = ["pidlab", *sys.argv[1:]]
-        result = run_sweep(p, backend=backend, workers=workers, address=address, argv=argv,
-                           progress_bar=progress)  # fmt: skip
-        counts = ", ".join(f"{result.count(s)} {s}" for s in ("done", "skipped", "stopped", "failed"))
-        typer.echo(f"runs: {counts} (of {len(p.tasks)})")
-        failed = result.count("failed")
-        if result.interrupted:
-            typer.echo(
-                "interrupted: unfinished runs keep their last checkpoint; run the same command to resume",
-                err=True,
-            )
-            raise typer.Exit(code=130)
-    elif not (p.out / "experiment.json").exists():
+    if report_only and not (p.out / "experiment.json").exists():
         _fail(f"--report-only: {p.out} holds no experiment (no experiment.json)")
+    failed = 0 if report_only else _sweep(p, backend, workers, address, progress)
     from pidlab.report.experiment import write_report
 
-    report = write_report(p, progress_bar=progress)
-    typer.echo(f"report: {report}")
+    typer.echo(f"report: {write_report(p, progress_bar=progress)}")
     if failed:
         raise typer.Exit(code=1)
+
+
+def _sweep(p: Any, backend: str, workers: int | None, address: str | None, progress: bool) -> int:
+    """``experiment``: train the plan's runs and say how they went; the number that failed.
+
+    Interrupted, it exits with code 130 (the same command resumes).
+    """
+    from pidlab.experiment.sweep import run_sweep
+
+    argv = ["pidlab", *sys.argv[1:]]
+    result = run_sweep(p, backend=backend, workers=workers, address=address, argv=argv, progress_bar=progress)
+    counts = ", ".join(f"{result.count(s)} {s}" for s in ("done", "skipped", "stopped", "failed"))
+    typer.echo(f"runs: {counts} (of {len(p.tasks)})")
+    if result.interrupted:
+        typer.echo(
+            "interrupted: unfinished runs keep their last checkpoint; run the same command to resume",
+            err=True,
+        )
+        raise typer.Exit(code=130)
+    return result.count("failed")
 
 
 @app.command()

@@ -10,6 +10,10 @@ For each actuator the loop is broken at that actuator's input, the other actuato
 closed, and ``L = -(u_cmd_i / u_i)`` (negative-feedback convention) gives: gain margins (upper
 and, for open-loop unstable plants, lower), phase margin, delay margin, disk margin, the
 sensitivity peak ``Ms = 1 / min|1 + L|``, and crossover frequencies.
+
+The figures' data are computed here too, and drawn by :mod:`pidlab.report.plots`:
+:func:`loop_responses` (each loop's frequency response with its margins) and
+:func:`closed_loop_responses` (setpoint-step and initial-deviation responses).
 """
 
 from __future__ import annotations
@@ -28,6 +32,10 @@ from pidlab.linear.lti import observable_part, siso_disk_margins, siso_frequency
 from pidlab.plant.model import LoadedModel
 
 SETTLE_FRACTION = 0.02
+"""Settling band of the response metrics, as a fraction of the step or initial deviation."""
+
+INITIAL_DEVIATION = 0.05
+"""Initial deviation of a loop's signal in the initial-condition responses, in the signal's unit."""
 
 
 @dataclass(frozen=True)
@@ -228,6 +236,89 @@ class CoachAnalysis:
     def stable(self) -> bool:
         """Whether the discrete closed loop (the one that runs) is stable."""
         return self.discrete.stable
+
+    @property
+    def open_loop_poles(self) -> np.ndarray:
+        """Poles of the discrete linearized plant (eigenvalues of ``Ad``), complex, shape (2*nv,)."""
+        return np.linalg.eigvals(self.linearization.Ad)
+
+
+@dataclass(frozen=True)
+class LoopResponse:
+    """Frequency response of the discrete loop broken at one actuator, with its margins.
+
+    Attributes
+    ----------
+    margins : LoopMargins
+        The loop's margins (:func:`loop_margins`); ``margins.actuator`` is where it is broken.
+    omega : ndarray, shape (n,)
+        Frequencies, rad/s, up to the Nyquist frequency ``pi / dt``.
+    response : ndarray of complex, shape (n,)
+        ``L(exp(j omega dt))`` (negative-feedback convention, as :func:`loop_at_actuator`).
+    dt : float
+        Sampling period, s.
+    """
+
+    margins: LoopMargins
+    omega: np.ndarray
+    response: np.ndarray
+    dt: float
+
+    @property
+    def actuator(self) -> str:
+        """The actuator where the loop is broken."""
+        return self.margins.actuator
+
+    @property
+    def magnitude_db(self) -> np.ndarray:
+        """``20 log10 |L|``, dB, shape (n,)."""
+        with np.errstate(divide="ignore"):
+            return 20 * np.log10(np.abs(self.response))
+
+    @property
+    def phase_deg(self) -> np.ndarray:
+        """Unwrapped phase of ``L``, degrees, shape (n,)."""
+        return np.unwrap(np.angle(self.response)) * 180 / np.pi
+
+
+@dataclass(frozen=True)
+class ClosedLoopResponses:
+    """Time responses of the discrete closed loop: per loop, a setpoint step and an initial deviation.
+
+    Attributes
+    ----------
+    timepts : ndarray, shape (steps,)
+        Time, s.
+    loops : tuple of str, length n_loops
+        Loop names, in the coach's setpoint order.
+    signals : tuple of str, length n_loops
+        Each loop's measured observation variable.
+    outputs : tuple of str, length n_outputs
+        Names of the closed loop's outputs: observation variables, then actuator commands.
+    step : ndarray, shape (n_loops, steps, n_outputs)
+        ``step[j]``: the outputs after a unit step of loop ``j``'s setpoint, from rest.
+    initial : ndarray, shape (n_loops, steps, n_outputs)
+        ``initial[j]``: the outputs from an initial deviation ``deviation`` of loop ``j``'s
+        signal (:func:`initial_response`).
+    deviation : float
+        Size of the initial deviations, in each signal's unit.
+    """
+
+    timepts: np.ndarray
+    loops: tuple[str, ...]
+    signals: tuple[str, ...]
+    outputs: tuple[str, ...]
+    step: np.ndarray
+    initial: np.ndarray
+    deviation: float
+
+    def signal_step(self, j: int) -> np.ndarray:
+        """Loop ``j``'s signal after a unit step of its setpoint, shape (steps,)."""
+        return self.step[j, :, self.outputs.index(self.signals[j])]
+
+    def signal_initial(self, j: int) -> np.ndarray:
+        """Loop ``j``'s signal from its initial deviation, shape (steps,)."""
+        return self.initial[j, :, self.outputs.index(self.signals[j])]
 
 
 def coach_to_continuous(coach_d: ct.StateSpace) -> ct.StateSpace:
@@ -597,7 +688,7 @@ def response_metrics(
         if loops is not None and lp.name not in loops:
             continue
         sig = lay.observation_names.index(lp.signal)
-        size = 0.05
+        size = INITIAL_DEVIATION
         outputs = initial_response(cl, plant, sig, size, steps)
         ys, us = outputs[:, sig], outputs[:, nobs:]
         y = np.array(ys)
@@ -606,6 +697,115 @@ def response_metrics(
         settle = _settling_time(t, y, 0.0, SETTLE_FRACTION * abs(size)) if report.stable else float("inf")
         out.append(ResponseMetrics("initial", lp.name, lp.signal, over, settle, float("nan"), peak_u, size))
     return tuple(out)
+
+
+def omega_grid(dt: float, points: int = 1500) -> np.ndarray:
+    """Frequencies for a loop's Bode and Nyquist views: four decades up to the Nyquist frequency.
+
+    Parameters
+    ----------
+    dt : float
+        Sampling period, s.
+    points : int
+        Number of frequencies.
+
+    Returns
+    -------
+    omega : ndarray, shape (points,)
+        Log-spaced, rad/s, from ``1e-4 pi / dt`` to just below ``pi / dt``.
+    """
+    top = np.pi / dt
+    return np.logspace(np.log10(top) - 4, np.log10(top) - 1e-6, points)
+
+
+def loop_frequency_response(
+    plant: ct.StateSpace, coach: ct.StateSpace, actuator: str, omega: np.ndarray
+) -> np.ndarray:
+    """Frequency response of the loop broken at one actuator (:func:`loop_at_actuator`).
+
+    Parameters
+    ----------
+    plant : control.StateSpace
+        Discrete plant, outputs = observation variables, inputs = actuators.
+    coach : control.StateSpace
+        Discrete coach (:meth:`pidlab.controller.pid.Coach.linear_model`).
+    actuator : str
+        One of ``plant.input_labels``.
+    omega : ndarray, shape (n,)
+        Frequencies, rad/s.
+
+    Returns
+    -------
+    response : ndarray of complex, shape (n,)
+        ``L(exp(j omega dt))``.
+    """
+    L = loop_at_actuator(plant, coach, list(plant.input_labels).index(actuator))
+    return siso_frequency_response(L, omega)
+
+
+def loop_responses(analysis: CoachAnalysis, coach: Coach, points: int = 1500) -> tuple[LoopResponse, ...]:
+    """Frequency responses of the discrete loops of an analysis, one per actuator the coach drives.
+
+    Parameters
+    ----------
+    analysis : CoachAnalysis
+        :func:`analyze_coach` of ``coach``.
+    coach : Coach
+    points : int
+        Frequencies per loop, on :func:`omega_grid`.
+
+    Returns
+    -------
+    tuple of LoopResponse
+        In the order of ``analysis.discrete.margins``.
+    """
+    coach_d = coach.linear_model()
+    omega = omega_grid(analysis.dt, points)
+    plant = analysis.plant
+    return tuple(
+        LoopResponse(m, omega, loop_frequency_response(plant, coach_d, m.actuator, omega), analysis.dt)
+        for m in analysis.discrete.margins
+    )
+
+
+def closed_loop_responses(
+    analysis: CoachAnalysis, coach: Coach, horizon_s: float = 20.0, deviation: float = INITIAL_DEVIATION
+) -> ClosedLoopResponses:
+    """Setpoint-step and initial-deviation responses of every loop of the discrete closed loop.
+
+    Parameters
+    ----------
+    analysis : CoachAnalysis
+        :func:`analyze_coach` of ``coach``.
+    coach : Coach
+        The coach analysed (its loops name the setpoints and signals).
+    horizon_s : float
+        Simulated time, s.
+    deviation : float
+        Initial deviation of each loop's signal, in its unit.
+
+    Returns
+    -------
+    ClosedLoopResponses
+    """
+    cl, plant = analysis.discrete.sys, analysis.plant
+    steps = round(horizon_s / analysis.dt)
+    lay = coach.layout
+    loops = lay.spec.loops
+    signals = tuple(lp.signal for lp in loops)
+    index = [lay.observation_names.index(sig) for sig in signals]
+    shape = (len(loops), steps, cl.noutputs)
+    stepped = np.array([step_response(cl, j, steps) for j in range(len(loops))]).reshape(shape)
+    initial = np.array([initial_response(cl, plant, sig, deviation, steps) for sig in index]).reshape(shape)
+    return ClosedLoopResponses(
+        timepts=np.arange(steps) * analysis.dt,
+        loops=tuple(lp.name for lp in loops),
+        signals=signals,
+        outputs=tuple(lay.observation_names) + tuple(plant.input_labels),
+        step=stepped,
+        initial=initial,
+        deviation=deviation,
+    )
 
 
 def analyze_coach(

@@ -36,7 +36,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from pidlab.controller.pid import Coach
-from pidlab.controller.rollout import _cause
+from pidlab.controller.rollout import termination_cause
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import PidlabError
 from pidlab.plant.model import LoadedModel
@@ -160,7 +160,7 @@ def record_rollout(
             obs, reward, terminated, truncated, _ = env.step(coach.act(obs))
             rewards.append(float(reward))
             qpos.append(np.array(data.qpos, dtype=float))
-        cause = _cause(loaded, env) if terminated else "time limit"
+        cause = termination_cause(loaded, env) if terminated else "time limit"
     finally:
         env.close()
     total = 0.0
@@ -425,6 +425,14 @@ def _view(model: mujoco.MjModel, poses: _Poses, geoms: list[int], aspect: float)
 # --- frames ------------------------------------------------------------------------------------
 
 
+def _frame_times(n_states: int, max_frames: int, dt: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(idx, times, fps)``: the drawn states (:func:`_sample`), their times in s, and the real-time fps."""
+    steps = n_states - 1
+    idx = _sample(n_states, max_frames)
+    fps = (len(idx) - 1) / (steps * dt) if steps > 0 else 1.0 / dt
+    return idx, idx * dt, fps
+
+
 def _sample(n_states: int, max_frames: int) -> np.ndarray:
     """Evenly spaced indices into ``n_states`` states, first and last included."""
     k = min(max_frames, n_states)
@@ -472,13 +480,50 @@ def render_frames(
     PidlabError
         A bad argument, or ``backend="mujoco"`` where the renderer cannot work.
     """
+    width, height, max_frames = _check_render_arguments(backend, width, height, max_frames)
+    q, suffix = _finite_states(loaded, qpos)
+    idx, times, fps = _frame_times(len(q), max_frames, loaded.control_dt)
+    model = loaded.model
+    poses = _poses(model, q[idx])
+    geoms = _visible_geoms(model)
+    view = _view(model, poses, geoms, width / height)
+    if backend == "schematic":
+        images = _render_schematic(loaded, poses, geoms, view, times, width, height)
+        return Frames(images, "schematic", f"schematic drawing (x-z plane){suffix}", fps)
+    ok, why = offscreen_renderer_available()
+    if backend == "mujoco" and not ok:
+        raise PidlabError(
+            f"MuJoCo's offscreen renderer is not available here ({why}); use backend='schematic', "
+            "or set MUJOCO_GL=egl before Python imports mujoco"
+        )
+    if backend == "mujoco":
+        images = _render_mujoco(loaded, q[idx], view, times, width, height)
+        return Frames(images, "mujoco", f"MuJoCo offscreen renderer ({why}){suffix}", fps)
+    if ok:  # backend "auto"
+        try:
+            images = _render_mujoco(loaded, q[idx], view, times, width, height)
+            return Frames(images, "mujoco", f"MuJoCo offscreen renderer ({why}){suffix}", fps)
+        except Exception as exc:  # e.g. the context broke after the probe: still show something
+            note = f"schematic: the MuJoCo renderer failed ({_one_line(exc)})"
+    else:
+        note = f"schematic: no OpenGL ({why})"
+    images = _render_schematic(loaded, poses, geoms, view, times, width, height)
+    return Frames(images, "schematic", note + suffix, fps)
+
+
+def _check_render_arguments(backend: str, width: int, height: int, max_frames: int) -> tuple[int, int, int]:
+    """``(width, height, max_frames)`` as ints, after checking them and ``backend``."""
     if backend not in BACKENDS:
         raise PidlabError(f"unknown animation backend {backend!r}; expected one of {', '.join(BACKENDS)}")
     if int(width) < MIN_SIZE or int(height) < MIN_SIZE:
         raise PidlabError(f"image size {width}x{height} is too small; width and height must be >= {MIN_SIZE}")
     if int(max_frames) < 2:
         raise PidlabError(f"max_frames must be >= 2, got {max_frames}")
-    width, height, max_frames = int(width), int(height), int(max_frames)
+    return int(width), int(height), int(max_frames)
+
+
+def _finite_states(loaded: LoadedModel, qpos: np.ndarray) -> tuple[np.ndarray, str]:
+    """The states up to the first non-finite one, shape ``(T' + 1, nq)``, and a note saying where it cut."""
     model = loaded.model
     q = np.asarray(qpos, dtype=float)
     if q.ndim != 2 or q.shape[0] < 1 or q.shape[1] != model.nq:
@@ -488,44 +533,10 @@ def render_frames(
     finite = np.all(np.isfinite(q), axis=1)
     if not finite[0]:
         raise PidlabError("qpos starts with a non-finite state; nothing to draw")
-    suffix = ""
-    if not finite.all():
-        stop = int(np.argmin(finite))
-        q = q[:stop]
-        suffix = f"; drawn up to step {stop - 1}: the state after it is not finite"
-    steps = len(q) - 1
-    idx = _sample(len(q), max_frames)
-    dt = loaded.control_dt
-    fps = (len(idx) - 1) / (steps * dt) if steps > 0 else 1.0 / dt
-    times = idx * dt
-
-    poses = _poses(model, q[idx])
-    geoms = _visible_geoms(model)
-    view = _view(model, poses, geoms, width / height)
-
-    if backend == "auto":
-        ok, why = offscreen_renderer_available()
-        if ok:
-            try:
-                images = _render_mujoco(loaded, q[idx], view, times, width, height)
-                return Frames(images, "mujoco", f"MuJoCo offscreen renderer ({why}){suffix}", fps)
-            except Exception as exc:  # e.g. the context broke after the probe: still show something
-                note = f"schematic: the MuJoCo renderer failed ({_one_line(exc)})"
-        else:
-            note = f"schematic: no OpenGL ({why})"
-        images = _render_schematic(loaded, poses, geoms, view, times, width, height)
-        return Frames(images, "schematic", note + suffix, fps)
-    if backend == "mujoco":
-        ok, why = offscreen_renderer_available()
-        if not ok:
-            raise PidlabError(
-                f"MuJoCo's offscreen renderer is not available here ({why}); use backend='schematic', "
-                "or set MUJOCO_GL=egl before Python imports mujoco"
-            )
-        images = _render_mujoco(loaded, q[idx], view, times, width, height)
-        return Frames(images, "mujoco", f"MuJoCo offscreen renderer ({why}){suffix}", fps)
-    images = _render_schematic(loaded, poses, geoms, view, times, width, height)
-    return Frames(images, "schematic", f"schematic drawing (x-z plane){suffix}", fps)
+    if finite.all():
+        return q, ""
+    stop = int(np.argmin(finite))
+    return q[:stop], f"; drawn up to step {stop - 1}: the state after it is not finite"
 
 
 _FONT: ImageFont.ImageFont | ImageFont.FreeTypeFont | None = None
@@ -606,18 +617,43 @@ def _tick_spacing(px_per_m: float) -> float:
     return 100.0
 
 
-def _render_schematic(
-    loaded: LoadedModel,
-    poses: _Poses,
-    geoms: list[int],
-    view: _View,
-    times: np.ndarray,
-    width: int,
-    height: int,
-) -> tuple[np.ndarray, ...]:
-    model = loaded.model
+@dataclass(frozen=True)
+class _Schematic:
+    """What every schematic frame draws: geoms by role, their colours, the scale in pixels per metre."""
+
+    floors: list[int]  # horizontal planes
+    solids: list[int]
+    static: set[int]  # solids welded to the world (scenery)
+    fill: dict[int, tuple[int, int, int]]
+    edge: dict[int, tuple[int, int, int]]
+    hinges: list[int]  # hinge and ball joints of moving bodies, drawn as dots
+    dot: float  # joint dot radius, px
+    scale: float  # px per metre
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class _Pixels:
+    """World ``(x, z)`` to image ``(u, v)`` for a window centred at ``(cx, cz)``."""
+
+    cx: float
+    cz: float
+    scale: float
+    width: int
+    height: int
+
+    def __call__(self, p: np.ndarray) -> list[tuple[float, float]]:
+        lim = 4.0 * (self.width + self.height)  # clip far-away points so that Pillow gets sane coordinates
+        u = np.clip(self.width / 2 + (p[:, 0] - self.cx) * self.scale, -lim, lim)
+        v = np.clip(self.height / 2 - (p[:, 1] - self.cz) * self.scale, -lim, lim)
+        return list(zip(u.tolist(), v.tolist(), strict=True))
+
+
+def _schematic(
+    model: mujoco.MjModel, poses: _Poses, geoms: list[int], view: _View, width: int, height: int
+) -> _Schematic:
     scale = (height / 2) / view.half_h  # pixels per metre
-    lim = 4.0 * (width + height)  # clip far-away points so that Pillow gets sane coordinates
     floors = [
         g
         for g in geoms
@@ -634,59 +670,89 @@ def _render_schematic(
     ]
     radii = [float(model.geom_size[g, 0]) for g in solids if model.geom_type[g] == _GEOM_CAPSULE]
     dot = max(1.5, 0.35 * min(radii) * scale) if radii else 2.0
+    return _Schematic(floors, solids, static, fill, edge, hinges, dot, scale, width, height)
+
+
+def _render_schematic(
+    loaded: LoadedModel,
+    poses: _Poses,
+    geoms: list[int],
+    view: _View,
+    times: np.ndarray,
+    width: int,
+    height: int,
+) -> tuple[np.ndarray, ...]:
+    model = loaded.model
+    style = _schematic(model, poses, geoms, view, width, height)
     images = []
     for i in range(len(times)):
         cx, cz = float(view.cx[i]), float(view.cz[i])
-
-        def px(p: np.ndarray, cx: float = cx, cz: float = cz) -> list[tuple[float, float]]:
-            u = np.clip(width / 2 + (p[:, 0] - cx) * scale, -lim, lim)
-            v = np.clip(height / 2 - (p[:, 1] - cz) * scale, -lim, lim)
-            return list(zip(u.tolist(), v.tolist(), strict=True))
-
+        px = _Pixels(cx, cz, style.scale, width, height)
         image = Image.new("RGB", (width, height), (255, 255, 255))
         draw = ImageDraw.Draw(image)
-        for g in floors:
-            z0 = float(poses.geom_xpos[i, g, 2])
-            (_, v0) = px(np.array([[cx, z0]]))[0]
-            if v0 < height:
-                colour = _rgb(_rgba(model, g))
-                draw.rectangle((0, max(v0, -1), width, height), fill=colour)
-                draw.line((0, v0, width, v0), fill=(90, 90, 90), width=2)
-                step = _tick_spacing(scale)
-                half_w = width / 2 / scale
-                for x in np.arange(math.floor((cx - half_w) / step) * step, cx + half_w + step, step):
-                    (u, _) = px(np.array([[x, z0]]))[0]
-                    draw.line((u, v0, u, v0 + 7), fill=(90, 90, 90), width=1)
+        for g in style.floors:
+            _draw_floor(draw, px, float(poses.geom_xpos[i, g, 2]), _rgb(_rgba(model, g)))
         # far geoms first (the camera looks along +y), scenery before the robot
-        order = sorted(solids, key=lambda g: (g not in static, -float(poses.geom_xpos[i, g, 1]), g))
+        order = sorted(
+            style.solids, key=lambda g: (g not in style.static, -float(poses.geom_xpos[i, g, 1]), g)
+        )
         drawn: list[tuple[np.ndarray, float, tuple[int, int, int]]] = []
         for g in order:
             kind, pts, r = _shape(model, g, poses.geom_xpos[i, g], poses.geom_xmat[i, g])
-            xy = px(pts)
-            if kind == "line":
-                rp = max(r * scale, 0.75)
-                if any(fill[g] != c and _covers(pts, r, o, o_r) for o, o_r, c in drawn):
-                    rp *= 0.55  # e.g. Walker2d's two legs in the same pose: keep the one behind visible
-                drawn.append((pts, r, fill[g]))
-                (u0, v0), (u1, v1) = xy
-                for rr, colour in ((rp + 1, edge[g]), (rp, fill[g])):
-                    draw.line((u0, v0, u1, v1), fill=colour, width=max(1, round(2 * rr)))
-                    for u, v in xy:
-                        draw.ellipse((u - rr, v - rr, u + rr, v + rr), fill=colour)
-            elif kind == "circle":
-                rp = max(r * scale, 1.0)
-                (u, v) = xy[0]
-                draw.ellipse((u - rp, v - rp, u + rp, v + rp), fill=fill[g], outline=edge[g], width=1)
-            elif len(xy) >= 3:
-                draw.polygon(xy, fill=fill[g], outline=edge[g], width=1)
-            elif xy:
-                draw.line(xy + xy[:1], fill=edge[g], width=1)
-        for j in hinges:
+            _draw_solid(draw, px, kind, pts, r, style.fill[g], style.edge[g], drawn)
+        dot = style.dot
+        for j in style.hinges:
             for u, v in px(poses.xanchor[i, j][[0, 2]][None, :]):
                 draw.ellipse((u - dot, v - dot, u + dot, v + dot), fill=(40, 40, 40))
         _caption(draw, _text(loaded, float(times[i])), (20, 20, 20))
         images.append(_readonly(np.asarray(image)))
     return tuple(images)
+
+
+def _draw_floor(draw: ImageDraw.ImageDraw, px: _Pixels, z0: float, colour: tuple[int, int, int]) -> None:
+    """A floor at height ``z0``: filled below its line, with ticks along it."""
+    (_, v0) = px(np.array([[px.cx, z0]]))[0]
+    if v0 >= px.height:
+        return
+    draw.rectangle((0, max(v0, -1), px.width, px.height), fill=colour)
+    draw.line((0, v0, px.width, v0), fill=(90, 90, 90), width=2)
+    step = _tick_spacing(px.scale)
+    half_w = px.width / 2 / px.scale
+    for x in np.arange(math.floor((px.cx - half_w) / step) * step, px.cx + half_w + step, step):
+        (u, _) = px(np.array([[x, z0]]))[0]
+        draw.line((u, v0, u, v0 + 7), fill=(90, 90, 90), width=1)
+
+
+def _draw_solid(
+    draw: ImageDraw.ImageDraw,
+    px: _Pixels,
+    kind: str,
+    pts: np.ndarray,
+    r: float,
+    fill: tuple[int, int, int],
+    edge: tuple[int, int, int],
+    drawn: list[tuple[np.ndarray, float, tuple[int, int, int]]],
+) -> None:
+    """One geom's projection (:func:`_shape`); capsules go on ``drawn``, to keep hidden ones visible."""
+    xy = px(pts)
+    if kind == "line":
+        rp = max(r * px.scale, 0.75)
+        if any(fill != c and _covers(pts, r, o, o_r) for o, o_r, c in drawn):
+            rp *= 0.55  # e.g. Walker2d's two legs in the same pose: keep the one behind visible
+        drawn.append((pts, r, fill))
+        (u0, v0), (u1, v1) = xy
+        for rr, colour in ((rp + 1, edge), (rp, fill)):
+            draw.line((u0, v0, u1, v1), fill=colour, width=max(1, round(2 * rr)))
+            for u, v in xy:
+                draw.ellipse((u - rr, v - rr, u + rr, v + rr), fill=colour)
+    elif kind == "circle":
+        rp = max(r * px.scale, 1.0)
+        (u, v) = xy[0]
+        draw.ellipse((u - rp, v - rp, u + rp, v + rp), fill=fill, outline=edge, width=1)
+    elif len(xy) >= 3:
+        draw.polygon(xy, fill=fill, outline=edge, width=1)
+    elif xy:
+        draw.line(xy + xy[:1], fill=edge, width=1)
 
 
 # --- GIF ---------------------------------------------------------------------------------------

@@ -33,7 +33,7 @@ from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec, Loop
 from pidlab.errors import PidlabError
 from pidlab.linear.linearize import Linearization, linearize
-from pidlab.plant.card import TuningLoop
+from pidlab.plant.card import ModelCard, TuningLoop
 from pidlab.plant.model import LoadedModel
 
 LoopTemplate = TuningLoop
@@ -209,6 +209,243 @@ def _fast_loop_figures(
     return (wc_max if wc_max > 0 else math.inf), pm_min, ms_max, rho
 
 
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    """What every evaluation of a candidate needs: the loops, the fixed parts, the plant."""
+
+    loaded: LoadedModel
+    loops: tuple[LoopTemplate, ...]
+    setpoints: dict[str, float]
+    offset: tuple[tuple[str, float], ...]
+    plant: ct.StateSpace
+    omega: np.ndarray
+
+    def spec(self, gains: np.ndarray, name: str = "candidate") -> CoachSpec:
+        """The coach spec with ``gains`` (``kp, kd`` per loop)."""
+        return _spec(str(self.loaded.env_id), self.loops, gains, self.setpoints, self.offset, name)
+
+    def figures(self, gains: np.ndarray) -> tuple[float, float, float, float]:
+        """(bandwidth, phase distance, largest Ms, spectral radius) of the coach with ``gains``."""
+        coach = Coach(self.spec(gains), self.loaded).linear_model()
+        ny = self.plant.noutputs
+        coach_y = ct.ss(coach.A, np.asarray(coach.B)[:, :ny], coach.C, np.asarray(coach.D)[:, :ny], coach.dt)
+        return _fast_loop_figures(self.plant, coach_y, self.omega)
+
+
+class _Evaluations:
+    """Counts the evaluations of both optimizers and reports them to ``progress``."""
+
+    def __init__(self, progress: Callable[[int], None] | None) -> None:
+        self.count = 0
+        self.progress = progress
+
+    def tick(self) -> None:
+        self.count += 1
+        if self.progress is not None:
+            self.progress(self.count)
+
+
+def _check_request(
+    loaded: LoadedModel, bandwidth: float | None, phase_margin: float | None, preset: str
+) -> ModelCard:
+    """The model card with its tuning template; raises on a request that cannot be tuned."""
+    if preset not in PRESETS:
+        raise PidlabError(
+            f"preset={preset!r}: unknown preset; expected one of {', '.join(PRESETS)}", param="preset"
+        )
+    card = loaded.card
+    if card is None or not card.tuning:
+        raise PidlabError(
+            f"no tuning template for {loaded.name}: its model card (models/{loaded.name}.toml) needs "
+            "[[tuning.loop]] tables"
+        )
+    if bandwidth is not None and not bandwidth > 0:
+        raise PidlabError(
+            f"bandwidth={bandwidth!r}: expected a positive frequency in rad/s", param="bandwidth"
+        )
+    if phase_margin is not None and not 0 < phase_margin < 90:
+        raise PidlabError(
+            f"phase_margin={phase_margin!r}: expected degrees between 0 and 90", param="phase_margin"
+        )
+    return card
+
+
+def _problem(
+    loaded: LoadedModel, card: ModelCard, lin: Linearization, p: Preset
+) -> tuple[_Problem, np.ndarray]:
+    """The tuning problem (loops with weights resolved) and its LQR-projected start gains."""
+    from pidlab.linear.lti import observable_part
+    from pidlab.plant.observation import observe_at
+
+    loops = tuple(lt for lt in card.tuning if lt.core or not p.core_only)
+    y_abs = observe_at(card, loaded.model, lin.op.qpos, lin.op.qvel)
+    plant, _ = observable_part(lin.sysd)
+    start, loops = _lqr_projection(lin, loops)
+    problem = _Problem(
+        loaded=loaded,
+        loops=loops,
+        setpoints={name: float(v) for name, v in zip(card.observation_names, y_abs, strict=True)},
+        offset=tuple((a, float(u)) for a, u in zip(loaded.input_names, lin.op.ctrl, strict=True)),
+        plant=plant,
+        omega=np.logspace(-2, math.log10(math.pi / lin.control_dt) - 1e-6, 400),
+    )
+    return problem, start
+
+
+def _target_bandwidth(lin: Linearization, wc0: float, bandwidth: float | None, p: Preset) -> float:
+    """The asked gain crossover, rad/s: given, or from the preset (see the module docstring)."""
+    unstable = [ev.real for ev in np.linalg.eigvals(lin.A) if ev.real > 1e-9]
+    if bandwidth is not None:
+        return bandwidth
+    if p.name == "weak" and unstable:
+        # the slowest loop that can still catch the fastest unstable pole
+        return WEAK_CROSSOVER_FACTOR * max(unstable)
+    return (wc0 if math.isfinite(wc0) else 1.0) * p.bandwidth_factor
+
+
+def _shaping_cost(
+    z: np.ndarray,
+    problem: _Problem,
+    signs: np.ndarray,
+    targets: tuple[float, float],
+    p: Preset,
+    evaluations: _Evaluations,
+) -> float:
+    """Mismatch of crossover and phase margin to ``targets``, with stability and Ms penalties."""
+    evaluations.tick()
+    target_wc, target_pm = targets
+    wc, pm, ms, rho = problem.figures(signs * np.exp(z))
+    j = 0.0
+    if rho > p.max_spectral_radius:
+        j += 100.0 + 1000.0 * (rho - p.max_spectral_radius)
+    if not math.isfinite(wc):
+        return j + 50.0
+    j += math.log(wc / target_wc) ** 2
+    j += (
+        4.0 * ((target_pm - pm) / target_pm) ** 2
+        if p.name == "weak"
+        else 4.0 * max(0.0, (target_pm - pm) / target_pm) ** 2
+    )
+    if ms > p.max_ms:
+        j += 4.0 * (ms - p.max_ms) ** 2
+    return j
+
+
+def _shape(
+    problem: _Problem,
+    start: np.ndarray,
+    signs: np.ndarray,
+    targets: tuple[float, float],
+    p: Preset,
+    max_evaluations: int,
+    evaluations: _Evaluations,
+) -> np.ndarray:
+    """Nelder-Mead on the log-gains from ``start``; returns the best log-gains."""
+    z0 = np.log(np.maximum(np.abs(start), 1e-6))
+    best = minimize(
+        _shaping_cost,
+        z0,
+        args=(problem, signs, targets, p, evaluations),
+        method="Nelder-Mead",
+        options={"maxfev": max_evaluations, "xatol": 1e-4, "fatol": 1e-8, "adaptive": True},
+    )
+    return np.asarray(best.x)
+
+
+def _refine_on_env(
+    problem: _Problem, signs: np.ndarray, z: np.ndarray, budget: int, evaluations: _Evaluations
+) -> tuple[np.ndarray, float]:
+    """Maximize the mean coach-alone return on the tuning seeds from two starts; keep the better.
+
+    Returns the refined gains and their mean return.
+    """
+    from pidlab.controller.rollout import coach_alone
+
+    def neg_return(z: np.ndarray, sign: np.ndarray) -> float:
+        evaluations.tick()
+        return -coach_alone(problem.spec(sign * np.exp(z)), problem.loaded, episodes=3, seed0=1000).mean
+
+    # two starts: the linear design, and plain posture PD on every joint loop (the torso-pitch
+    # loop nearly off); both are refined and the better result is kept
+    posture = np.array(
+        [-v if lt.signal.endswith("joint_pos") else -1e-3 for lt in problem.loops for v in POSTURE_START]
+    )
+    candidates = [(signs, z), (np.where(posture >= 0, 1.0, -1.0), np.log(np.abs(posture)))]
+    results = []
+    for cand_signs, z_start in candidates:
+        res = minimize(
+            neg_return,
+            z_start,
+            args=(cand_signs,),
+            method="Nelder-Mead",
+            options={"maxfev": budget, "adaptive": True},
+        )
+        results.append((float(res.fun), cand_signs, res))
+    _, best_signs, sim = min(results, key=lambda r: r[0])
+    return best_signs * np.exp(sim.x), float(-sim.fun)
+
+
+def _achieved(spec: CoachSpec, loaded: LoadedModel, lin: Linearization) -> tuple[float, float, float, float]:
+    """(bandwidth, phase margin, Ms, spectral radius) from the analysis' own margins.
+
+    The optimizer's fast grid is not what is reported: the analysis is.
+    """
+    from pidlab.controller.analysis import analyze_coach
+
+    final = analyze_coach(Coach(spec, loaded), loaded, lin)
+    wc = max((m.bandwidth for m in final.discrete.margins if m.crossovers), default=math.nan)
+    pm = min((m.phase_margin_deg for m in final.discrete.margins), default=math.inf)
+    ms = max((m.ms for m in final.discrete.margins), default=math.nan)
+    rho = max(abs(p_.value) for p_ in final.discrete.poles)
+    return float(wc), float(pm), float(ms), float(rho)
+
+
+def _result(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    lin: Linearization,
+    preset: str,
+    targets: tuple[float, float],
+    evaluations: int,
+    refined: float | None,
+) -> TuneResult:
+    """The tuned spec with its description and provenance, and what it achieved."""
+    wc, pm, ms, rho = _achieved(spec, loaded, lin)
+    target_wc, target_pm = (float(t) for t in targets)
+    spec = replace(
+        spec,
+        description=(
+            f"pidlab auto-tuned coach ({preset} preset) for {loaded.env_id}: LQR-projected start, then "
+            f"Nelder-Mead on crossover and phase margin at every actuator."
+        ),
+        provenance={
+            "tool": f"pidlab {__version__} tune --auto",
+            "date": _dt.date.today().isoformat(),
+            "preset": preset,
+            "asked_bandwidth_rad_s": target_wc,
+            "asked_phase_margin_deg": target_pm,
+            "achieved_bandwidth_rad_s": wc,
+            "achieved_phase_margin_deg": pm,
+            "achieved_ms": ms,
+            "closed_loop_spectral_radius": rho,
+            "operating_point": lin.op.source,
+            **({"refined_mean_return_tuning_seeds": refined} if refined is not None else {}),
+        },
+    )
+    return TuneResult(
+        spec=spec,
+        preset=preset,
+        asked_bandwidth=target_wc,
+        asked_phase_margin=target_pm,
+        achieved_bandwidth=wc,
+        achieved_phase_margin=pm,
+        achieved_ms=ms,
+        spectral_radius=rho,
+        evaluations=evaluations,
+        refined_return=refined,
+    )
+
+
 def tune(
     loaded: LoadedModel,
     *,
@@ -253,161 +490,30 @@ def tune(
     PidlabError
         No template for the env, unknown preset, or no stabilizing gains found.
     """
-    if preset not in PRESETS:
-        raise PidlabError(f"unknown preset {preset!r}; allowed: {', '.join(PRESETS)}")
-    card = loaded.card
-    if card is None or not card.tuning:
-        raise PidlabError(
-            f"no tuning template for {loaded.name}: its model card (models/{loaded.name}.toml) needs "
-            "[[tuning.loop]] tables"
-        )
-    if bandwidth is not None and not bandwidth > 0:
-        raise PidlabError(f"--bandwidth {bandwidth}: expected a positive frequency in rad/s")
-    if phase_margin is not None and not 0 < phase_margin < 90:
-        raise PidlabError(f"--phase-margin {phase_margin}: expected degrees between 0 and 90")
+    card = _check_request(loaded, bandwidth, phase_margin, preset)
     p = PRESETS[preset]
-    env_id = str(loaded.env_id)
     if lin is None:
         lin = linearize(loaded)
-    loops = tuple(lt for lt in card.tuning if lt.core or not p.core_only)
-    from pidlab.plant.observation import observe_at
-
-    y_abs = observe_at(card, loaded.model, lin.op.qpos, lin.op.qvel)
-    setpoints = {name: float(v) for name, v in zip(card.observation_names, y_abs, strict=True)}
-    offset = tuple((a, float(u)) for a, u in zip(loaded.input_names, lin.op.ctrl, strict=True))
-    omega = np.logspace(-2, math.log10(math.pi / lin.control_dt) - 1e-6, 400)
-    from pidlab.linear.lti import observable_part
-
-    plant, _ = observable_part(lin.sysd)
-
-    def figures(gains: np.ndarray) -> tuple[float, float, float, float]:
-        spec = _spec(env_id, loops, gains, setpoints, offset, "candidate")
-        coach = Coach(spec, loaded).linear_model()
-        ny = plant.noutputs
-        coach_y = ct.ss(coach.A, np.asarray(coach.B)[:, :ny], coach.C, np.asarray(coach.D)[:, :ny], coach.dt)
-        return _fast_loop_figures(plant, coach_y, omega)
-
-    start, loops = _lqr_projection(lin, loops)
-    wc0, _pm0, _ms0, _rho0 = figures(start)
-    unstable = [ev.real for ev in np.linalg.eigvals(lin.A) if ev.real > 1e-9]
-    if bandwidth is not None:
-        target_wc = bandwidth
-    elif preset == "weak" and unstable:
-        # the slowest loop that can still catch the fastest unstable pole
-        target_wc = WEAK_CROSSOVER_FACTOR * max(unstable)
-    else:
-        target_wc = (wc0 if math.isfinite(wc0) else 1.0) * p.bandwidth_factor
-    target_pm = phase_margin if phase_margin is not None else p.phase_margin
-    signs = np.where(start >= 0, 1.0, -1.0)
-    count = 0
-
-    def cost(z: np.ndarray) -> float:
-        nonlocal count
-        count += 1
-        if progress is not None:
-            progress(count)
-        gains = signs * np.exp(z)
-        wc, pm, ms, rho = figures(gains)
-        j = 0.0
-        if rho > p.max_spectral_radius:
-            j += 100.0 + 1000.0 * (rho - p.max_spectral_radius)
-        if not math.isfinite(wc):
-            return j + 50.0
-        j += math.log(wc / target_wc) ** 2
-        j += (
-            4.0 * ((target_pm - pm) / target_pm) ** 2
-            if preset == "weak"
-            else 4.0 * max(0.0, (target_pm - pm) / target_pm) ** 2
-        )
-        if ms > p.max_ms:
-            j += 4.0 * (ms - p.max_ms) ** 2
-        return j
-
-    z0 = np.log(np.maximum(np.abs(start), 1e-6))
-    best = minimize(
-        cost,
-        z0,
-        method="Nelder-Mead",
-        options={"maxfev": max_evaluations, "xatol": 1e-4, "fatol": 1e-8, "adaptive": True},
+    problem, start = _problem(loaded, card, lin, p)
+    wc0 = problem.figures(start)[0]
+    targets = (
+        _target_bandwidth(lin, wc0, bandwidth, p),
+        phase_margin if phase_margin is not None else p.phase_margin,
     )
-    gains = signs * np.exp(best.x)
-    wc, pm, ms, rho = figures(gains)
+    signs = np.where(start >= 0, 1.0, -1.0)
+    evaluations = _Evaluations(progress)
+    z = _shape(problem, start, signs, targets, p, max_evaluations, evaluations)
+    gains = signs * np.exp(z)
     refined = None
     if card.refine_on_env and preset == "robust" and refine_evaluations > 0:
-        from pidlab.controller.rollout import coach_alone
-
-        def neg_return(z: np.ndarray, sign: np.ndarray) -> float:
-            nonlocal count
-            count += 1
-            if progress is not None:
-                progress(count)
-            spec = _spec(env_id, loops, sign * np.exp(z), setpoints, offset, "candidate")
-            return -coach_alone(spec, loaded, episodes=3, seed0=1000).mean
-
-        # two starts: the linear design, and plain posture PD on every joint loop (the torso-pitch
-        # loop nearly off); both are refined and the better result is kept
-        posture = np.array(
-            [-v if lt.signal.endswith("joint_pos") else -1e-3 for lt in loops for v in POSTURE_START]
-        )
-        candidates = [(signs, best.x), (np.where(posture >= 0, 1.0, -1.0), np.log(np.abs(posture)))]
-        results = []
-        for cand_signs, z_start in candidates:
-            res = minimize(
-                neg_return,
-                z_start,
-                args=(cand_signs,),
-                method="Nelder-Mead",
-                options={"maxfev": refine_evaluations, "adaptive": True},
+        gains, refined = _refine_on_env(problem, signs, z, refine_evaluations, evaluations)
+    elif not card.refine_on_env:
+        rho = problem.figures(gains)[3]
+        if rho > p.max_spectral_radius:
+            raise PidlabError(
+                f"no stabilizing gains found for {loaded.name} with the {preset} preset "
+                f"(closed-loop spectral radius {rho:.4f}); try another target bandwidth (rad/s) "
+                "or phase margin (degrees)"
             )
-            results.append((float(res.fun), cand_signs, res))
-        _, signs, sim = min(results, key=lambda r: r[0])
-        gains = signs * np.exp(sim.x)
-        refined = float(-sim.fun)
-        wc, pm, ms, rho = figures(gains)
-    elif rho > p.max_spectral_radius and not card.refine_on_env:
-        raise PidlabError(
-            f"no stabilizing gains found for {loaded.name} with the {preset} preset "
-            f"(closed-loop spectral radius {rho:.4f}); try another --bandwidth or --phase-margin"
-        )
-    name = f"pidlab-{preset}"
-    spec = _spec(env_id, loops, gains, setpoints, offset, name)
-    # report the achieved figures with the analysis' own margins, not the optimizer's fast grid
-    from pidlab.controller.analysis import analyze_coach
-
-    final = analyze_coach(Coach(spec, loaded), loaded, lin)
-    wc = max((m.bandwidth for m in final.discrete.margins if m.crossovers), default=math.nan)
-    pm = min((m.phase_margin_deg for m in final.discrete.margins), default=math.inf)
-    ms = max((m.ms for m in final.discrete.margins), default=math.nan)
-    rho = max(abs(p_.value) for p_ in final.discrete.poles)
-    spec = replace(
-        spec,
-        description=(
-            f"pidlab auto-tuned coach ({preset} preset) for {loaded.env_id}: LQR-projected start, then "
-            f"Nelder-Mead on crossover and phase margin at every actuator."
-        ),
-        provenance={
-            "tool": f"pidlab {__version__} tune --auto",
-            "date": _dt.date.today().isoformat(),
-            "preset": preset,
-            "asked_bandwidth_rad_s": float(target_wc),
-            "asked_phase_margin_deg": float(target_pm),
-            "achieved_bandwidth_rad_s": float(wc),
-            "achieved_phase_margin_deg": float(pm),
-            "achieved_ms": float(ms),
-            "closed_loop_spectral_radius": float(rho),
-            "operating_point": lin.op.source,
-            **({"refined_mean_return_tuning_seeds": refined} if refined is not None else {}),
-        },
-    )
-    return TuneResult(
-        spec=spec,
-        preset=preset,
-        asked_bandwidth=float(target_wc),
-        asked_phase_margin=float(target_pm),
-        achieved_bandwidth=float(wc),
-        achieved_phase_margin=float(pm),
-        achieved_ms=float(ms),
-        spectral_radius=float(rho),
-        evaluations=count,
-        refined_return=refined,
-    )
+    spec = problem.spec(gains, f"pidlab-{preset}")
+    return _result(spec, loaded, lin, preset, targets, evaluations.count, refined)

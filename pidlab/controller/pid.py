@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import control as ct
 import numpy as np
 
-from pidlab.controller.spec import CoachSpec, SpecError, validate_against
+from pidlab.controller.spec import CoachSpec, Loop, validate_against
+from pidlab.errors import SpecError
 from pidlab.plant.model import LoadedModel
 
 N_LOOP_STATES = 3  # integral, filtered derivative, previous measurement
@@ -201,25 +202,33 @@ def law(
     u = np.clip(u_cmd, layout.ctrl_low, layout.ctrl_high) if saturate else u_cmd.copy()
     excess = u - u_cmd  # nonzero where saturated
     for i, lp in enumerate(spec.loops):
-        b = N_LOOP_STATES * i
-        if lp.ki == 0.0:
-            continue
-        increment = lp.ki * dt * errors[i]
-        if saturate and lp.anti_windup != "none":
-            if layout.feeds_index[i] >= 0:
-                push = clipped[i]
-            else:
-                w = layout.weights[i]
-                norm = float(w @ w)
-                push = float(w @ excess) / norm if norm > 0 else 0.0
-            if lp.anti_windup == "clamping":
-                # saturated (push != 0) and the integral would push further out: freeze it
-                if push != 0.0 and np.sign(increment) == -np.sign(push):
-                    increment = 0.0
-            else:  # back-calculation
-                increment += dt / lp.tt * push
-        new[b] = state[b] + increment
+        if lp.ki != 0.0:
+            b = N_LOOP_STATES * i
+            push = _saturation_push(layout, i, clipped, excess) if saturate else 0.0
+            new[b] = state[b] + _integral_increment(lp, dt, errors[i], push, saturate)
     return new, u_cmd, u
+
+
+def _saturation_push(layout: CoachLayout, i: int, clipped: np.ndarray, excess: np.ndarray) -> float:
+    """How far saturation pushed loop ``i``'s output back: its own clip, or the actuators' share."""
+    if layout.feeds_index[i] >= 0:
+        return float(clipped[i])
+    w = layout.weights[i]
+    norm = float(w @ w)
+    return float(w @ excess) / norm if norm > 0 else 0.0
+
+
+def _integral_increment(lp: Loop, dt: float, error: float, push: float, saturate: bool) -> float:
+    """The integral's change over one step, after anti-windup (``push``: see :func:`_saturation_push`)."""
+    increment = lp.ki * dt * error
+    if saturate and lp.anti_windup != "none":
+        if lp.anti_windup == "clamping":
+            # saturated (push != 0) and the integral would push further out: freeze it
+            if push != 0.0 and np.sign(increment) == -np.sign(push):
+                increment = 0.0
+        else:  # back-calculation
+            increment += dt / lp.tt * push
+    return increment
 
 
 class Coach:

@@ -86,7 +86,25 @@ class CoachScore:
         return float(np.mean([e.length for e in self.episodes]))
 
 
-def _cause(loaded: LoadedModel, env: gym.Env) -> str:
+def termination_cause(loaded: LoadedModel, env: gym.Env) -> str:
+    """Why ``env`` terminated, in the words of :attr:`Episode.cause`.
+
+    Call it right after a step that returned ``terminated=True``: it reads the env's current
+    MuJoCo state against the model card's termination limits.
+
+    Parameters
+    ----------
+    loaded : LoadedModel
+        The model of ``env``, with a model card.
+    env : gymnasium.Env
+        A MuJoCo env (``env.unwrapped`` has ``model`` and ``data``).
+
+    Returns
+    -------
+    str
+        ``"non-finite observation"``; or the violated limits joined by ``"; "``, e.g.
+        ``"hinge_pos outside [-0.2, 0.2]"``; or ``"terminated (no card limit violated)"``.
+    """
     card = loaded.require_card()
     u = env.unwrapped
     check = check_termination(card, u.model, u.data)  # type: ignore[attr-defined]
@@ -133,7 +151,7 @@ def coach_alone(
                 obs, reward, terminated, truncated, _ = env.step(u)
                 total += float(reward)
                 steps += 1
-            cause = _cause(loaded, env) if terminated else "time limit"
+            cause = termination_cause(loaded, env) if terminated else "time limit"
             out.append(
                 Episode(
                     seed0 + i,

@@ -193,7 +193,86 @@ _LOOP_KEYS = {
     "actuators",
     "feeds",
 }
-_TOP_KEYS = {"schema", "env_id", "name", "description", "offset", "loop", "provenance", "bounds", "analysis"}
+_TOP_KEYS = {"schema", "env_id", "name", "description", "offset", "loop", "provenance", "bounds"}
+
+
+def _loop_dynamics(t: dict[str, Any], w: str) -> dict[str, Any]:
+    """A loop's action, gains, derivative filter and anti-windup fields, checked."""
+    action = t.get("action", "reverse")
+    if action not in ACTIONS:
+        raise SpecError(f"{w}.action: {action!r}; allowed: {', '.join(ACTIONS)}")
+    aw = t.get("anti_windup", "clamping")
+    if aw not in ANTI_WINDUP:
+        raise SpecError(f"{w}.anti_windup: {aw!r}; allowed: {', '.join(ANTI_WINDUP)}")
+    tf = _num(t.get("tf", 0.0), f"{w}.tf")
+    if tf < 0 or not math.isfinite(tf):
+        raise SpecError(f"{w}.tf: {tf} is negative; the derivative filter time constant must be >= 0 s")
+    tt = _num(t.get("tt", 0.0), f"{w}.tt")
+    if aw == "back-calculation" and not tt > 0:
+        raise SpecError(f"{w}.tt: back-calculation needs a tracking time constant > 0 s, got {tt}")
+    if tt < 0:
+        raise SpecError(f"{w}.tt: {tt} is negative; expected >= 0 s")
+    gains = {}
+    for key in ("setpoint", "kp", "ki", "kd"):
+        gains[key] = _num(t.get(key, 0.0), f"{w}.{key}")
+        if not math.isfinite(gains[key]):
+            raise SpecError(f"{w}.{key}: expected a finite number, got {gains[key]}")
+    return {"action": action, "tf": tf, "anti_windup": aw, "tt": tt, **gains}
+
+
+def _loop_output(t: dict[str, Any], w: str) -> dict[str, Any]:
+    """Where a loop's output goes: its limits, and its actuators or the loop it feeds, checked."""
+    limits = t.get("output_limits", [-math.inf, math.inf])
+    if not isinstance(limits, list) or len(limits) != 2:
+        raise SpecError(f"{w}.output_limits: expected [low, high], got {limits!r}")
+    lo, hi = (_num(v, f"{w}.output_limits") for v in limits)
+    if not lo < hi:
+        raise SpecError(f"{w}.output_limits: low ({lo}) must be below high ({hi})")
+    acts = t.get("actuators", {})
+    if not isinstance(acts, dict):
+        raise SpecError(f"{w}.actuators: expected a table of actuator = weight")
+    actuators = tuple((k, _num(v, f"{w}.actuators.{k}")) for k, v in acts.items())
+    feeds = t.get("feeds")
+    if feeds is not None:
+        feeds = _str(feeds, f"{w}.feeds")
+    if bool(actuators) == (feeds is not None):
+        raise SpecError(f'{w}: give either actuators = {{...}} or feeds = "<loop>" (exactly one)')
+    return {"output_limits": (lo, hi), "actuators": actuators, "feeds": feeds}
+
+
+def _parse_loop(t: Any, i: int, where: str) -> Loop:
+    """The ``i``-th ``[[loop]]`` table, checked."""
+    w = f"{where}: loop[{i}]"
+    if not isinstance(t, dict):
+        raise SpecError(f"{w}: expected a table")
+    unknown = set(t) - _LOOP_KEYS
+    if unknown:
+        raise SpecError(f"{w}: unknown field(s) {sorted(unknown)}; allowed: {sorted(_LOOP_KEYS)}")
+    lname = _str(t.get("name"), f"{w}.name")
+    w = f"{where}: loop {lname!r}"
+    dynamics = _loop_dynamics(t, w)
+    output = _loop_output(t, w)
+    rate = t.get("rate_signal")
+    if rate is not None:
+        rate = _str(rate, f"{w}.rate_signal")
+    return Loop(
+        name=lname, signal=_str(t.get("signal"), f"{w}.signal"), rate_signal=rate, **dynamics, **output
+    )
+
+
+def _check_loop_names(loops: list[Loop], where: str) -> None:
+    """Unique loop names; every ``feeds`` names another loop."""
+    names = [lp.name for lp in loops]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise SpecError(f"{where}: loop names must be unique; repeated: {dupes}")
+    for lp in loops:
+        if lp.feeds is not None and lp.feeds not in names:
+            raise SpecError(
+                f"{where}: loop {lp.name!r}.feeds: no loop {lp.feeds!r}; loops: {', '.join(names)}"
+            )
+        if lp.feeds == lp.name:
+            raise SpecError(f"{where}: loop {lp.name!r} feeds itself")
 
 
 def parse_spec(data: dict[str, Any], where: str = "spec") -> CoachSpec:
@@ -219,79 +298,8 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> CoachSpec:
     raw_loops = data.get("loop")
     if not isinstance(raw_loops, list) or not raw_loops:
         raise SpecError(f"{where}: expected at least one [[loop]] table")
-    loops = []
-    for i, t in enumerate(raw_loops):
-        w = f"{where}: loop[{i}]"
-        if not isinstance(t, dict):
-            raise SpecError(f"{w}: expected a table")
-        unknown = set(t) - _LOOP_KEYS
-        if unknown:
-            raise SpecError(f"{w}: unknown field(s) {sorted(unknown)}; allowed: {sorted(_LOOP_KEYS)}")
-        lname = _str(t.get("name"), f"{w}.name")
-        w = f"{where}: loop {lname!r}"
-        action = t.get("action", "reverse")
-        if action not in ACTIONS:
-            raise SpecError(f"{w}.action: {action!r}; allowed: {', '.join(ACTIONS)}")
-        aw = t.get("anti_windup", "clamping")
-        if aw not in ANTI_WINDUP:
-            raise SpecError(f"{w}.anti_windup: {aw!r}; allowed: {', '.join(ANTI_WINDUP)}")
-        tf = _num(t.get("tf", 0.0), f"{w}.tf")
-        if tf < 0 or not math.isfinite(tf):
-            raise SpecError(f"{w}.tf: {tf} is negative; the derivative filter time constant must be >= 0 s")
-        tt = _num(t.get("tt", 0.0), f"{w}.tt")
-        if aw == "back-calculation" and not tt > 0:
-            raise SpecError(f"{w}.tt: back-calculation needs a tracking time constant > 0 s, got {tt}")
-        if tt < 0:
-            raise SpecError(f"{w}.tt: {tt} is negative; expected >= 0 s")
-        gains = {}
-        for key in ("setpoint", "kp", "ki", "kd"):
-            gains[key] = _num(t.get(key, 0.0), f"{w}.{key}")
-            if not math.isfinite(gains[key]):
-                raise SpecError(f"{w}.{key}: expected a finite number, got {gains[key]}")
-        limits = t.get("output_limits", [-math.inf, math.inf])
-        if not isinstance(limits, list) or len(limits) != 2:
-            raise SpecError(f"{w}.output_limits: expected [low, high], got {limits!r}")
-        lo, hi = (_num(v, f"{w}.output_limits") for v in limits)
-        if not lo < hi:
-            raise SpecError(f"{w}.output_limits: low ({lo}) must be below high ({hi})")
-        acts = t.get("actuators", {})
-        if not isinstance(acts, dict):
-            raise SpecError(f"{w}.actuators: expected a table of actuator = weight")
-        actuators = tuple((k, _num(v, f"{w}.actuators.{k}")) for k, v in acts.items())
-        feeds = t.get("feeds")
-        if feeds is not None:
-            feeds = _str(feeds, f"{w}.feeds")
-        if bool(actuators) == (feeds is not None):
-            raise SpecError(f'{w}: give either actuators = {{...}} or feeds = "<loop>" (exactly one)')
-        rate = t.get("rate_signal")
-        if rate is not None:
-            rate = _str(rate, f"{w}.rate_signal")
-        loops.append(
-            Loop(
-                name=lname,
-                signal=_str(t.get("signal"), f"{w}.signal"),
-                action=action,
-                rate_signal=rate,
-                tf=tf,
-                anti_windup=aw,
-                tt=tt,
-                output_limits=(lo, hi),
-                actuators=actuators,
-                feeds=feeds,
-                **gains,
-            )
-        )
-    names = [lp.name for lp in loops]
-    dupes = sorted({n for n in names if names.count(n) > 1})
-    if dupes:
-        raise SpecError(f"{where}: loop names must be unique; repeated: {dupes}")
-    for lp in loops:
-        if lp.feeds is not None and lp.feeds not in names:
-            raise SpecError(
-                f"{where}: loop {lp.name!r}.feeds: no loop {lp.feeds!r}; loops: {', '.join(names)}"
-            )
-        if lp.feeds == lp.name:
-            raise SpecError(f"{where}: loop {lp.name!r} feeds itself")
+    loops = [_parse_loop(t, i, where) for i, t in enumerate(raw_loops)]
+    _check_loop_names(loops, where)
     provenance = data.get("provenance", {})
     if not isinstance(provenance, dict):
         raise SpecError(f"{where}: provenance: expected a table")

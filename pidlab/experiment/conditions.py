@@ -27,11 +27,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from pidlab.controller.spec import CoachSpec, SpecError, load_spec, parse_spec, spec_to_dict
+from pidlab.controller.spec import CoachSpec, load_spec, parse_spec, spec_to_dict
 from pidlab.data import tuning_dir
-from pidlab.errors import ConditionError
+from pidlab.errors import ConditionError, RecipeError, SpecError
 from pidlab.files import read_toml
-from pidlab.rl.recipe import Recipe, RecipeError, parse_recipe, recipe_to_dict
+from pidlab.rl.recipe import Recipe, parse_recipe, recipe_to_dict
 
 CONDITIONS_SCHEMA = "pidlab.conditions/1"
 
@@ -147,23 +147,31 @@ def load_conditions(path: str | Path | None = None) -> dict[str, Condition]:
     return parse_conditions(read_toml(path, "conditions file", ConditionError), str(path))
 
 
-def select(conditions: dict[str, Condition], names: list[str], source: str) -> list[Condition]:
-    """The conditions called ``names``, in that order.
+def select(conditions: dict[str, Condition], condition_names: list[str], source: str) -> list[Condition]:
+    """The conditions called ``condition_names``, in that order.
 
     Raises
     ------
     ConditionError
         A name that is not in the file, or none at all.
     """
+    names = condition_names
+    shown = ",".join(names)  # as the command line takes them
     if not names:
-        raise ConditionError("--conditions: empty; name at least one condition")
+        raise ConditionError(
+            f"condition_names={shown!r}: empty; name at least one condition", param="condition_names"
+        )
     missing = [n for n in names if n not in conditions]
     if missing:
         raise ConditionError(
-            f"--conditions: unknown condition(s) {', '.join(missing)}; {source} has: {', '.join(conditions)}"
+            f"condition_names={shown!r}: unknown condition(s) {', '.join(missing)}; "
+            f"{source} has: {', '.join(conditions)}",
+            param="condition_names",
         )
     if len(set(names)) != len(names):
-        raise ConditionError(f"--conditions: a condition is named twice in {', '.join(names)}")
+        raise ConditionError(
+            f"condition_names={shown!r}: a condition is named twice", param="condition_names"
+        )
     return [conditions[n] for n in names]
 
 

@@ -20,8 +20,6 @@ instance or, with ``address``, on a cluster whose nodes all have pidlab installe
 from __future__ import annotations
 
 import fcntl
-import hashlib
-import json
 import os
 import shutil
 import signal
@@ -33,12 +31,21 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from pidlab.controller.spec import parse_spec, spec_to_dict
+from pidlab.controller.spec import CoachSpec, parse_spec, spec_to_dict
 from pidlab.errors import ExperimentError
 from pidlab.experiment.conditions import Condition, load_conditions, resolve, select
-from pidlab.files import read_json, write_json
+from pidlab.files import read_json
 from pidlab.orphans import watch_parent
-from pidlab.provenance import git_state, package_versions
+from pidlab.provenance import (
+    Record,
+    Refusals,
+    add_resume,
+    check_folder,
+    digest,
+    new_record,
+    read_record,
+    write_record,
+)
 from pidlab.rl.recipe import (
     Recipe,
     default_recipe_path,
@@ -99,7 +106,7 @@ class Plan:
                 "runs": runs}  # fmt: skip
 
 
-def parse_seeds(text: str, default_count: int | None = None) -> tuple[int, ...]:
+def parse_seeds(seeds: str, default_count: int | None = None) -> tuple[int, ...]:
     """Seeds from ``N`` (0..N-1), ``A-B`` (inclusive) or ``A,B,C``.
 
     Raises
@@ -107,28 +114,81 @@ def parse_seeds(text: str, default_count: int | None = None) -> tuple[int, ...]:
     ExperimentError
         Empty, negative, repeated or unreadable.
     """
-    t = text.strip()
+    t = seeds.strip()
     try:
         if t.isdigit():
-            seeds = tuple(range(int(t)))
+            out = tuple(range(int(t)))
         elif "-" in t and "," not in t:
             a, b = (int(v) for v in t.split("-", 1))
-            seeds = tuple(range(a, b + 1))
+            out = tuple(range(a, b + 1))
         else:
-            seeds = tuple(int(v) for v in t.split(",") if v.strip())
+            out = tuple(int(v) for v in t.split(",") if v.strip())
     except ValueError:
         raise ExperimentError(
-            f"--seeds {text!r}: expected a count (10), a range (0-9) or a list (0,3,7)"
+            f"seeds={seeds!r}: expected a count (10), a range (0-9) or a list (0,3,7)", param="seeds"
         ) from None
+    if not out:
+        raise ExperimentError(f"seeds={seeds!r}: no seeds; expected at least one (e.g. 10)", param="seeds")
+    if min(out) < 0 or len(set(out)) != len(out):
+        raise ExperimentError(f"seeds={seeds!r}: seeds must be distinct non-negative integers", param="seeds")
+    return out
+
+
+def _check_names(envs: Sequence[str], seeds: Sequence[int]) -> None:
+    if not envs:
+        raise ExperimentError("envs=[]: no env; name at least one, e.g. InvertedPendulum-v5", param="envs")
     if not seeds:
-        raise ExperimentError(f"--seeds {text!r}: no seeds; expected at least one (e.g. --seeds 10)")
-    if min(seeds) < 0 or len(set(seeds)) != len(seeds):
-        raise ExperimentError(f"--seeds {text!r}: seeds must be distinct non-negative integers")
-    return seeds
+        raise ExperimentError("seeds=[]: no seeds; expected at least one (e.g. 10)", param="seeds")
+    if len(set(envs)) != len(envs):
+        raise ExperimentError(f"envs={', '.join(envs)}: an env is named twice", param="envs")
 
 
-def _digest(data: Any) -> str:
-    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16]
+def _load_recipes(
+    envs: Sequence[str], recipe_files: Sequence[str], algo: str | None, steps: int | None
+) -> dict[str, Recipe]:
+    """Each env's recipe (one of ``recipe_files``, else ``coach/ENV.toml``) with the overrides."""
+    given: dict[str, Recipe] = {}
+    for path in recipe_files:
+        if not Path(path).is_file():
+            raise ExperimentError(f"recipe_files={path}: no such file", param="recipe_files")
+        r = load_recipe(path)
+        if r.env_id not in envs:
+            raise ExperimentError(
+                f"recipe_files={path}: the recipe is for {r.env_id}, which is not one of the envs asked for",
+                param="recipe_files",
+            )
+        given[r.env_id] = r
+    recipes: dict[str, Recipe] = {}
+    for env_id in envs:
+        if env_id not in given:
+            default = default_recipe_path(env_id)
+            if not default.is_file():
+                raise ExperimentError(
+                    f"envs={env_id}: unknown env (no recipe {default}); "
+                    f"recipes exist for: {', '.join(recipe_envs())}",
+                    param="envs",
+                )
+            given[env_id] = load_recipe(default)
+        recipes[env_id] = with_overrides(given[env_id], algo=algo, steps=steps)
+    return recipes
+
+
+def _task(env_id: str, cond: Condition, base: Recipe, spec: CoachSpec | None, source: str | None, seed: int,
+          root: Path) -> RunTask:  # fmt: skip
+    recipe = replace(base, seed=int(seed))
+    # what the run does, not where its files came from (a moved clone still resumes)
+    settings = config_dict(recipe, spec, None)
+    settings.pop("recipe_source", None)
+    return RunTask(
+        env_id=env_id,
+        condition=cond.name,
+        seed=int(seed),
+        run_dir=str(root / "runs" / env_id / cond.name / f"seed-{seed}"),
+        recipe=recipe_to_dict(recipe),
+        spec=spec_to_dict(spec) if spec is not None else None,
+        coach_source=source,
+        digest=digest(settings, 16),
+    )
 
 
 def plan(
@@ -165,55 +225,16 @@ def plan(
     ExperimentError, RecipeError, ConditionError, SpecError
         One line naming what is wrong.
     """
-    if not envs:
-        raise ExperimentError("--envs: empty; name at least one env, e.g. InvertedPendulum-v5")
-    if not seeds:
-        raise ExperimentError("--seeds: no seeds; expected at least one (e.g. --seeds 10)")
-    if len(set(envs)) != len(envs):
-        raise ExperimentError(f"--envs: an env is named twice in {', '.join(envs)}")
+    _check_names(envs, seeds)
     conditions: dict[str, Condition] = load_conditions(conditions_file)
     chosen = select(conditions, list(condition_names), str(conditions_file or "coach/conditions.toml"))
-    given: dict[str, Recipe] = {}
-    for path in recipe_files:
-        if not Path(path).is_file():
-            raise ExperimentError(f"--recipe {path}: no such file")
-        r = load_recipe(path)
-        if r.env_id not in envs:
-            raise ExperimentError(f"--recipe {path}: the recipe is for {r.env_id}, which is not in --envs")
-        given[r.env_id] = r
-    recipes: dict[str, Recipe] = {}
-    for env_id in envs:
-        if env_id not in given:
-            default = default_recipe_path(env_id)
-            if not default.is_file():
-                raise ExperimentError(
-                    f"--envs {env_id}: unknown env (no recipe {default}); "
-                    f"recipes exist for: {', '.join(recipe_envs())}"
-                )
-            given[env_id] = load_recipe(default)
-        recipes[env_id] = with_overrides(given[env_id], algo=algo, steps=steps)
+    recipes = _load_recipes(envs, recipe_files, algo, steps)
     root = Path(out).resolve()
     tasks = []
     for env_id in envs:
         for cond in chosen:
             base, spec, source = resolve(cond, recipes[env_id])
-            for seed in seeds:
-                recipe = replace(base, seed=int(seed))
-                # what the run does, not where its files came from (a moved clone still resumes)
-                settings = config_dict(recipe, spec, None)
-                settings.pop("recipe_source", None)
-                tasks.append(
-                    RunTask(
-                        env_id=env_id,
-                        condition=cond.name,
-                        seed=int(seed),
-                        run_dir=str(root / "runs" / env_id / cond.name / f"seed-{seed}"),
-                        recipe=recipe_to_dict(recipe),
-                        spec=spec_to_dict(spec) if spec is not None else None,
-                        coach_source=source,
-                        digest=_digest(settings),
-                    )
-                )
+            tasks += [_task(env_id, cond, base, spec, source, seed, root) for seed in seeds]
     return Plan(
         out=root,
         envs=tuple(envs),
@@ -232,57 +253,55 @@ def _describe_difference(old: dict[str, Any], new: dict[str, Any]) -> str:
     return "the settings of its runs (recipes, coach specs or conditions changed)"
 
 
-def check_out_folder(p: Plan) -> None:
-    """Refuse a folder that is not this experiment's (nothing is written or removed).
+def check_out_folder(p: Plan) -> Record | None:
+    """The folder's ``experiment.json`` when it holds this experiment, None when new or empty.
+
+    Nothing is written or removed.
 
     Raises
     ------
     ExperimentError
-        The folder holds another experiment, or files that are not an experiment's.
+        The folder is a file, or holds another experiment, or files that are not an experiment's.
     """
-    out = p.out
-    if out.exists() and not out.is_dir():
-        raise ExperimentError(f"--out {out}: exists and is not a folder")
-    meta = out / "experiment.json"
-    if meta.exists():
-        old = read_json(meta)
-        if old.get("schema") != EXPERIMENT_SCHEMA or old.get("identity") != p.identity():
-            what = _describe_difference(old.get("identity", {}), p.identity())
-            raise ExperimentError(
-                f"--out {out}: holds another experiment (its {what}); nothing was changed. "
-                "Choose another --out, or repeat that experiment's own command to resume it"
-            )
-    elif out.exists() and any(out.iterdir()):
-        raise ExperimentError(
-            f"--out {out}: the folder is not empty and holds no experiment.json; nothing was changed. "
-            "Choose a new or empty folder"
+    out, identity = p.out, p.identity()
+
+    def another(old: Record) -> str:
+        what = _describe_difference(old.identity or {}, identity)
+        return (
+            f"out={out}: holds another experiment (its {what}); "
+            "nothing was changed. Choose another folder, or repeat that experiment's own command to resume it"
         )
 
+    refusals = Refusals(
+        not_a_folder=f"out={out}: exists and is not a folder",
+        not_a_record=f"out={out}: experiment.json is not an experiment record; nothing was changed. "
+        "Choose a new or empty folder",
+        not_ours=f"out={out}: the folder is not empty and holds no experiment.json; nothing was changed. "
+        "Choose a new or empty folder",
+        another=another,
+    )
+    return check_folder(out, "experiment.json", EXPERIMENT_SCHEMA, identity, refusals, ExperimentError, "out")
 
-def write_experiment_record(p: Plan, argv: Sequence[str], backend: str) -> None:
-    """Create (or on resume, extend) ``experiment.json``."""
+
+def write_experiment_record(p: Plan, argv: Sequence[str], backend: str) -> Record:
+    """Create (or on resume, extend) ``experiment.json``.
+
+    Raises
+    ------
+    ExperimentError
+        ``experiment.json`` is unreadable.
+    """
     meta = p.out / "experiment.json"
-    now = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     if meta.exists():
-        record = read_json(meta)
-        record.setdefault("resumes", []).append(
-            {"time": now, "command": list(argv), "backend": backend, "git": git_state()}
-        )
+        record = add_resume(read_record(meta, EXPERIMENT_SCHEMA, ExperimentError), argv, backend=backend)
     else:
-        record = {
-            "schema": EXPERIMENT_SCHEMA,
-            "created": now,
-            "command": list(argv),
-            "backend": backend,
-            "identity": p.identity(),
-            "descriptions": p.descriptions,
-            "recipes": {env: r.path for env, r in p.recipes.items()},
-            "versions": package_versions(),
-            "git": git_state(),
-            "python": sys.version.split()[0],
-        }
+        recipes = {env: r.path for env, r in p.recipes.items()}
+        kind = {"backend": backend, "descriptions": p.descriptions, "recipes": recipes,
+                "python": sys.version.split()[0]}  # fmt: skip
+        record = new_record(EXPERIMENT_SCHEMA, argv, identity=p.identity(), extra=kind)
     p.out.mkdir(parents=True, exist_ok=True)
-    write_json(meta, record)
+    write_record(meta, record)
+    return record
 
 
 def finished(run_dir: Path, budget: int) -> bool:
@@ -411,7 +430,7 @@ def _run_ray(
         import ray
     except ImportError:
         raise ExperimentError(
-            "--backend ray: Ray is not installed; install the extra: pip install 'pidlab[ray]'"
+            "backend=ray: Ray is not installed; install the extra: pip install 'pidlab[ray]'", param="backend"
         ) from None
     started_here = not ray.is_initialized()
     if started_here:
@@ -454,12 +473,67 @@ def _sweep_lock(out: Path) -> Iterator[None]:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise ExperimentError(f"--out {out}: another sweep is running in this folder") from None
+            message = f"out={out}: another sweep is running in this folder"
+            raise ExperimentError(message, param="out") from None
         yield
 
 
 def _term_as_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
+
+
+def _check_backend(backend: str, workers: int | None, address: str | None) -> None:
+    if backend not in BACKENDS:
+        raise ExperimentError(f"backend={backend!r}: expected one of {', '.join(BACKENDS)}", param="backend")
+    if address and backend != "ray":
+        raise ExperimentError(f"address={address!r}: only with the ray backend", param="address")
+    if workers is not None and workers < 1:
+        raise ExperimentError(f"workers={workers}: expected 1 or more", param="workers")
+
+
+def _key(t: RunTask | RunOutcome) -> tuple[str, str, int]:
+    return (t.env_id, t.condition, t.seed)
+
+
+class _Tally:
+    """The outcomes of a sweep as they arrive, and the progress bar that shows them."""
+
+    def __init__(self, tasks: Sequence[RunTask], todo: Sequence[RunTask], progress_bar: bool) -> None:
+        from tqdm.auto import tqdm
+
+        self.outcomes = {_key(t): RunOutcome(*_key(t), "skipped") for t in tasks if t not in todo}
+        self.bar = tqdm(total=len(tasks), initial=len(self.outcomes), unit="run", desc="experiment",
+                        disable=not progress_bar, dynamic_ncols=True)  # fmt: skip
+
+    def __call__(self, o: RunOutcome) -> None:
+        self.outcomes[_key(o)] = o
+        self.bar.update(1)
+        if o.status == "failed":
+            self.bar.write(f"pidlab: run {o.env_id}/{o.condition}/seed-{o.seed} failed: {o.error}")
+        self.bar.set_postfix_str(f"last {o.env_id} {o.condition} seed {o.seed}: {o.status}")
+
+    def ordered(self, tasks: Sequence[RunTask]) -> tuple[RunOutcome, ...]:
+        """Every task's outcome, in task order (``stopped`` for a task that never reported)."""
+        return tuple(self.outcomes.get(_key(t), RunOutcome(*_key(t), "stopped")) for t in tasks)
+
+
+def _dispatch(
+    todo: Sequence[RunTask], backend: str, workers: int, address: str | None, tally: _Tally, out: Path
+) -> bool:
+    """Run ``todo`` on the backend; True when SIGINT or SIGTERM interrupted it."""
+    old = signal.signal(signal.SIGTERM, _term_as_interrupt)
+    try:
+        if todo:
+            if backend == "process":
+                _run_process_pool(todo, min(workers, len(todo)), tally, out)
+            else:
+                _run_ray(todo, workers, tally, out, address)
+    except KeyboardInterrupt:
+        return True
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        tally.bar.close()
+    return False
 
 
 def run_sweep(
@@ -495,51 +569,13 @@ def run_sweep(
     ExperimentError
         Unknown backend, a folder of another experiment, another sweep running in it.
     """
-    from tqdm.auto import tqdm
-
-    if backend not in BACKENDS:
-        raise ExperimentError(f"--backend {backend!r}: expected one of {', '.join(BACKENDS)}")
-    if address and backend != "ray":
-        raise ExperimentError("--address: only with --backend ray")
-    if workers is not None and workers < 1:
-        raise ExperimentError(f"--workers {workers}: expected 1 or more")
+    _check_backend(backend, workers, address)
     check_out_folder(p)
-    workers = workers or os.cpu_count() or 1
     p.out.mkdir(parents=True, exist_ok=True)
     with _sweep_lock(p.out):
         write_experiment_record(p, argv, backend)
         (p.out / STOP_FILE).unlink(missing_ok=True)
         todo = [t for t in p.tasks if not finished(Path(t.run_dir), int(t.recipe["steps"]))]
-        outcomes: dict[tuple[str, str, int], RunOutcome] = {
-            (t.env_id, t.condition, t.seed): RunOutcome(t.env_id, t.condition, t.seed, "skipped")
-            for t in p.tasks
-            if t not in todo
-        }
-        bar = tqdm(total=len(p.tasks), initial=len(outcomes), unit="run", desc="experiment",
-                   disable=not progress_bar, dynamic_ncols=True)  # fmt: skip
-
-        def report(o: RunOutcome) -> None:
-            outcomes[(o.env_id, o.condition, o.seed)] = o
-            bar.update(1)
-            if o.status == "failed":
-                bar.write(f"pidlab: run {o.env_id}/{o.condition}/seed-{o.seed} failed: {o.error}")
-            bar.set_postfix_str(f"last {o.env_id} {o.condition} seed {o.seed}: {o.status}")
-
-        old = signal.signal(signal.SIGTERM, _term_as_interrupt)
-        interrupted = False
-        try:
-            if todo:
-                if backend == "process":
-                    _run_process_pool(todo, min(workers, len(todo)), report, p.out)
-                else:
-                    _run_ray(todo, workers, report, p.out, address)
-        except KeyboardInterrupt:
-            interrupted = True
-        finally:
-            signal.signal(signal.SIGTERM, old)
-            bar.close()
-    ordered = tuple(
-        outcomes.get((t.env_id, t.condition, t.seed), RunOutcome(t.env_id, t.condition, t.seed, "stopped"))
-        for t in p.tasks
-    )
-    return SweepResult(ordered, interrupted)
+        tally = _Tally(p.tasks, todo, progress_bar)
+        interrupted = _dispatch(todo, backend, workers or os.cpu_count() or 1, address, tally, p.out)
+    return SweepResult(tally.ordered(p.tasks), interrupted)

@@ -21,15 +21,17 @@ outputs. With a model card the outputs are the Gymnasium observation variables (
 
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import control as ct
 import mujoco
 import numpy as np
 
-from pidlab.errors import NonFiniteJacobianError
+from pidlab.errors import LinearizationError, NonFiniteJacobianError
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import observe
 from pidlab.plant.operating_point import OperatingPoint, resolve_operating_point
@@ -322,72 +324,87 @@ def linearize(
     ------
     NonFiniteJacobianError
         A derivative came out NaN or inf.
-    ValueError
-        ``eps`` is not positive or ``discretization`` is unknown.
+    LinearizationError
+        ``eps`` is not a positive finite number or ``discretization`` is unknown.
     """
-    if not eps > 0:
-        raise ValueError(f"eps must be positive, got {eps}")
+    if not (isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0 < eps < math.inf):
+        raise LinearizationError(
+            f"eps={eps!r}: expected a positive finite-difference step, e.g. 1e-6", param="eps"
+        )
     if discretization not in ("step", "zoh"):
-        raise ValueError(f"discretization must be 'step' or 'zoh', got {discretization!r}")
+        raise LinearizationError(
+            f"discretization={discretization!r}: expected 'step' or 'zoh'", param="discretization"
+        )
     if op is None:
         op = resolve_operating_point(loaded)
     ev = _Evaluator(loaded, op)
-    n, nu = ev.n, ev.nu
-    states = loaded.state_names
-    inputs = loaded.input_names
-    names = states + inputs
     lo, hi = _ctrl_steps(loaded, op, eps)
-    A, B, xdot0, kink = _fd_jacobian(
-        ev.vector_field, n, nu, eps, centered, lo, hi, names, f"linearizing {loaded.name}"
-    )
-    C, D, _, _ = _fd_jacobian(
-        ev.observation, n, nu, eps, centered, lo, hi, names, f"observation of {loaded.name}"
-    )
-    if loaded.card is not None:
-        outputs = loaded.card.observation_names
-    else:
-        outputs = states
-        C, D = np.eye(n), np.zeros((n, nu))
-    # python-control reserves "." in system names (file names such as "arm.xml").
-    sysname = loaded.name.replace(".", "_")
-    sys = ct.ss(A, B, C, D, states=list(states), inputs=list(inputs), outputs=list(outputs), name=sysname)
-    dt = loaded.control_dt
-    if discretization == "step":
-        Ad, Bd, _, _ = _fd_jacobian(ev.step, n, nu, eps, centered, lo, hi, names, f"stepping {loaded.name}")
-        sysd = ct.ss(
-            Ad,
-            Bd,
-            C,
-            D,
-            dt,
-            states=list(states),
-            inputs=list(inputs),
-            outputs=list(outputs),
-            name=f"{sysname}_discrete",
-        )
-    else:
-        sysd = ct.sample_system(sys, dt, method="zoh", name=f"{sysname}_discrete")
-    method = (
-        f"{'centered' if centered else 'forward'} finite differences of mj_forward "
-        f"(qacc) in tangent space, eps={eps:g}"
-    )
-    xdot0 = np.array(xdot0, dtype=float)
-    xdot0.setflags(write=False)
+    jacobians = functools.partial(
+        _fd_jacobian, n=ev.n, nu=ev.nu, eps=eps, centered=centered, ctrl_lo=lo, ctrl_hi=hi,
+        names=loaded.state_names + loaded.input_names,
+    )  # fmt: skip
+    sys, sysd, xdot0, kink = _systems(loaded, ev, jacobians, discretization)
     return Linearization(
         sys=sys,
         sysd=sysd,
         op=op,
         eps=eps,
         centered=centered,
-        method=method,
+        method=(
+            f"{'centered' if centered else 'forward'} finite differences of mj_forward "
+            f"(qacc) in tangent space, eps={eps:g}"
+        ),
         discretization=discretization,
         source=loaded.source,
         timestep=loaded.timestep,
-        control_dt=dt,
+        control_dt=loaded.control_dt,
         frame_skip=loaded.frame_skip,
         integrator=loaded.integrator,
         xdot0=xdot0,
         ncon=ev.ncon,
         nefc=ev.nefc,
         kink=kink,
+    )
+
+
+def _systems(
+    loaded: LoadedModel, ev: _Evaluator, jacobians: Callable[..., Any], discretization: str
+) -> tuple[ct.StateSpace, ct.StateSpace, np.ndarray, float]:
+    """The continuous and discrete models, ``f(x0, u0)`` and the kink measure.
+
+    ``jacobians(fun, what=...)`` is :func:`_fd_jacobian` with the step and the perturbations set.
+    """
+    A, B, xdot0, kink = jacobians(ev.vector_field, what=f"linearizing {loaded.name}")
+    C, D, _, _ = jacobians(ev.observation, what=f"observation of {loaded.name}")
+    outputs = loaded.card.observation_names if loaded.card is not None else loaded.state_names
+    if loaded.card is None:
+        C, D = np.eye(ev.n), np.zeros((ev.n, ev.nu))
+    # python-control reserves "." in system names (file names such as "arm.xml").
+    sysname = loaded.name.replace(".", "_")
+    sys = _named_ss(loaded, (A, B, C, D), outputs, sysname)
+    if discretization == "step":
+        Ad, Bd, _, _ = jacobians(ev.step, what=f"stepping {loaded.name}")
+        sysd = _named_ss(loaded, (Ad, Bd, C, D), outputs, f"{sysname}_discrete", loaded.control_dt)
+    else:
+        sysd = ct.sample_system(sys, loaded.control_dt, method="zoh", name=f"{sysname}_discrete")
+    xdot0 = np.array(xdot0, dtype=float)
+    xdot0.setflags(write=False)
+    return sys, sysd, xdot0, kink
+
+
+def _named_ss(
+    loaded: LoadedModel,
+    matrices: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    outputs: tuple[str, ...],
+    name: str,
+    *dt: float,
+) -> ct.StateSpace:
+    """``ss(A, B, C, D[, dt])`` with the model's state and input names and ``outputs``."""
+    return ct.ss(
+        *matrices,
+        *dt,
+        states=list(loaded.state_names),
+        inputs=list(loaded.input_names),
+        outputs=list(outputs),
+        name=name,
     )

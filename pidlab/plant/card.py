@@ -45,6 +45,7 @@ Schema ``pidlab.model-card/1``::
 
     [region]                   # optional: how pidlab.region derives the takeover region
     method = "lyapunov"        # lyapunov (certified level set) | simulation (recoverable box)
+    variables = ["rooty_pos", "rooty_vel"]  # simulation only: the box's position and its rate
 
     [paper]                    # optional: what the paper published for this env
     win_target = 800           # the score a "win" needs
@@ -218,6 +219,8 @@ class ModelCard:
         The auto-tuner refines the gains on the real env (contact-rich envs).
     region_method : {"lyapunov", "simulation"}
         How the takeover region is derived.
+    region_variables : tuple of str
+        The simulation method's box variables: a joint position and its rate.
     paper : PaperNumbers or None
         What the paper published for this env.
     """
@@ -232,6 +235,7 @@ class ModelCard:
     tuning: tuple[TuningLoop, ...] = ()
     refine_on_env: bool = False
     region_method: str = "lyapunov"
+    region_variables: tuple[str, ...] = ()
     paper: PaperNumbers | None = None
 
     @property
@@ -330,6 +334,34 @@ def _bound(value: Any, where: str) -> float:
     raise ModelCardError(f'{where}: expected a number or "inf"/"-inf", got {value!r}')
 
 
+def _parse_observation(data: dict[str, Any], path: str) -> list[ObservationVariable]:
+    obs: list[ObservationVariable] = []
+    for i, t in enumerate(_require(data, "observation", list, path)):
+        where = f"{path}: observation[{i}]"
+        source = _require(t, "source", str, where)
+        if source not in OBS_SOURCES:
+            raise ModelCardError(f"{where}.source: {source!r}; allowed: {', '.join(OBS_SOURCES)}")
+        transform = t.get("transform", "identity")
+        if transform not in OBS_TRANSFORMS:
+            raise ModelCardError(f"{where}.transform: {transform!r}; allowed: {', '.join(OBS_TRANSFORMS)}")
+        clip = None
+        if "clip" in t:
+            lo, hi = _floats(t["clip"], f"{where}.clip")
+            clip = (lo, hi)
+        obs.append(
+            ObservationVariable(
+                name=_require(t, "name", str, where),
+                source=source,
+                joint=_require(t, "joint", str, where),
+                transform=transform,
+                clip=clip,
+                unit=str(t.get("unit", "")),
+                description=str(t.get("description", "")),
+            )
+        )
+    return obs
+
+
 def _parse_tuning(data: dict[str, Any], path: str) -> tuple[tuple[TuningLoop, ...], bool]:
     table = data.get("tuning", {})
     if not isinstance(table, dict):
@@ -356,12 +388,24 @@ def _parse_tuning(data: dict[str, Any], path: str) -> tuple[tuple[TuningLoop, ..
     return tuple(loops), refine
 
 
-def _parse_region_method(data: dict[str, Any], path: str) -> str:
+def _parse_region(data: dict[str, Any], path: str, names: list[str]) -> tuple[str, tuple[str, ...]]:
     table = data.get("region", {})
-    method = table.get("method", "lyapunov") if isinstance(table, dict) else None
+    if not isinstance(table, dict):
+        raise ModelCardError(f"{path}: region: expected a table")
+    unknown = sorted(set(table) - {"method", "variables"})
+    if unknown:
+        raise ModelCardError(f"{path}: region: unknown field(s) {unknown}; allowed: method, variables")
+    method = table.get("method", "lyapunov")
     if method not in REGION_METHODS:
         raise ModelCardError(f"{path}: region.method: {method!r}; allowed: {', '.join(REGION_METHODS)}")
-    return str(method)
+    variables = table.get("variables", [])
+    ok = isinstance(variables, list) and all(isinstance(v, str) and v in names for v in variables)
+    if not ok or (method == "simulation" and len(variables) != 2):
+        raise ModelCardError(
+            f"{path}: region.variables: {variables!r}; expected two observation names (a joint position "
+            "and its rate), which the simulation method needs"
+        )
+    return str(method), tuple(variables)
 
 
 def _parse_paper(data: dict[str, Any], path: str) -> PaperNumbers | None:
@@ -403,30 +447,7 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
         ctrl=_floats(_require(opt, "ctrl", list, f"{path}: operating_point"), "ctrl"),
         note=str(opt.get("note", "")),
     )
-    obs: list[ObservationVariable] = []
-    for i, t in enumerate(_require(data, "observation", list, path)):
-        where = f"{path}: observation[{i}]"
-        source = _require(t, "source", str, where)
-        if source not in OBS_SOURCES:
-            raise ModelCardError(f"{where}.source: {source!r}; allowed: {', '.join(OBS_SOURCES)}")
-        transform = t.get("transform", "identity")
-        if transform not in OBS_TRANSFORMS:
-            raise ModelCardError(f"{where}.transform: {transform!r}; allowed: {', '.join(OBS_TRANSFORMS)}")
-        clip = None
-        if "clip" in t:
-            lo, hi = _floats(t["clip"], f"{where}.clip")
-            clip = (lo, hi)
-        obs.append(
-            ObservationVariable(
-                name=_require(t, "name", str, where),
-                source=source,
-                joint=_require(t, "joint", str, where),
-                transform=transform,
-                clip=clip,
-                unit=str(t.get("unit", "")),
-                description=str(t.get("description", "")),
-            )
-        )
+    obs = _parse_observation(data, path)
     names = [v.name for v in obs]
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
@@ -451,6 +472,7 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
             )
         )
     tuning, refine = _parse_tuning(data, path)
+    region = _parse_region(data, path, names)
     for lp in tuning:
         for name in (lp.signal, lp.rate_signal):
             if name is not None and name not in names:
@@ -465,7 +487,8 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
         path=path,
         tuning=tuning,
         refine_on_env=refine,
-        region_method=_parse_region_method(data, path),
+        region_method=region[0],
+        region_variables=region[1],
         paper=_parse_paper(data, path),
     )
 

@@ -267,22 +267,6 @@ def _load_env(env_id: str) -> LoadedModel:
     return LoadedModel(model=model, source=env_id, env_id=env_id, frame_skip=frame_skip, card=card)
 
 
-def from_mjmodel(model: mujoco.MjModel, frame_skip: int = 1, name: str = "<MjModel>") -> LoadedModel:
-    """Wrap an already-compiled ``MjModel`` (e.g. built from an XML string in a notebook).
-
-    Parameters
-    ----------
-    model : mujoco.MjModel
-    frame_skip : int, default 1
-        MuJoCo steps per control period.
-    name : str
-        Display name.
-    """
-    if frame_skip < 1:
-        raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
-    return LoadedModel(model=model, source=name, env_id=None, frame_skip=frame_skip, card=None)
-
-
 def finite_or_raise(x: np.ndarray, what: str) -> np.ndarray:
     """Return ``x`` as float array, raising OperatingPointError if any entry is not finite."""
     from pidlab.errors import OperatingPointError

@@ -163,34 +163,9 @@ def resolve_operating_point(
     model = loaded.model
     if at is None:
         at = "card" if loaded.card is not None else "qpos0"
-    base_qpos = model.qpos0.copy()
-    base_qvel = np.zeros(model.nv)
-    base_act = np.zeros(model.na)
-    base_ctrl = np.zeros(model.nu)
-    ctrl_source = "zero"
-    if at == "qpos0":
-        source = "qpos0"
-    elif at == "card":
-        if loaded.card is None:
-            raise OperatingPointError(f"{loaded.name} has no model card; use --at qpos0 or a keyframe name")
-        op = loaded.card.operating_point
-        base_qpos = np.array(op.qpos)
-        base_qvel = np.array(op.qvel)
-        base_ctrl = np.array(op.ctrl)
-        source, ctrl_source = f"card:{op.name}", "card"
-    else:
-        names = keyframe_names(model)
-        if at not in names:
-            available = ", ".join(names) if names else "the model defines no keyframes"
-            raise KeyframeError(
-                f"no keyframe {at!r} in {loaded.name}; expected qpos0, card or one of: {available}"
-            )
-        key = model.key(names.index(at))
-        base_qpos = key.qpos.copy()
-        base_qvel = key.qvel.copy()
-        base_act = key.act.copy()
-        base_ctrl = key.ctrl.copy()
-        source, ctrl_source = f"keyframe:{at}", "keyframe"
+    base = _base_point(loaded, at)
+    base_qpos, base_qvel, base_ctrl = base.qpos, base.qvel, base.ctrl
+    source, ctrl_source = base.source, base.ctrl_source
     explicit = []
     if qpos is not None:
         base_qpos = _check_len(qpos, model.nq, "qpos", _qpos_names(model))
@@ -209,18 +184,53 @@ def resolve_operating_point(
     mujoco.mj_normalizeQuat(model, base_qpos)
     equilibrium = None
     if equilibrium_ctrl:
-        equilibrium = equilibrium_control(loaded, base_qpos, base_qvel, base_act)
+        equilibrium = equilibrium_control(loaded, base_qpos, base_qvel, base.act)
         base_ctrl = equilibrium.ctrl
         ctrl_source = "inverse dynamics"
     return OperatingPoint(
         qpos=base_qpos,
         qvel=base_qvel,
-        act=base_act,
+        act=base.act,
         ctrl=base_ctrl,
         source=source,
         ctrl_source=ctrl_source,
         equilibrium=equilibrium,
     )
+
+
+def _base_point(loaded: LoadedModel, at: str) -> OperatingPoint:
+    """The named point ``at`` (``qpos0``, ``card`` or a keyframe) before explicit overrides.
+
+    Raises
+    ------
+    OperatingPointError, KeyframeError
+    """
+    model = loaded.model
+    if at == "qpos0":
+        zeros = np.zeros
+        return OperatingPoint(model.qpos0, zeros(model.nv), zeros(model.na), zeros(model.nu), "qpos0", "zero")
+    if at == "card":
+        if loaded.card is None:
+            raise OperatingPointError(
+                f"at={at!r}: {loaded.name} has no model card; expected qpos0 or a keyframe name", param="at"
+            )
+        op = loaded.card.operating_point
+        return OperatingPoint(
+            np.array(op.qpos),
+            np.array(op.qvel),
+            np.zeros(model.na),
+            np.array(op.ctrl),
+            f"card:{op.name}",
+            "card",
+        )
+    names = keyframe_names(model)
+    if at not in names:
+        available = ", ".join(names) if names else "the model defines no keyframes"
+        raise KeyframeError(
+            f"no keyframe {at!r} in {loaded.name}; expected qpos0, card or one of: {available}"
+        )
+    key = model.key(names.index(at))
+    return OperatingPoint(key.qpos, key.qvel, key.act, key.ctrl, f"keyframe:{at}", "keyframe")
 
 
 def _actuator_force_map(model: mujoco.MjModel, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:

@@ -33,16 +33,30 @@ import scipy.linalg
 from scipy.optimize import minimize
 
 from pidlab import __version__
+from pidlab.controller.analysis import analyze_coach
+from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
+from pidlab.errors import RegionError
+from pidlab.linear.linearize import Linearization
 from pidlab.plant.model import LoadedModel
-from pidlab.region.roa import (
-    METHOD_SIMULATION,
-    RegionError,
-    RegionOfAttraction,
-    _sample_ellipsoid,
-    _Simulator,
-    geometric_bisect,
-)
+from pidlab.region.roa import METHOD_SIMULATION, Lyapunov, RegionOfAttraction
+from pidlab.region.shrink import geometric_bisect, shrink_until_clean
+from pidlab.region.simulate import Simulator, horizon_steps, sample_ellipsoid, tangent_index
+
+BOX_SHRINK = 0.7
+"""Simulation method: factor on the box scale after a failed final one-step check."""
+
+RHO_SHRINK = 0.6
+"""Lyapunov method: factor on ``rho`` after a failed final one-step check."""
+
+MAX_VERTICES = 8
+"""At most this many corners of the action box are tried as the agent's worst-case step."""
+
+BOX_BISECTION_SAMPLES = 12
+"""Simulation method: states on the box per bisection step of the one-step margin."""
+
+RHO_BISECTION_SAMPLES = 20
+"""Lyapunov method: states on the boundary ``V = rho c`` per bisection step of the one-step margin."""
 
 
 @dataclass(frozen=True)
@@ -123,6 +137,27 @@ def check_variables(names: list[str], loaded: LoadedModel) -> None:
         card.variable(n)
 
 
+@dataclass(frozen=True)
+class _OneStep:
+    """The one-step check's setting: the simulator, worst-case actions, horizon and random draws.
+
+    Attributes
+    ----------
+    sim : Simulator
+    vertices : ndarray, shape (n_vertices, nu)
+        Worst-case action deviations from ``lin.op.ctrl`` (corners of the action box).
+    steps : int
+        Control periods the coach gets to recover.
+    rng : numpy.random.Generator
+        The one stream every draw of :func:`derive_bounds` comes from, in order.
+    """
+
+    sim: Simulator
+    vertices: np.ndarray
+    steps: int
+    rng: np.random.Generator
+
+
 def derive_bounds(
     roa: RegionOfAttraction,
     spec: CoachSpec,
@@ -152,21 +187,37 @@ def derive_bounds(
     RegionError
         One worst-case agent step can leave the certified set from anywhere: no useful bound.
     """
-    card = loaded.require_card()
     lp0 = spec.loops[0]
     if variables is None:
         variables = list(roa.box) if roa.box else [v for v in (lp0.signal, lp0.rate_signal) if v]
     check_variables(variables, loaded)
-    from pidlab.controller.analysis import analyze_coach
-    from pidlab.controller.pid import Coach
-
     coach = Coach(spec, loaded)
     lin = analyze_coach(coach, loaded).linearization
-    sim = _Simulator(spec, loaded, lin)
+    sim = Simulator(spec, loaded, lin)
+    vertices = _action_vertices(coach, lin)
+    provenance = _region_provenance(roa)
+    rng = np.random.default_rng(seed)
+    if len(vertices) > MAX_VERTICES:
+        vertices = vertices[rng.choice(len(vertices), MAX_VERTICES, replace=False)]
+    step = _OneStep(sim, vertices, horizon_steps(roa.check.horizon_s, loaded.control_dt), rng)
+    if roa.method == METHOD_SIMULATION:
+        return _box_bounds(roa, spec, step, check_samples, provenance)
+    return _ellipsoid_bounds(roa, spec, lin, step, variables, check_samples, provenance)
+
+
+def _action_vertices(coach: Coach, lin: Linearization) -> np.ndarray:
+    """Corners of the action box as deviations from ``lin.op.ctrl``, shape ``(2**nu, nu)``.
+
+    An unbounded actuator counts as ``[-1, 1]``.
+    """
     lay = coach.layout
     du_lo = np.where(np.isfinite(lay.ctrl_low), lay.ctrl_low, -1.0) - lin.op.ctrl
     du_hi = np.where(np.isfinite(lay.ctrl_high), lay.ctrl_high, 1.0) - lin.op.ctrl
-    vertices = np.array(list(itertools.product(*zip(du_lo, du_hi, strict=True))))
+    return np.array(list(itertools.product(*zip(du_lo, du_hi, strict=True))))
+
+
+def _region_provenance(roa: RegionOfAttraction) -> dict[str, Any]:
+    """The region's part of the bounds' provenance."""
     provenance: dict[str, Any] = {
         "method": roa.method,
         "level_c": float(roa.level),
@@ -180,149 +231,204 @@ def derive_bounds(
     }
     if roa.c_optimization is not None:
         provenance["c_optimization"] = float(roa.c_optimization)
-    steps = max(1, round(roa.check.horizon_s / loaded.control_dt))
-    rng = np.random.default_rng(seed)
-    if len(vertices) > 8:
-        vertices = vertices[rng.choice(len(vertices), 8, replace=False)]
-    names = card.observation_names
-    if roa.method == METHOD_SIMULATION:
-        m = loaded.model
-        keys = list(roa.box)
-        addr = []
-        for v in keys:
-            jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, v.rsplit("_", 1)[0])
-            addr.append(int(m.jnt_dofadr[jid]) + (m.nv if v.endswith("_vel") else 0))
+    return provenance
 
-        def box_points(scale: float, n: int) -> list[np.ndarray]:
-            pts = [np.array(p) for p in itertools.product((1.0, -1.0), repeat=len(keys))]
-            while len(pts) < n:  # points on the box's faces
-                p = rng.uniform(-1, 1, len(keys))
-                p[rng.integers(len(p))] = rng.choice((-1.0, 1.0))
-                pts.append(p)
-            out = []
-            for p in pts[:n]:
-                x = np.zeros(2 * m.nv)
-                for a, key, pv in zip(addr, keys, p, strict=True):
-                    x[a] = pv * roa.box[key] * scale
-                out.append(x)
-            return out
 
-        def box_escapes(scale: float, n: int, acts: np.ndarray) -> int:
-            return sum(_escapes(sim, x, acts, steps, None, 0.0) for x in box_points(scale, n))
+# --------------------------------------------------------------------------------------------
+# Simulation method: the recoverable box, scaled for one agent step
 
-        fraction = 1.0
-        kappa = geometric_bisect(lambda k: box_escapes(k, 12, vertices) == 0)
-        if kappa == 0.0:
-            # one full-range step from the standing pose is already unrecoverable: size the margin
-            # for the largest recoverable fraction of the action range, halved, and say so
-            zero = np.zeros(2 * m.nv)
-            fraction = 0.5 * geometric_bisect(
-                lambda f: _escapes(sim, zero, f * vertices, steps, None, 0.0) == 0
-            )
-            if fraction > 0.0:
-                kappa = geometric_bisect(lambda k: box_escapes(k, 12, fraction * vertices) == 0)
-        if kappa == 0.0:
-            raise RegionError(
-                "no useful bound: one agent step from the smallest box tried already leads to a fall"
-            )
-        n_check = max(check_samples // 10, 4)
-        escapes = box_escapes(kappa, n_check, fraction * vertices)
-        for _ in range(6):
-            if escapes == 0:
-                break
-            kappa *= 0.7
-            escapes = box_escapes(kappa, n_check, fraction * vertices)
-        else:
-            raise RegionError(f"no useful bound for {spec.name}: one-step falls persist as the box shrinks")
-        box = {}
-        for var in keys:
-            center = float(sim.y_op[names.index(var)])
-            box[var] = (center - kappa * roa.box[var], center + kappa * roa.box[var])
-        provenance.update(
-            {
-                "rho": float(kappa),
-                "one_step_samples": int(n_check),
-                "one_step_escapes": int(escapes),
-                "one_step_action_fraction": float(fraction),
-                "one_step_margin": "recoverable box scaled so the coach recovers after one worst-case step",
-            }
+
+def _box_points(roa: RegionOfAttraction, step: _OneStep, scale: float, n: int) -> list[np.ndarray]:
+    """``n`` plant states on the scaled box: its corners first, then points on its faces."""
+    m = step.sim.m
+    keys = list(roa.box)
+    addr = [tangent_index(m, v) for v in keys]
+    rng = step.rng
+    pts = [np.array(p) for p in itertools.product((1.0, -1.0), repeat=len(keys))]
+    while len(pts) < n:  # points on the box's faces
+        p = rng.uniform(-1, 1, len(keys))
+        p[rng.integers(len(p))] = rng.choice((-1.0, 1.0))
+        pts.append(p)
+    out = []
+    for p in pts[:n]:
+        x = np.zeros(2 * m.nv)
+        for a, key, pv in zip(addr, keys, p, strict=True):
+            x[a] = pv * roa.box[key] * scale
+        out.append(x)
+    return out
+
+
+def _box_escapes(roa: RegionOfAttraction, step: _OneStep, scale: float, n: int, acts: np.ndarray) -> int:
+    """Failed recoveries after one step of ``acts`` from ``n`` states on the box scaled by ``scale``."""
+    return sum(_escapes(step.sim, x, acts, step.steps, None, 0.0) for x in _box_points(roa, step, scale, n))
+
+
+def _box_margin(roa: RegionOfAttraction, step: _OneStep) -> tuple[float, float]:
+    """``(kappa, fraction)``: the largest box scale clean after one step of ``fraction`` of the action range.
+
+    ``fraction`` is 1 unless one full-range step from the standing pose is already
+    unrecoverable: then it is half the largest recoverable fraction (0 if none).
+    """
+    n = BOX_BISECTION_SAMPLES
+    vertices = step.vertices
+    fraction = 1.0
+    kappa = geometric_bisect(lambda k: _box_escapes(roa, step, k, n, vertices) == 0)
+    if kappa == 0.0:
+        zero = np.zeros(2 * step.sim.m.nv)
+        fraction = 0.5 * geometric_bisect(
+            lambda f: _escapes(step.sim, zero, f * vertices, step.steps, None, 0.0) == 0
         )
-        return CriticalBounds(
-            spec.env_id,
-            spec.name,
-            roa.method,
-            (),
-            np.zeros(0),
-            np.zeros((0, 0)),
-            roa.level,
-            kappa,
-            box,
-            (n_check, escapes),
-            provenance,
+        if fraction > 0.0:
+            kappa = geometric_bisect(lambda k: _box_escapes(roa, step, k, n, fraction * vertices) == 0)
+    return kappa, fraction
+
+
+def _box_bounds(
+    roa: RegionOfAttraction, spec: CoachSpec, step: _OneStep, check_samples: int, provenance: dict[str, Any]
+) -> CriticalBounds:
+    """Bounds for the simulation method: the recoverable box scaled for one worst-case agent step."""
+    kappa, fraction = _box_margin(roa, step)
+    if kappa == 0.0:
+        raise RegionError(
+            "no useful bound: one agent step from the smallest box tried already leads to a fall"
         )
-    lyap = roa.lyapunov
-    assert lyap is not None
+    n_check = max(check_samples // 10, 4)
+    final = shrink_until_clean(
+        lambda k: _box_escapes(roa, step, k, n_check, fraction * step.vertices),
+        lambda escapes: escapes == 0,
+        kappa,
+        BOX_SHRINK,
+    )
+    if final is None:
+        raise RegionError(f"no useful bound for {spec.name}: one-step falls persist as the box shrinks")
+    kappa, escapes = final.value, final.outcome
+    names = step.sim.card.observation_names
+    box = {}
+    for var in roa.box:
+        center = float(step.sim.y_op[names.index(var)])
+        box[var] = (center - kappa * roa.box[var], center + kappa * roa.box[var])
+    provenance = {
+        **provenance,
+        "rho": float(kappa),
+        "one_step_samples": int(n_check),
+        "one_step_escapes": int(escapes),
+        "one_step_action_fraction": float(fraction),
+        "one_step_margin": "recoverable box scaled so the coach recovers after one worst-case step",
+    }
+    return CriticalBounds(
+        spec.env_id,
+        spec.name,
+        roa.method,
+        (),
+        np.zeros(0),
+        np.zeros((0, 0)),
+        roa.level,
+        kappa,
+        box,
+        (n_check, escapes),
+        provenance,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Lyapunov method: the ellipsoid V <= rho c and a box inside it
+
+
+def _linear_one_step(
+    lin: Linearization, lyap: Lyapunov, names: tuple[str, ...], vertices: np.ndarray
+) -> tuple[float, float]:
+    """``(alpha, beta)`` of the linear bound ``sqrt(V+) <= alpha sqrt(V) + beta`` for one agent step."""
     C = np.asarray(lin.sysd.C)
     sel = [names.index(v) for v in lyap.variables]
     P_x = C[sel].T @ lyap.P_y @ C[sel]
     root = np.real(scipy.linalg.sqrtm(P_x))
     alpha = float(np.linalg.norm(root @ lin.Ad @ np.linalg.inv(root), 2))
     beta = float(max(np.linalg.norm(root @ lin.Bd @ v) for v in vertices))
-    c = roa.level
-    plant_n = lin.sysd.nstates
+    return alpha, beta
 
-    def boundary(r: float, n: int) -> np.ndarray:
-        pts = _sample_ellipsoid(lyap.P_y, r * c, n, rng)
-        return pts / np.sqrt(np.einsum("ij,jk,ik->i", pts, lyap.P_y, pts) / (r * c))[:, None]
 
-    def escapes_at(r: float, n: int, acts: np.ndarray) -> int:
-        return sum(_escapes(sim, (lyap.to_state @ y)[:plant_n], acts, steps, lyap, c) for y in boundary(r, n))
+def _ellipsoid_escapes(lyap: Lyapunov, c: float, step: _OneStep, r: float, n: int, acts: np.ndarray) -> int:
+    """Failed recoveries after one step of ``acts`` from ``n`` random states on ``V = r c``."""
+    pts = sample_ellipsoid(lyap.P_y, r * c, n, step.rng)
+    boundary = pts / np.sqrt(np.einsum("ij,jk,ik->i", pts, lyap.P_y, pts) / (r * c))[:, None]
+    plant_n = step.sim.lin.sysd.nstates
+    return sum(_escapes(step.sim, (lyap.to_state @ y)[:plant_n], acts, step.steps, lyap, c) for y in boundary)
 
-    rho = geometric_bisect(lambda r: escapes_at(r, 20, vertices) == 0)
-    fraction = 1.0
+
+def _rho_margin(lyap: Lyapunov, c: float, step: _OneStep, name: str) -> tuple[float, float]:
+    """``(rho, fraction)``: the largest ``rho`` clean after one step of ``fraction`` of the action range.
+
+    ``fraction`` is 1 unless a full-range step from (near) the equilibrium is already
+    unrecoverable: then it is half the largest recoverable fraction, and the margin is sized for it.
+    """
+    n = RHO_BISECTION_SAMPLES
+    vertices = step.vertices
+    rho = geometric_bisect(lambda r: _ellipsoid_escapes(lyap, c, step, r, n, vertices) == 0)
+    if rho > 0.0:
+        return rho, 1.0
+    fraction = 0.5 * geometric_bisect(lambda f: _ellipsoid_escapes(lyap, c, step, 1e-4, 4, f * vertices) == 0)
+    if fraction == 0.0:
+        raise RegionError(
+            f"no useful bound: from the smallest ellipsoid tried (c = {c:.3g}), one agent step of even "
+            "a small fraction of the action range takes the state where the coach cannot recover"
+        )
+    rho = geometric_bisect(lambda r: _ellipsoid_escapes(lyap, c, step, r, n, fraction * vertices) == 0)
     if rho == 0.0:
-        # not even a worst-case step from (near) the equilibrium is recoverable: find the largest
-        # fraction of the action range that is, and size the margin for that, saying so
-        fraction = 0.5 * geometric_bisect(lambda f: escapes_at(1e-4, 4, f * vertices) == 0)
-        if fraction == 0.0:
-            raise RegionError(
-                f"no useful bound: from the smallest ellipsoid tried (c = {c:.3g}), one agent step of even "
-                "a small fraction of the action range takes the state where the coach cannot recover"
-            )
-        rho = geometric_bisect(lambda r: escapes_at(r, 20, fraction * vertices) == 0)
-        if rho == 0.0:
-            raise RegionError(
-                f"no useful bound for {spec.name}: the one-step margin leaves nothing (c = {c:.3g})"
-            )
-    escapes = escapes_at(rho, check_samples, fraction * vertices)
-    for _ in range(6):  # the final, larger check must pass too
-        if escapes == 0:
-            break
-        rho *= 0.6
-        escapes = escapes_at(rho, check_samples, fraction * vertices)
-    else:
-        raise RegionError(f"no useful bound for {spec.name}: one-step escapes persist as rho shrinks")
-    # box on the chosen variables, inside the projected ellipsoid
+        raise RegionError(f"no useful bound for {name}: the one-step margin leaves nothing (c = {c:.3g})")
+    return rho, fraction
+
+
+def _box_in_ellipsoid(lyap: Lyapunov, variables: list[str], level: float) -> dict[str, tuple[float, float]]:
+    """Absolute ``(low, high)`` per variable: the largest centred box in the projected ``{V <= level}``."""
     for v in variables:
         if v not in lyap.variables:
             raise RegionError(f"{v!r} is not one of the region's variables ({', '.join(lyap.variables)})")
     idx = [lyap.variables.index(v) for v in variables]
     M = np.linalg.inv(np.linalg.inv(lyap.P_y)[np.ix_(idx, idx)])
-    halves = _largest_box(M, rho * c)
-    box = {
+    halves = _largest_box(M, level)
+    return {
         v: (float(lyap.center[i] - h), float(lyap.center[i] + h))
         for v, i, h in zip(variables, idx, halves, strict=True)
     }
-    provenance.update(
-        {
-            "rho": float(rho),
-            "linear_one_step_alpha": alpha,
-            "linear_one_step_beta": beta,
-            "one_step_samples": int(check_samples),
-            "one_step_escapes": int(escapes),
-            "one_step_action_fraction": float(fraction),
-        }
+
+
+def _ellipsoid_bounds(
+    roa: RegionOfAttraction,
+    spec: CoachSpec,
+    lin: Linearization,
+    step: _OneStep,
+    variables: list[str],
+    check_samples: int,
+    provenance: dict[str, Any],
+) -> CriticalBounds:
+    """Bounds for the Lyapunov method: the ellipsoid ``V <= rho c`` and a box inside it."""
+    lyap = roa.lyapunov
+    if lyap is None:
+        raise RegionError(
+            f"roa={roa.spec_name!r}: a {roa.method!r} region carries no Lyapunov function", param="roa"
+        )
+    alpha, beta = _linear_one_step(lin, lyap, step.sim.card.observation_names, step.vertices)
+    c = roa.level
+    rho, fraction = _rho_margin(lyap, c, step, spec.name)
+    final = shrink_until_clean(  # the final, larger check must pass too
+        lambda r: _ellipsoid_escapes(lyap, c, step, r, check_samples, fraction * step.vertices),
+        lambda escapes: escapes == 0,
+        rho,
+        RHO_SHRINK,
     )
+    if final is None:
+        raise RegionError(f"no useful bound for {spec.name}: one-step escapes persist as rho shrinks")
+    rho, escapes = final.value, final.outcome
+    box = _box_in_ellipsoid(lyap, variables, rho * c)
+    provenance = {
+        **provenance,
+        "rho": float(rho),
+        "linear_one_step_alpha": alpha,
+        "linear_one_step_beta": beta,
+        "one_step_samples": int(check_samples),
+        "one_step_escapes": int(escapes),
+        "one_step_action_fraction": float(fraction),
+    }
     return CriticalBounds(
         spec.env_id,
         spec.name,
@@ -339,9 +445,13 @@ def derive_bounds(
 
 
 def _escapes(
-    sim: _Simulator, x_plant: np.ndarray, vertices: np.ndarray, steps: int, lyap: Any, c: float
+    sim: Simulator, x_plant: np.ndarray, vertices: np.ndarray, steps: int, lyap: Lyapunov | None, c: float
 ) -> int:
-    """How many worst-case actions (``vertices``) leave the coach unable to recover from ``x_plant``."""
+    """How many worst-case actions (``vertices``) leave the coach unable to recover from ``x_plant``.
+
+    A recovery fails when the env would terminate within ``steps``, or (with ``lyap``) when
+    ``V`` at the end is not below ``V`` just after the kick.
+    """
     failures = 0
     for v in vertices:
         sim.start(x_plant)
@@ -354,13 +464,13 @@ def _escapes(
         sim.coach.reset(obs)
         v_kicked = 0.0
         if lyap is not None:
-            X = np.concatenate([sim.plant_state(), sim.coach_deviation()])
+            X = sim.closed_loop_state()
             v_kicked = float(X @ lyap.P @ X)
         term, _ = sim.run(obs, steps)
         if term:
             failures += 1
         elif lyap is not None:
-            X = np.concatenate([sim.plant_state(), sim.coach_deviation()])
+            X = sim.closed_loop_state()
             failures += int(float(X @ lyap.P @ X) >= v_kicked)
     return failures
 

@@ -46,8 +46,10 @@ from pidlab.controller.pid import N_LOOP_STATES, Coach, law
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import PidlabError, RegionError
 from pidlab.linear.linearize import Linearization
+from pidlab.plant.card import ModelCard
 from pidlab.plant.model import LoadedModel
-from pidlab.plant.observation import CompiledCard, observe_at
+from pidlab.region.shrink import geometric_bisect, halving_bisect, shrink_until_clean
+from pidlab.region.simulate import Simulator, horizon_steps, sample_ellipsoid, tangent_index
 
 OPTIMIZATION_HORIZON_S = 0.5
 """Window of the finite-step decrease condition in the CasADi estimate, s."""
@@ -55,6 +57,11 @@ OPTIMIZATION_HORIZON_S = 0.5
 METHOD_LYAPUNOV = "lyapunov level set, certified by simulation"
 METHOD_SIMULATION = "simulation: recoverable box over the coached variables (no Lyapunov argument)"
 
+LEVEL_SHRINK = 0.7
+"""Lyapunov method: factor on ``c`` after a failed final check."""
+
+BOX_SHRINK = 0.8
+"""Simulation method: factor on the box scale after a failed final check."""
 
 Progress = Callable[[str, "float | None"], None]
 """``progress(stage, fraction)``: what a long estimate is doing; fraction in [0, 1] or None."""
@@ -101,10 +108,6 @@ class Lyapunov:
     center: np.ndarray
     to_state: np.ndarray
     P_y: np.ndarray
-
-    def value_y(self, y_dev: np.ndarray) -> float:
-        """``V`` at an observation deviation (coach at reset)."""
-        return float(y_dev @ self.P_y @ y_dev)
 
 
 @dataclass(frozen=True)
@@ -232,60 +235,7 @@ def lyapunov_function(analysis: CoachAnalysis, coach: Coach, y_op: np.ndarray) -
 
 
 # --------------------------------------------------------------------------------------------
-# Simulation with MuJoCo and the coach's real law
-
-
-class _Simulator:
-    def __init__(self, spec: CoachSpec, loaded: LoadedModel, lin: Linearization) -> None:
-        self.loaded = loaded
-        self.m = loaded.model
-        self.d = mujoco.MjData(self.m)
-        self.coach = Coach(spec, loaded)
-        self.lin = lin
-        card = loaded.require_card()
-        self.card = card
-        self.fast = CompiledCard(card, self.m)
-        self.y_op = observe_at(self.card, self.m, lin.op.qpos, lin.op.qvel)
-
-    def start(self, x_plant: np.ndarray) -> np.ndarray:
-        """Put MuJoCo at op (+) x_plant (tangent) and reset the coach; returns the observation."""
-        m, d, op = self.m, self.d, self.lin.op
-        mujoco.mj_resetData(m, d)
-        q = op.qpos.copy()
-        mujoco.mj_integratePos(m, q, x_plant[: m.nv], 1.0)
-        d.qpos[:] = q
-        d.qvel[:] = op.qvel + x_plant[m.nv : 2 * m.nv]
-        mujoco.mj_forward(m, d)
-        obs = self.fast.observe(d)
-        self.coach.reset(obs)
-        return obs
-
-    def coach_deviation(self) -> np.ndarray:
-        """The coach's active states minus their values at the operating point."""
-        lay = self.coach.layout
-        ref = np.zeros(lay.n_states)
-        for i, lp in enumerate(lay.spec.loops):
-            ref[N_LOOP_STATES * i + 2] = self.y_op[lay.observation_names.index(lp.signal)]
-        return (self.coach.state - ref)[lay.active_states()]
-
-    def plant_state(self) -> np.ndarray:
-        dq = np.zeros(self.m.nv)
-        mujoco.mj_differentiatePos(self.m, dq, 1.0, self.lin.op.qpos, self.d.qpos)
-        return np.concatenate([dq, self.d.qvel - self.lin.op.qvel])
-
-    def run(self, obs: np.ndarray, steps: int, record: list[int] | None = None) -> tuple[bool, np.ndarray]:
-        """Step the coached system; returns (terminated, recorded observation columns)."""
-        m, d = self.m, self.d
-        path = [obs[record]] if record is not None else []
-        for _ in range(steps):
-            d.ctrl[:] = self.coach.act(obs)
-            mujoco.mj_step(m, d, nstep=self.loaded.frame_skip)
-            obs = self.fast.observe(d)
-            if record is not None:
-                path.append(obs[record])
-            if self.fast.terminated(d):
-                return True, np.array(path)
-        return False, np.array(path)
+# Simulation with MuJoCo and the coach's real law (:mod:`pidlab.region.simulate`)
 
 
 def ellipse_slice(
@@ -304,17 +254,6 @@ def ellipse_slice(
     return np.asarray(center)[list(idx), None] + pts
 
 
-def _sample_ellipsoid(P_y: np.ndarray, c: float, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Uniform samples in ``{y : y' P_y y <= c}``, shape ``(n, k)``."""
-    k = P_y.shape[0]
-    L = np.linalg.cholesky(P_y / c)  # y' P_y y / c = |L' y|^2
-    g = rng.standard_normal((n, k))
-    g /= np.linalg.norm(g, axis=1, keepdims=True)
-    r = rng.random(n) ** (1.0 / k)
-    u = g * r[:, None]
-    return np.linalg.solve(L.T, u.T).T
-
-
 @dataclass(frozen=True)
 class Trajectory:
     """A simulated trajectory, for plots: recorded observation columns and its outcome."""
@@ -324,7 +263,7 @@ class Trajectory:
 
 
 def _check_level(
-    sim: _Simulator,
+    sim: Simulator,
     lyap: Lyapunov,
     c: float,
     n: int,
@@ -338,7 +277,7 @@ def _check_level(
     terminated = not_converged = 0
     kept: list[Trajectory] = []
     plant_n = sim.lin.sysd.nstates
-    for i, y_dev in enumerate(_sample_ellipsoid(lyap.P_y, c, n, rng)):
+    for i, y_dev in enumerate(sample_ellipsoid(lyap.P_y, c, n, rng)):
         if tick is not None:
             tick(i)
         X0 = lyap.to_state @ y_dev
@@ -349,7 +288,7 @@ def _check_level(
         if term:
             terminated += 1
         else:
-            X = np.concatenate([sim.plant_state(), sim.coach_deviation()])
+            X = sim.closed_loop_state()
             if float(X @ lyap.P @ X) >= v0:
                 not_converged += 1
                 failed = True
@@ -371,16 +310,14 @@ def phase_portrait(
     The two variables are set through the plant state (least-norm change), everything else
     at the operating point.
     """
-    from pidlab.controller.analysis import analyze_coach
-
     coach = Coach(spec, loaded)
     lin = analyze_coach(coach, loaded).linearization
-    sim = _Simulator(spec, loaded, lin)
+    sim = Simulator(spec, loaded, lin)
     card = loaded.require_card()
     names = card.observation_names
     idx = [names.index(v) for v in variables]
     Cinv = np.linalg.pinv(np.asarray(lin.sysd.C))
-    steps = max(1, round(horizon_s / loaded.control_dt))
+    steps = horizon_steps(horizon_s, loaded.control_dt)
     paths = []
     for a in np.linspace(-extent[0], extent[0], grid):
         for b in np.linspace(-extent[1], extent[1], grid):
@@ -426,11 +363,27 @@ def optimization_level(
         sym = cart_pole_dynamics(cart_pole_parameters(loaded.model))
     except PidlabError:
         return None
-    card = loaded.require_card()
-    m = loaded.model
+    x = cs.SX.sym("x", 2 * loaded.model.nq)
+    observe_sym = _symbolic_observation(loaded.require_card(), loaded.model, x)
+    xk = _coached_steps(sym.f, observe_sym, coach, loaded, x, horizon_steps)
+    x_op = np.concatenate([lin.op.qpos, lin.op.qvel])
+    P = lyap.P
+    V = cs.bilin(cs.DM(P), x - x_op, x - x_op)
+    V_next = cs.bilin(cs.DM(P), xk - x_op, xk - x_op)
+    # exclude a small ball: the symbolic model's closed-loop equilibrium sits a hair away from
+    # MuJoCo's (e.g. a few micrometres of cart offset under a slow cart loop), where V cannot
+    # decrease; below delta = 1e-4 c_scale that is all the optimizer would find
+    delta = 1e-4 * c_scale
+    solver = _ipopt({"x": x, "f": V, "g": cs.vertcat(V_next - V, V)})
+    return _multistart_minimum(solver, x_op, P, c_scale, delta, starts, seed)
+
+
+def _symbolic_observation(card: ModelCard, m: mujoco.MjModel, x: cs.SX) -> cs.Function:
+    """The observation as a CasADi function of the state ``x = (qpos, qvel)``.
+
+    ``qfrc_constraint`` entries are zero (away from joint limits).
+    """
     nq = m.nq
-    x = cs.SX.sym("x", 2 * nq)
-    # observation as a symbolic function of the state (qfrc_constraint: zero away from limits)
     ys = []
     for var in card.observation:
         jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, var.joint)
@@ -440,31 +393,35 @@ def optimization_level(
         idx = int(m.jnt_qposadr[jid]) if var.source == "qpos" else nq + int(m.jnt_dofadr[jid])
         v = x[idx]
         ys.append(cs.sin(v) if var.transform == "sin" else cs.cos(v) if var.transform == "cos" else v)
-    observe_sym = cs.Function("observe", [x], [cs.vertcat(*ys)])
-    _, u_const, _ = law(lay, np.zeros(lay.n_states), np.zeros(len(ys)), lay.setpoints, saturate=False)
-    K = np.asarray(coach.linear_model().D)[:, : len(ys)]
-    h = float(m.opt.timestep)
+    return cs.Function("observe", [x], [cs.vertcat(*ys)])
+
+
+def _coached_steps(
+    f: cs.Function, observe_sym: cs.Function, coach: Coach, loaded: LoadedModel, x: cs.SX, steps: int
+) -> cs.SX:
+    """The state after ``steps`` control periods of the static, saturated coach on ``f`` (RK4)."""
+    lay = coach.layout
+    n_obs = len(loaded.require_card().observation)
+    _, u_const, _ = law(lay, np.zeros(lay.n_states), np.zeros(n_obs), lay.setpoints, saturate=False)
+    K = np.asarray(coach.linear_model().D)[:, :n_obs]
+    h = float(loaded.model.opt.timestep)
     xk = x
-    for _ in range(horizon_steps):
+    for _ in range(steps):
         u = cs.fmin(
             cs.fmax(u_const[0] + cs.mtimes(cs.DM(K[0:1]), observe_sym(xk)), lay.ctrl_low[0]), lay.ctrl_high[0]
         )
         for _ in range(loaded.frame_skip):
-            k1 = sym.f(xk, u)
-            k2 = sym.f(xk + h / 2 * k1, u)
-            k3 = sym.f(xk + h / 2 * k2, u)
-            k4 = sym.f(xk + h * k3, u)
+            k1 = f(xk, u)
+            k2 = f(xk + h / 2 * k1, u)
+            k3 = f(xk + h / 2 * k2, u)
+            k4 = f(xk + h * k3, u)
             xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    x_op = np.concatenate([lin.op.qpos, lin.op.qvel])
-    P = lyap.P
-    V = cs.bilin(cs.DM(P), x - x_op, x - x_op)
-    V_next = cs.bilin(cs.DM(P), xk - x_op, xk - x_op)
-    # exclude a small ball: the symbolic model's closed-loop equilibrium sits a hair away from
-    # MuJoCo's (e.g. a few micrometres of cart offset under a slow cart loop), where V cannot
-    # decrease; below delta = 1e-4 c_scale that is all the optimizer would find
-    delta = 1e-4 * c_scale
-    nlp = {"x": x, "f": V, "g": cs.vertcat(V_next - V, V)}
-    solver = cs.nlpsol(
+    return xk
+
+
+def _ipopt(nlp: dict[str, cs.SX]) -> cs.Function:
+    """A quiet IPOPT solver for ``nlp``."""
+    return cs.nlpsol(
         "roa",
         "ipopt",
         nlp,
@@ -477,12 +434,20 @@ def optimization_level(
             "ipopt.tol": 1e-10,
         },
     )
+
+
+def _multistart_minimum(
+    solver: cs.Function, x_op: np.ndarray, P: np.ndarray, c_scale: float, delta: float, starts: int, seed: int
+) -> float | None:
+    """Smallest feasible ``V`` IPOPT finds from ``starts`` random starts; None if none is feasible.
+
+    Start points lie on the level sets ``V = c_scale * 10^(-3..2)``, in random directions; the
+    search stays within ``V <= 100 c_scale``.
+    """
     rng = np.random.default_rng(seed)
     best = math.inf
-    # start points on the level sets V = c_scale * 10^(-3..2), in random directions; the search
-    # stays within V <= 100 c_scale (None: no point without decrease found there)
     for _ in range(starts):
-        d = rng.standard_normal(2 * nq)
+        d = rng.standard_normal(len(x_op))
         d *= math.sqrt(c_scale * 10 ** rng.uniform(-3, 2) / float(d @ P @ d))
         try:
             sol = solver(x0=x_op + d, lbg=[0.0, delta], ubg=[cs.inf, 100.0 * c_scale])
@@ -499,24 +464,21 @@ def optimization_level(
 # The estimate
 
 
-def geometric_bisect(ok: Callable[[float], bool], rounds: int = 8) -> float:
-    """Largest factor in (0, 1] for which ``ok`` holds, by geometric bisection; 0 if none.
+@dataclass(frozen=True)
+class _Budget:
+    """The simulation budget of one estimate (the arguments of :func:`estimate_roa`)."""
 
-    Tries 1 first; after a failure with nothing passed yet, quarters the factor; otherwise
-    takes the geometric mean of the largest pass and the smallest failure. ``1 + rounds``
-    calls of ``ok`` at most.
-    """
-    if ok(1.0):
-        return 1.0
-    lo, hi = 0.0, 1.0
-    r = 0.25
-    for _ in range(rounds):
-        if ok(r):
-            lo = r
-        else:
-            hi = r
-        r = math.sqrt(lo * hi) if lo > 0 else r / 4.0
-    return lo
+    samples: int
+    seed: int
+    horizon_s: float
+    bisection_samples: int
+    bisection_rounds: int
+    keep: int
+    record: tuple[str, str] | None
+
+    def record_columns(self, card: ModelCard) -> list[int] | None:
+        """Observation columns of :attr:`record` (None: record nothing)."""
+        return [card.observation_names.index(v) for v in self.record] if self.record else None
 
 
 def _termination_cap(lyap: Lyapunov, loaded: LoadedModel) -> float:
@@ -545,6 +507,9 @@ def estimate_roa(
     progress: Progress | None = None,
 ) -> tuple[RegionOfAttraction, list[Trajectory]]:
     """Estimate and certify the region of attraction of ``spec`` on its env.
+
+    The model card's ``[region] method`` picks the method: a Lyapunov level set, or (over
+    contacts) a recoverable box found by simulation only.
 
     Parameters
     ----------
@@ -578,79 +543,56 @@ def estimate_roa(
     report = progress if progress is not None else _no_progress
     coach = Coach(spec, loaded)
     analysis = analyze_coach(coach, loaded)
+    budget = _Budget(samples, seed, horizon_s, bisection_samples, bisection_rounds, keep_trajectories, record)
     if loaded.require_card().region_method == "simulation":
-        return _recoverable_box(
-            spec,
-            loaded,
-            analysis,
-            samples,
-            seed,
-            horizon_s,
-            bisection_samples,
-            bisection_rounds,
-            keep_trajectories,
-            record,
-            t0,
-            report,
-        )
+        return _recoverable_box(spec, loaded, analysis, budget, t0, report)
+    return _lyapunov_region(spec, loaded, coach, analysis, budget, t0, report)
+
+
+def _lyapunov_region(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    coach: Coach,
+    analysis: CoachAnalysis,
+    budget: _Budget,
+    t0: float,
+    report: Progress,
+) -> tuple[RegionOfAttraction, list[Trajectory]]:
+    """The Lyapunov method: bisection on ``c``, then the final check with ``N`` samples."""
     lin = analysis.linearization
-    sim = _Simulator(spec, loaded, lin)
+    sim = Simulator(spec, loaded, lin)
     lyap = lyapunov_function(analysis, coach, sim.y_op)
-    steps = max(1, round(horizon_s / loaded.control_dt))
-    opt_steps = max(1, round(OPTIMIZATION_HORIZON_S / loaded.control_dt))
-    hi = _termination_cap(lyap, loaded)
-    report("level estimate (CasADi)", None)
-    c_opt = optimization_level(
-        spec,
-        loaded,
-        lyap,
-        coach,
-        lin,
-        horizon_steps=opt_steps,
-        seed=seed,
-        c_scale=hi if math.isfinite(hi) else 1.0,
-    )
-    if c_opt is not None:
-        hi = min(hi, 4.0 * c_opt)  # the simulation may certify somewhat beyond the estimate
-    if not math.isfinite(hi):
-        hi = 1e3 * float(np.max(lyap.center**2) + 1.0)
-    rng = np.random.default_rng(seed)
-    tried = [0]
-
-    def passes(fraction: float) -> bool:
-        tried[0] += 1
-        report(f"bisection on the level ({tried[0]}/{bisection_rounds})", tried[0] / bisection_rounds)
-        term, nonconv, _ = _check_level(sim, lyap, fraction * hi, bisection_samples, steps, rng)
-        return term + nonconv == 0
-
-    lo = hi * geometric_bisect(passes, bisection_rounds - 1)
+    steps = horizon_steps(budget.horizon_s, loaded.control_dt)
+    c_opt, hi = _level_ceiling(spec, loaded, lyap, coach, lin, budget.seed, report)
+    lo = hi * _bisect_level(sim, lyap, hi, steps, budget, report)
     if lo == 0.0:
-        smallest = hi * 0.25 ** max(bisection_rounds - 1, 0)
+        smallest = hi * 0.25 ** max(budget.bisection_rounds - 1, 0)
         raise RegionError(
             f"no region of attraction certified for {spec.name}: every level down to {smallest:.3g} had "
             "failures in simulation (c -> 0); no useful bound can be written"
         )
-    # final certification with N samples; shrink while anything fails
-    rec = [loaded.card.observation_names.index(v) for v in record] if record and loaded.card else None
-    level = lo
-    for _ in range(6):
-        term, nonconv, kept = _check_level(
+    # final certification with N samples, on the same draws (rescaled) after a shrink
+    rec = budget.record_columns(loaded.require_card())
+    final = shrink_until_clean(
+        lambda level: _check_level(
             sim,
             lyap,
             level,
-            samples,
+            budget.samples,
             steps,
-            np.random.default_rng(seed + 1),
+            np.random.default_rng(budget.seed + 1),
             rec,
-            keep_trajectories,
-            _final_tick(report, samples),
-        )
-        if term + nonconv == 0:
-            break
-        level *= 0.7
-    else:
+            budget.keep,
+            _final_tick(report, budget.samples),
+        ),
+        lambda outcome: outcome[0] + outcome[1] == 0,
+        lo,
+        LEVEL_SHRINK,
+    )
+    if final is None:
         raise RegionError(f"no region of attraction certified for {spec.name}: failures persist as c -> 0")
-    check = SimulationCheck(level, samples, term + nonconv, term, nonconv, horizon_s, seed)
+    term, nonconv, kept = final.outcome
+    level = final.value
     roa = RegionOfAttraction(
         env_id=spec.env_id,
         spec_name=spec.name,
@@ -659,46 +601,87 @@ def estimate_roa(
         level=level,
         c_optimization=c_opt,
         c_simulation=lo,
-        check=check,
+        check=SimulationCheck(
+            level, budget.samples, term + nonconv, term, nonconv, budget.horizon_s, budget.seed
+        ),
         elapsed_s=time.perf_counter() - t0,
     )
     return roa, kept
 
 
-def _recoverable_box(
+def _level_ceiling(
     spec: CoachSpec,
     loaded: LoadedModel,
-    analysis: CoachAnalysis,
-    samples: int,
+    lyap: Lyapunov,
+    coach: Coach,
+    lin: Linearization,
     seed: int,
-    horizon_s: float,
-    bisection_samples: int,
-    bisection_rounds: int,
-    keep: int,
-    record: tuple[str, str] | None,
-    t0: float,
     report: Progress,
-) -> tuple[RegionOfAttraction, list[Trajectory]]:
-    """Largest box over (torso pitch, pitch rate) from which the coach recovers (simulation)."""
-    card = loaded.require_card()
-    lin = analysis.linearization
-    sim = _Simulator(spec, loaded, lin)
-    m = loaded.model
-    jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "rooty")
-    dof = int(m.jnt_dofadr[jid])
-    pitch_limit = min(abs(t.high) for t in card.termination if t.signal == "rooty_pos")
-    # box shape: pitch up to the termination limit, pitch rate up to 10x that per second
-    shape = np.array([pitch_limit, 10.0 * pitch_limit])
-    steps = max(1, round(horizon_s / loaded.control_dt))
-    rec = [card.observation_names.index(v) for v in record] if record else None
+) -> tuple[float | None, float]:
+    """``(c_opt, hi)``: the CasADi estimate and the top of the bisection on ``c``.
 
-    def check(
+    ``hi`` is the smaller of the termination cap and ``4 c_opt`` (the simulation may certify
+    somewhat beyond the estimate); with neither, ``1e3 (max center^2 + 1)``.
+    """
+    hi = _termination_cap(lyap, loaded)
+    report("level estimate (CasADi)", None)
+    c_opt = optimization_level(
+        spec,
+        loaded,
+        lyap,
+        coach,
+        lin,
+        horizon_steps=horizon_steps(OPTIMIZATION_HORIZON_S, loaded.control_dt),
+        seed=seed,
+        c_scale=hi if math.isfinite(hi) else 1.0,
+    )
+    if c_opt is not None:
+        hi = min(hi, 4.0 * c_opt)
+    if not math.isfinite(hi):
+        hi = 1e3 * float(np.max(lyap.center**2) + 1.0)
+    return c_opt, hi
+
+
+def _bisect_level(
+    sim: Simulator, lyap: Lyapunov, hi: float, steps: int, budget: _Budget, report: Progress
+) -> float:
+    """Largest fraction of ``hi`` whose level passes the bisection's check (0 if none)."""
+    rng = np.random.default_rng(budget.seed)
+    rounds = budget.bisection_rounds
+    tried = [0]
+
+    def passes(fraction: float) -> bool:
+        tried[0] += 1
+        report(f"bisection on the level ({tried[0]}/{rounds})", tried[0] / rounds)
+        term, nonconv, _ = _check_level(sim, lyap, fraction * hi, budget.bisection_samples, steps, rng)
+        return term + nonconv == 0
+
+    return geometric_bisect(passes, rounds - 1)
+
+
+@dataclass(frozen=True)
+class _BoxCheck:
+    """Simulations from a box over (torso pitch, pitch rate) around the standing pose.
+
+    ``addr`` are the two variables' indices in the tangent state; ``shape`` the box's
+    half-widths at scale 1.
+    """
+
+    sim: Simulator
+    addr: tuple[int, int]
+    shape: np.ndarray
+    steps: int
+    record: list[int] | None
+
+    def __call__(
+        self,
         scale: float,
         n: int,
         rng: np.random.Generator,
-        kept_n: int = 0,
+        keep: int = 0,
         tick: Callable[[int], None] | None = None,
     ) -> tuple[int, list[Trajectory]]:
+        """(failures, kept trajectories) from the box's 4 corners, then uniform interior points."""
         failures = 0
         kept: list[Trajectory] = []
         corners = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float)
@@ -706,42 +689,70 @@ def _recoverable_box(
         for i, p in enumerate(points):
             if tick is not None:
                 tick(i)
-            x = np.zeros(2 * m.nv)
-            x[dof], x[m.nv + dof] = p * shape * scale
-            obs = sim.start(x)
-            term, path = sim.run(obs, steps, rec)
+            x = np.zeros(2 * self.sim.m.nv)
+            x[self.addr[0]], x[self.addr[1]] = p * self.shape * scale
+            obs = self.sim.start(x)
+            term, path = self.sim.run(obs, self.steps, self.record)
             failures += term
-            if len(kept) < kept_n:
+            if len(kept) < keep:
                 kept.append(Trajectory(path, not term))
         return failures, kept
 
-    rng = np.random.default_rng(seed)
-    lo, hi = 0.0, 1.0
-    scale = hi
-    for r in range(bisection_rounds):
-        report(f"bisection on the box ({r + 1}/{bisection_rounds})", (r + 1) / bisection_rounds)
-        if check(scale, bisection_samples, rng)[0] == 0:
-            lo = scale
-            if scale == hi:
-                break
-        else:
-            hi = scale
-        scale = 0.5 * (lo + hi) if lo > 0 else hi / 2.0
+
+def _box_check(spec: CoachSpec, loaded: LoadedModel, analysis: CoachAnalysis, budget: _Budget) -> _BoxCheck:
+    """The box's simulations: pitch up to the termination limit, pitch rate up to 10x that per second."""
+    card = loaded.require_card()
+    sim = Simulator(spec, loaded, analysis.linearization)
+    m = loaded.model
+    pos, rate = card.region_variables  # the card's [region] variables, e.g. torso pitch and its rate
+    pitch_limit = min(abs(t.high) for t in card.termination if t.signal == pos)
+    addr = (tangent_index(m, pos), tangent_index(m, rate))
+    shape = np.array([pitch_limit, 10.0 * pitch_limit])
+    steps = horizon_steps(budget.horizon_s, loaded.control_dt)
+    return _BoxCheck(sim, addr, shape, steps, budget.record_columns(card))
+
+
+def _recoverable_box(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    analysis: CoachAnalysis,
+    budget: _Budget,
+    t0: float,
+    report: Progress,
+) -> tuple[RegionOfAttraction, list[Trajectory]]:
+    """Largest box over (torso pitch, pitch rate) from which the coach recovers (simulation)."""
+    check = _box_check(spec, loaded, analysis, budget)
+    rng = np.random.default_rng(budget.seed)
+    rounds = budget.bisection_rounds
+    tried = [0]
+
+    def passes(scale: float) -> bool:
+        tried[0] += 1
+        report(f"bisection on the box ({tried[0]}/{rounds})", tried[0] / rounds)
+        return check(scale, budget.bisection_samples, rng)[0] == 0
+
+    lo = halving_bisect(passes, rounds)
     if lo == 0.0:
         raise RegionError(f"no recoverable set found for {spec.name}: the coach fails from every box tried")
-    level = lo
-    for _ in range(6):
-        failures, kept = check(
-            level, samples, np.random.default_rng(seed + 1), keep, _final_tick(report, samples)
-        )
-        if failures == 0:
-            break
-        level *= 0.8
-    else:
+    final = shrink_until_clean(
+        lambda scale: check(
+            scale,
+            budget.samples,
+            np.random.default_rng(budget.seed + 1),
+            budget.keep,
+            _final_tick(report, budget.samples),
+        ),
+        lambda outcome: outcome[0] == 0,
+        lo,
+        BOX_SHRINK,
+    )
+    if final is None:
         raise RegionError(
             f"no recoverable set certified for {spec.name}: failures persist as the box shrinks"
         )
-    box = {"rooty_pos": float(shape[0] * level), "rooty_vel": float(shape[1] * level)}
+    level = final.value
+    variables = loaded.require_card().region_variables
+    box = {v: float(h * level) for v, h in zip(variables, check.shape, strict=True)}
     result = RegionOfAttraction(
         env_id=spec.env_id,
         spec_name=spec.name,
@@ -750,8 +761,8 @@ def _recoverable_box(
         level=level,
         c_optimization=None,
         c_simulation=lo,
-        check=SimulationCheck(level, samples, 0, 0, 0, horizon_s, seed),
+        check=SimulationCheck(level, budget.samples, 0, 0, 0, budget.horizon_s, budget.seed),
         elapsed_s=time.perf_counter() - t0,
         box=box,
     )
-    return result, kept
+    return result, final.outcome[1]

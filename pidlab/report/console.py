@@ -72,8 +72,8 @@ def modes_table(report: LtiReport, title: str) -> Table:
     return table
 
 
-def linearization_view(lin: Linearization, report: LtiReport, discrete: bool) -> Group:
-    """Everything ``pidlab linearize`` prints, as a rich renderable."""
+def _linearization_head(lin: Linearization) -> Text:
+    """Where the model was linearized and how, with warnings where the linear model is fragile."""
     op = lin.op
     head = Text()
     head.append(f"{lin.source}", style="bold")
@@ -82,9 +82,8 @@ def linearization_view(lin: Linearization, report: LtiReport, discrete: bool) ->
         f"control period {lin.control_dt:g} s\n"
     )
     head.append(f"operating point: {op.source}; ctrl: {op.ctrl_source}\n")
-    head.append(f"  qpos = {np.array2string(op.qpos, precision=6, separator=', ')}\n")
-    head.append(f"  qvel = {np.array2string(op.qvel, precision=6, separator=', ')}\n")
-    head.append(f"  ctrl = {np.array2string(op.ctrl, precision=6, separator=', ')}\n")
+    for name in ("qpos", "qvel", "ctrl"):
+        head.append(f"  {name} = {np.array2string(getattr(op, name), precision=6, separator=', ')}\n")
     if op.equilibrium is not None:
         eq = op.equilibrium
         head.append(
@@ -118,32 +117,11 @@ def linearization_view(lin: Linearization, report: LtiReport, discrete: bool) ->
             "the dynamics have a kink here; A is the average of both sides\n",
             style="yellow",
         )
-    sys = lin.sysd if discrete else lin.sys
-    kind = f"discrete (dt = {lin.control_dt:g} s)" if discrete else "continuous"
-    a_name, b_name = ("Ad", "Bd") if discrete else ("A", "B")
-    rows_are = "next state" if discrete else "time derivative of the state"
-    parts: list[Any] = [head]
-    parts.append(
-        matrix_table(
-            f"{a_name}: {kind} state matrix (rows: {rows_are})",
-            np.asarray(sys.A),
-            lin.state_names,
-            lin.state_names,
-        )
-    )
-    parts.append(
-        matrix_table(f"{b_name}: {kind} input matrix", np.asarray(sys.B), lin.state_names, lin.input_names)
-    )
-    if lin.output_names != lin.state_names:
-        parts.append(
-            matrix_table(
-                "C: observation variables from states (Jacobian of the observation)",
-                np.asarray(sys.C),
-                lin.output_names,
-                lin.state_names,
-            )
-        )
-    parts.append(modes_table(report, f"Eigenvalues of {a_name}"))
+    return head
+
+
+def _lti_summary(report: LtiReport) -> Text:
+    """Unstable modes, controllability and observability in three lines."""
     summary = Text()
     summary.append(
         f"unstable modes: {report.n_unstable}\n", style="bold red" if report.n_unstable else "green"
@@ -158,7 +136,44 @@ def linearization_view(lin: Linearization, report: LtiReport, discrete: bool) ->
         f" ({'observable' if report.observable else 'NOT observable'};"
         f" {'detectable' if report.detectable else 'NOT detectable'})\n"
     )
-    parts.append(summary)
+    return summary
+
+
+def linearization_view(lin: Linearization, report: LtiReport, discrete: bool) -> Group:
+    """Everything ``pidlab linearize`` prints, as a rich renderable.
+
+    Parameters
+    ----------
+    lin : Linearization
+    report : LtiReport
+        The modal analysis of the model shown (:func:`pidlab.linear.lti.analyze_lti`).
+    discrete : bool
+        Show the discrete model at the control period (``sysd``) instead of the continuous one.
+
+    Returns
+    -------
+    rich.console.Group
+    """
+    sys = lin.sysd if discrete else lin.sys
+    kind = f"discrete (dt = {lin.control_dt:g} s)" if discrete else "continuous"
+    a_name, b_name = ("Ad", "Bd") if discrete else ("A", "B")
+    rows_are = "next state" if discrete else "time derivative of the state"
+    states = lin.state_names
+    parts: list[Any] = [
+        _linearization_head(lin),
+        matrix_table(f"{a_name}: {kind} state matrix (rows: {rows_are})", np.asarray(sys.A), states, states),
+        matrix_table(f"{b_name}: {kind} input matrix", np.asarray(sys.B), states, lin.input_names),
+    ]
+    if lin.output_names != states:
+        parts.append(
+            matrix_table(
+                "C: observation variables from states (Jacobian of the observation)",
+                np.asarray(sys.C),
+                lin.output_names,
+                states,
+            )
+        )
+    parts += [modes_table(report, f"Eigenvalues of {a_name}"), _lti_summary(report)]
     return Group(*parts)
 
 

@@ -1,18 +1,21 @@
 """Figures of an experiment (matplotlib; compute lives in :mod:`pidlab.experiment.analysis`).
 
-Every function takes an :class:`~pidlab.experiment.analysis.Analysis` and one env, and returns a
-figure. Bands are 95 % stratified-bootstrap intervals of the IQM over seeds.
+Every function takes an :class:`~pidlab.experiment.analysis.Analysis` and one env, draws on the
+axes it is given (``ax``) or on a new figure (a bare :class:`~matplotlib.figure.Figure`: no backend
+is chosen or changed), and returns the figure; :func:`pidlab.files.save_figure` writes it. Bands are
+95 % stratified-bootstrap intervals of the IQM over seeds.
 """
 
 from __future__ import annotations
 
-import matplotlib
+from typing import Any
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
 
 from pidlab.experiment.analysis import Analysis, Curve
+from pidlab.report.plots import figure_axes
 
 COLORS = ("#4c4c4c", "#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#17becf")
 
@@ -21,7 +24,7 @@ def _color(analysis: Analysis, condition: str) -> str:
     return COLORS[analysis.conditions.index(condition) % len(COLORS)]
 
 
-def _draw(ax: plt.Axes, curve: Curve, label: str, color: str, steps: bool = False) -> None:
+def _draw(ax: Axes, curve: Curve, label: str, color: str, steps: bool = False) -> None:
     ok = ~np.isnan(curve.iqm)
     style = "steps-post" if steps else "default"
     ax.plot(curve.x[ok], curve.iqm[ok], color=color, label=label, lw=1.8, drawstyle=style)
@@ -29,9 +32,13 @@ def _draw(ax: plt.Axes, curve: Curve, label: str, color: str, steps: bool = Fals
                     step="post" if steps else None)  # fmt: skip
 
 
-def plot_learning_curves(analysis: Analysis, env: str) -> plt.Figure:
-    """Agent-alone score vs env steps; training return vs env steps and vs episodes."""
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+def plot_learning_curves(analysis: Analysis, env: str, ax: Any = None) -> Figure:
+    """Agent-alone score vs env steps; training return vs env steps and vs episodes.
+
+    ``ax``: three axes to draw on, in that order (default: a new figure). Returns the figure.
+    """
+    fig, grid, new = figure_axes(ax, 1, 3, (16, 4.6))
+    axes = grid[0]
     target = analysis.targets[env]
     for cond in analysis.conditions:
         cell = analysis.cells.get((env, cond))
@@ -56,7 +63,8 @@ def plot_learning_curves(analysis: Analysis, env: str) -> plt.Figure:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8, loc="best")
     fig.suptitle(f"{env}: IQM over seeds with 95% bootstrap bands", fontsize=11)
-    fig.tight_layout()
+    if new:
+        fig.tight_layout()
     return fig
 
 
@@ -72,9 +80,14 @@ _BARS = (
 )
 
 
-def plot_table2_bars(analysis: Analysis, env: str) -> plt.Figure:
-    """Bar charts like the paper's Table II (and the honest metrics), IQM with 95 % CI."""
-    fig, axes = plt.subplots(1, len(_BARS), figsize=(16, 4.2))
+def plot_table2_bars(analysis: Analysis, env: str, ax: Any = None) -> Figure:
+    """Bar charts like the paper's Table II (and the honest metrics), IQM with 95 % CI.
+
+    ``ax``: four axes to draw on (episodes to 5 wins, episodes to the average, env steps to the
+    target, final score; default: a new figure). Returns the figure.
+    """
+    fig, grid, new = figure_axes(ax, 1, len(_BARS), (16, 4.2))
+    axes = grid[0]
     conds = [c for c in analysis.conditions if (env, c) in analysis.cells]
     for ax, (name, title, unit) in zip(axes, _BARS, strict=True):
         for i, cond in enumerate(conds):
@@ -101,13 +114,18 @@ def plot_table2_bars(analysis: Analysis, env: str) -> plt.Figure:
         "(a run that never did counts as not reached)",
         fontsize=10,
     )
-    fig.tight_layout()
+    if new:
+        fig.tight_layout()
     return fig
 
 
-def plot_coach_dependence(analysis: Analysis, env: str) -> plt.Figure:
-    """Per seed: final training score (with the coach) vs agent-alone score; and intervention rate."""
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 4.8))
+def plot_coach_dependence(analysis: Analysis, env: str, ax: Any = None) -> Figure:
+    """Per seed: final training score (with the coach) vs agent-alone score; and intervention rate.
+
+    ``ax``: two axes to draw on, in that order (default: a new figure). Returns the figure.
+    """
+    fig, grid, new = figure_axes(ax, 1, 2, (13, 4.8))
+    a1, a2 = grid[0]
     target = analysis.targets[env]
     for cond in analysis.conditions:
         cell = analysis.cells.get((env, cond))
@@ -135,5 +153,6 @@ def plot_coach_dependence(analysis: Analysis, env: str) -> plt.Figure:
     if a2.lines:
         a2.legend(fontsize=8)
     fig.suptitle(env, fontsize=11)
-    fig.tight_layout()
+    if new:
+        fig.tight_layout()
     return fig

@@ -13,7 +13,7 @@ from __future__ import annotations
 import csv
 import html
 import io
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,14 +21,7 @@ from pidlab.experiment.analysis import BASELINE, METRICS, Analysis, CellResult, 
 from pidlab.experiment.stats import Estimate
 from pidlab.experiment.sweep import Plan, check_out_folder
 from pidlab.files import atomic_write_text, read_json, save_figure
-
-# The paper's Table II: env -> (target, 5 wins with PID coaching, without, average with, without).
-PAPER_TABLE_II: dict[str, tuple[float, int, int, int, int]] = {
-    "InvertedPendulum-v5": (800, 100, 160, 104, 159),
-    "InvertedDoublePendulum-v5": (5500, 908, 1335, 935, 1370),
-    "Hopper-v5": (800, 2073, 2851, 2155, 2911),
-    "Walker2d-v5": (800, 4784, 5170, 5659, 7135),
-}
+from pidlab.plant.card import PaperNumbers, find_card
 
 UNITS = {
     "episodes_to_wins": "episodes",
@@ -89,6 +82,52 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     return "\n".join(lines)
 
 
+def report_header(
+    title: str,
+    record: Mapping[str, Any],
+    *,
+    scope: str = "",
+    notes: Sequence[str] = (),
+    default_command: str = "",
+) -> list[str]:
+    """The head of every pidlab report: title, command, provenance, then versions (Markdown lines).
+
+    Parameters
+    ----------
+    title : str
+        The level-1 heading.
+    record : mapping
+        The provenance record (``experiment.json``, ``pipeline.json``): ``command``, ``created``,
+        ``git`` (``sha``, ``dirty``), ``resumes``, ``versions``; a missing key shows as empty or ``?``.
+    scope : str
+        What the report covers (an experiment's seeds and conditions). Given, the command stands in a
+        paragraph of its own and ``scope`` opens the provenance sentence; empty, the provenance follows
+        the command on its line.
+    notes : sequence of str
+        Paragraphs between the provenance and the versions (a pipeline's settings).
+    default_command : str
+        Shown when the record has no command.
+
+    Returns
+    -------
+    list of str
+        The lines, each paragraph followed by an empty line.
+    """
+    git = record.get("git") or {}
+    versions = record.get("versions", {})
+    command = f"Command: `{' '.join(record.get('command', [])) or default_command}`"
+    provenance = (
+        f"created {record.get('created', '')}; git {str(git.get('sha') or '?')[:12]}"
+        f"{' (dirty)' if git.get('dirty') else ''}; resumed {len(record.get('resumes', []))} time(s)."
+    )
+    lines = [f"# {title}", ""]
+    lines += [command, "", f"{scope}; {provenance}", ""] if scope else [f"{command}; {provenance}", ""]
+    for note in notes:
+        lines += [note, ""]
+    lines += ["Versions: " + ", ".join(f"{k} {versions[k]}" for k in VERSIONS if k in versions) + ".", ""]
+    return lines
+
+
 def _verdict(p: Estimate) -> str:
     if p.low > 0.5:
         return "better than no coach"
@@ -102,14 +141,31 @@ def _saving(with_: float, without: float) -> str:
     return f"{100 * (without - with_) / without:+.1f} %" if without and finite else "n/a"
 
 
+def paper_numbers(env: str) -> PaperNumbers | None:
+    """What the paper published for ``env`` (its model card's ``[paper]`` table), or None.
+
+    Raises
+    ------
+    ModelCardError
+        The env's model card is malformed.
+    """
+    card = find_card(env)
+    return card.paper if card is not None else None
+
+
 def _paper_rows(a: Analysis, env: str) -> list[list[str]]:
     rows = []
-    paper = PAPER_TABLE_II.get(env)
+    paper = paper_numbers(env)
+    published: dict[str, tuple[int, int]] = {}
+    if paper is not None:
+        published["episodes_to_wins"] = (paper.wins_coached, paper.wins_uncoached)
+        published["episodes_to_average"] = (paper.average_coached, paper.average_uncoached)
     conds = [c for c in a.conditions if (env, c) in a.cells]
-    for name, label, pi in (("episodes_to_wins", "5 wins", 1), ("episodes_to_average", "average", 3)):
+    for name, label in (("episodes_to_wins", "5 wins"), ("episodes_to_average", "average")):
         row = [label]
-        if paper:
-            row += [str(paper[pi]), str(paper[pi + 1]), _saving(paper[pi], paper[pi + 1])]
+        pair = published.get(name)
+        if pair:
+            row += [str(pair[0]), str(pair[1]), _saving(pair[0], pair[1])]
         else:
             row += ["", "", ""]
         base = a.cells.get((env, BASELINE))
@@ -152,132 +208,136 @@ def reading(a: Analysis, env: str) -> list[str]:
     return out
 
 
-def render_markdown(a: Analysis, record: dict[str, Any], figures: dict[str, list[str]]) -> str:
-    """The report as Markdown (figure paths relative to the report)."""
-    ident = record["identity"]
-    versions = record.get("versions", {})
-    git = record.get("git", {})
-    cmd = " ".join(record.get("command", []))
-    lines = [
-        f"# Coaching experiment: {', '.join(a.envs)}",
-        "",
-        f"Command: `{cmd}`",
-        "",
-        f"Seeds {ident['seeds'][0]}..{ident['seeds'][-1]} ({len(ident['seeds'])}); conditions "
-        f"{', '.join(a.conditions)}; created {record.get('created', '')}; git {git.get('sha', '?')[:12]}"
-        f"{' (dirty)' if git.get('dirty') else ''}; resumed {len(record.get('resumes', []))} time(s).",
-        "",
-        "Versions: " + ", ".join(f"{k} {versions[k]}" for k in VERSIONS if k in versions) + ".",
-        "",
-    ]
+HOW_TO_READ = (
+    "- Every number is the interquartile mean (IQM) over seeds with its 95 % stratified bootstrap "
+    "confidence interval in brackets (rliable's method, 2000 resamples).",
+    "- The paper's metrics read the *training* returns (the reward the agent was paid on its own "
+    "steps, in episodes the coach kept alive), as the paper did. (n/N): runs that reached the target; "
+    "a run that never did ranks below all that did, and the IQM reads 'not reached' when more than a "
+    "quarter of the runs never did. Saving: (without - with) / without, as the paper computes it.",
+    "- The honest metrics read the agent alone: deterministic policy, coach off, fixed evaluation "
+    "seeds, every `evaluation.every` env steps. Env steps count the coach's steps too.",
+    "- Training return: what the agent was paid on its own steps. Return with the coach: the same "
+    "episodes with the coach's steps' rewards included. Coach-dependent: the return with the coach "
+    "over the last window reached the target, the agent alone did not. "
+    "P = probability of improvement over no coach (0.5: no difference).",
+)
+
+FIGURE_TITLES = ("Learning curves", "Table II as bars", "Coach dependence and interventions")
+
+
+def _front_matter(a: Analysis, record: Mapping[str, Any]) -> list[str]:
+    """The header, the runs counted, the conditions and how to read the numbers."""
+    seeds = record["identity"]["seeds"]
+    scope = f"Seeds {seeds[0]}..{seeds[-1]} ({len(seeds)}); conditions {', '.join(a.conditions)}"
+    lines = report_header(f"Coaching experiment: {', '.join(a.envs)}", record, scope=scope)
     total = sum(len(c.runs) for c in a.cells.values())
     lines.append(f"Finished runs: {total} of {total + len(a.missing)}.")
     if a.missing:
         lines.append(f" Not finished (not counted): {', '.join(a.missing)}.")
     lines += ["", "## Conditions", ""]
-    for c in a.conditions:
-        lines.append(f"- **{c}**: {record.get('descriptions', {}).get(c, '')}")
-    lines += [
+    descriptions = record.get("descriptions", {})
+    lines += [f"- **{c}**: {descriptions.get(c, '')}" for c in a.conditions]
+    return [*lines, "", "## How to read this", "", *HOW_TO_READ, ""]
+
+
+def _honest_table(a: Analysis, env: str, cells: Sequence[CellResult]) -> str:
+    header = [
+        "condition",
+        "env steps to target (agent alone)",
+        "agent steps to target",
+        "final agent-alone score",
+        f"training return, last {a.windows[env]} episodes",
+        "return with the coach, same episodes",
+        "coach-dependent",
+        "intervention rate",
+    ]
+    rows = [
+        [
+            c.condition,
+            *(cell_metric(c, name) for name in ("env_steps_to_target", "agent_steps_to_target", "final_score",
+                                                "final_training_score", "final_coached_score")),
+            f"{c.coach_dependent}/{len(c.runs)}",
+            cell_metric(c, "intervention_rate"),
+        ]
+        for c in cells
+    ]  # fmt: skip
+    return markdown_table(header, rows)
+
+
+def _improvement_section(a: Analysis, env: str, cells: Sequence[CellResult]) -> list[str]:
+    header = [
+        "condition",
+        "P(fewer episodes to 5 wins)",
+        "P(fewer episodes to average)",
+        "P(fewer env steps to target, alone)",
+        "P(higher final score, alone)",
+    ]
+    rows = [
+        [c.condition, *(f"{p.value:.2f} [{p.low:.2f}, {p.high:.2f}]" for p in c.improvement.values())]
+        for c in cells
+        if c.improvement
+    ]
+    return [
+        "### Probability of improvement over no coach",
         "",
-        "## How to read this",
+        markdown_table(header, rows),
         "",
-        "- Every number is the interquartile mean (IQM) over seeds with its 95 % stratified bootstrap "
-        "confidence interval in brackets (rliable's method, 2000 resamples).",
-        "- The paper's metrics read the *training* returns (the reward the agent was paid on its own "
-        "steps, in episodes the coach kept alive), as the paper did. (n/N): runs that reached the target; "
-        "a run that never did ranks below all that did, and the IQM reads 'not reached' when more than a "
-        "quarter of the runs never did. Saving: (without - with) / without, as the paper computes it.",
-        "- The honest metrics read the agent alone: deterministic policy, coach off, fixed evaluation "
-        "seeds, every `evaluation.every` env steps. Env steps count the coach's steps too.",
-        "- Training return: what the agent was paid on its own steps. Return with the coach: the same "
-        "episodes with the coach's steps' rewards included. Coach-dependent: the return with the coach "
-        "over the last window reached the target, the agent alone did not. "
-        "P = probability of improvement over no coach (0.5: no difference).",
+        "### In words (generated from the numbers above)",
+        "",
+        *(f"- {s}" for s in reading(a, env)),
         "",
     ]
+
+
+def _env_section(a: Analysis, env: str, figures: Sequence[str]) -> list[str]:
+    """One env's tables, reading and figures (nothing when no condition of it has a run)."""
+    cells = [a.cells[(env, c)] for c in a.conditions if (env, c) in a.cells]
+    if not cells:
+        return []
+    paper_header = ["measure", "paper: with coach", "paper: without", "paper: saving",
+                    *(f"ours: {c.condition}" for c in cells)]  # fmt: skip
+    lines = [
+        f"## {env}",
+        "",
+        f"Target {a.targets[env]:g}, moving-average window {a.windows[env]} episodes, budget "
+        f"{a.budgets[env]:,} env steps per run.",
+        "",
+        "### The paper's measures, beside its Table II",
+        "",
+        markdown_table(paper_header, _paper_rows(a, env)),
+        "",
+        "### Honest measures",
+        "",
+        _honest_table(a, env, cells),
+        "",
+    ]
+    if any(c.improvement for c in cells):
+        lines += _improvement_section(a, env, cells)
+    for title, path in zip(FIGURE_TITLES, figures, strict=False):
+        lines += [f"![{env}: {title}]({path})", ""]
+    return lines
+
+
+def render_markdown(a: Analysis, record: Mapping[str, Any], figures: Mapping[str, Sequence[str]]) -> str:
+    """The report as Markdown.
+
+    Parameters
+    ----------
+    a : Analysis
+        The analyzed runs (:func:`pidlab.experiment.analysis.analyze`).
+    record : mapping
+        The experiment's record (``experiment.json``).
+    figures : mapping
+        Env -> its figure paths relative to the report, in the order of :data:`FIGURE_TITLES`.
+
+    Returns
+    -------
+    str
+    """
+    lines = _front_matter(a, record)
     for env in a.envs:
-        cells = [a.cells[(env, c)] for c in a.conditions if (env, c) in a.cells]
-        if not cells:
-            continue
-        conds = [c.condition for c in cells]
-        lines += [
-            f"## {env}",
-            "",
-            f"Target {a.targets[env]:g}, moving-average window {a.windows[env]} episodes, budget "
-            f"{a.budgets[env]:,} env steps per run.",
-            "",
-            "### The paper's measures, beside its Table II",
-            "",
-            markdown_table(
-                [
-                    "measure",
-                    "paper: with coach",
-                    "paper: without",
-                    "paper: saving",
-                    *(f"ours: {c}" for c in conds),
-                ],
-                _paper_rows(a, env),
-            ),
-            "",
-            "### Honest measures",
-            "",
-            markdown_table(
-                [
-                    "condition",
-                    "env steps to target (agent alone)",
-                    "agent steps to target",
-                    "final agent-alone score",
-                    f"training return, last {a.windows[env]} episodes",
-                    "return with the coach, same episodes",
-                    "coach-dependent",
-                    "intervention rate",
-                ],
-                [
-                    [
-                        c.condition,
-                        cell_metric(c, "env_steps_to_target"),
-                        cell_metric(c, "agent_steps_to_target"),
-                        cell_metric(c, "final_score"),
-                        cell_metric(c, "final_training_score"),
-                        cell_metric(c, "final_coached_score"),
-                        f"{c.coach_dependent}/{len(c.runs)}",
-                        cell_metric(c, "intervention_rate"),
-                    ]
-                    for c in cells
-                ],
-            ),
-            "",
-        ]
-        if any(c.improvement for c in cells):
-            lines += [
-                "### Probability of improvement over no coach",
-                "",
-                markdown_table(
-                    [
-                        "condition",
-                        "P(fewer episodes to 5 wins)",
-                        "P(fewer episodes to average)",
-                        "P(fewer env steps to target, alone)",
-                        "P(higher final score, alone)",
-                    ],
-                    [
-                        [
-                            c.condition,
-                            *(f"{p.value:.2f} [{p.low:.2f}, {p.high:.2f}]" for p in c.improvement.values()),
-                        ]
-                        for c in cells
-                        if c.improvement
-                    ],
-                ),
-                "",
-                "### In words (generated from the numbers above)",
-                "",
-                *(f"- {s}" for s in reading(a, env)),
-                "",
-            ]
-        for title, path in zip(("Learning curves", "Table II as bars", "Coach dependence and interventions"),
-                               figures.get(env, []), strict=False):  # fmt: skip
-            lines += [f"![{env}: {title}]({path})", ""]
+        lines += _env_section(a, env, figures.get(env, []))
     return "\n".join(lines).rstrip() + "\n"
 
 

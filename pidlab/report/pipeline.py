@@ -18,7 +18,7 @@ from pidlab.controller.rollout import CoachScore
 from pidlab.controller.spec import CoachSpec
 from pidlab.experiment.analysis import BASELINE, Analysis
 from pidlab.linear.lti import LtiReport
-from pidlab.report.experiment import VERSIONS, cell_metric, markdown_table, reading
+from pidlab.report.experiment import cell_metric, markdown_table, reading, report_header
 from pidlab.rl.recipe import PipelineSettings
 
 
@@ -112,25 +112,16 @@ def _eig(value: complex) -> str:
 
 
 def _header(f: PipelineFacts) -> list[str]:
-    rec = f.record
-    git = rec.get("git", {})
-    versions = rec.get("versions", {})
     s = f.settings
-    lines = [
-        f"# pidlab run: {f.env_id}",
-        "",
-        f"Command: `{' '.join(rec.get('command', [])) or 'pidlab run ' + f.env_id}`; created "
-        f"{rec.get('created', '')}; git {str(git.get('sha') or '?')[:12]}"
-        f"{' (dirty)' if git.get('dirty') else ''}; resumed {len(rec.get('resumes', []))} time(s).",
-        "",
+    settings = (
         f"Settings (the recipe's `[pipeline]` table and the command's overrides): {_count(s.seeds, 'seed')} "
         f"per condition, {s.steps:,} env steps per run, preset {s.preset}, {s.roa_samples} simulated states "
-        f"certifying the region, {_count(s.episodes, 'coach-alone episode')}.",
-        "",
-        "Versions: " + ", ".join(f"{k} {versions[k]}" for k in VERSIONS if k in versions) + ".",
-        "",
-    ]
-    stages = rec.get("stages", {})
+        f"certifying the region, {_count(s.episodes, 'coach-alone episode')}."
+    )
+    lines = report_header(
+        f"pidlab run: {f.env_id}", f.record, notes=[settings], default_command=f"pidlab run {f.env_id}"
+    )
+    stages = f.record.get("stages", {})
     if stages:
         rows = [[name, f"{v['seconds']:.1f}"] for name, v in stages.items()]
         lines += [markdown_table(["stage", "time of its last run (s)"], rows), ""]

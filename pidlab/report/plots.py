@@ -1,36 +1,92 @@
 """Plots of a coach analysis (matplotlib; compute lives in :mod:`pidlab.controller.analysis`).
 
-Each ``plot_*`` function draws on a given ``ax`` (or a new figure) and returns the figure.
+Each ``plot_*`` function draws on the axes it is given (``ax``) or on a new figure, and returns the
+figure; it writes no file (:func:`pidlab.files.save_figure` does). New figures are bare
+:class:`matplotlib.figure.Figure` objects, outside pyplot: nothing here chooses or changes
+matplotlib's backend, and they draw without a display.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import control as ct
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
-from pidlab.controller.analysis import CoachAnalysis, LoopMargins, initial_response, loop_at_actuator
+from pidlab.controller.analysis import (
+    ClosedLoopResponses,
+    CoachAnalysis,
+    LoopResponse,
+    closed_loop_responses,
+    loop_responses,
+)
 from pidlab.controller.pid import Coach
+from pidlab.files import save_figure
 
 
-def _omega(dt: float) -> np.ndarray:
-    top = np.pi / dt
-    return np.logspace(np.log10(top) - 4, np.log10(top) - 1e-6, 1500)
+def figure_axes(
+    ax: Any, nrows: int, ncols: int, figsize: tuple[float, float], sharex: bool = False
+) -> tuple[Figure, np.ndarray, bool]:
+    """The axes a ``plot_*`` function draws on: the caller's ``ax``, or those of a new figure.
+
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes, array_like of Axes, or None
+        The caller's axes, ``nrows * ncols`` of them (any shape), or None for a new figure.
+    nrows, ncols : int
+        The grid the plot draws.
+    figsize : tuple of float
+        Size of a new figure, inches.
+    sharex : bool
+        A new figure's axes share their x axis.
+
+    Returns
+    -------
+    fig : matplotlib.figure.Figure
+        The figure of the axes.
+    axes : ndarray of Axes, shape (nrows, ncols)
+    new : bool
+        True when the figure was made here (its layout is then the plot's to tighten).
+
+    Raises
+    ------
+    ValueError
+        ``ax`` holds another number of axes.
+    """
+    if ax is None:
+        fig = Figure(figsize=figsize)
+        return fig, fig.subplots(nrows, ncols, sharex=sharex, squeeze=False), True
+    axes = np.asarray(ax, dtype=object)
+    if axes.size != nrows * ncols:
+        raise ValueError(f"ax: expected {nrows * ncols} axes ({nrows} x {ncols}), got {axes.size}")
+    return axes.flat[0].get_figure(), axes.reshape(nrows, ncols), False
 
 
-def plot_bode(L: ct.StateSpace, margins: LoopMargins, dt: float, title: str) -> plt.Figure:
-    """Bode plot of a loop transfer function with gain and phase margins marked."""
-    w = _omega(dt)
-    resp = np.asarray(L.frequency_response(w).complex).ravel()
-    mag = 20 * np.log10(np.abs(resp))
-    phase = np.unwrap(np.angle(resp)) * 180 / np.pi
-    fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(7, 6))
+def plot_bode(response: LoopResponse, title: str | None = None, ax: Any = None) -> Figure:
+    """Bode plot of a loop transfer function with its gain and phase margins marked.
+
+    Parameters
+    ----------
+    response : LoopResponse
+        The loop's frequency response and margins
+        (:func:`pidlab.controller.analysis.loop_responses`).
+    title : str, optional
+        Default: ``loop broken at ACTUATOR``.
+    ax : sequence of 2 Axes, optional
+        Magnitude and phase axes; default: a new figure.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The plot runs up to the Nyquist frequency ``pi / dt`` (rad/s), marked by a grey line.
+    """
+    w, mag, phase, margins = response.omega, response.magnitude_db, response.phase_deg, response.margins
+    fig, axes, new = figure_axes(ax, 2, 1, (7, 6), sharex=True)
+    a1, a2 = axes[:, 0]
     a1.semilogx(w, mag)
     a1.axhline(0, color="k", lw=0.8)
     a1.set_ylabel("|L| (dB)")
@@ -58,19 +114,26 @@ def plot_bode(L: ct.StateSpace, margins: LoopMargins, dt: float, title: str) -> 
             ls="--",
             label=f"GM {margins.gain_margin_db:.1f} dB at {margins.phase_crossover:.3g} rad/s",
         )
-    a1.axvline(np.pi / dt, color="0.5", lw=0.8)
-    a1.legend(loc="best", fontsize=8) if np.isfinite(margins.phase_crossover) else None
-    a2.legend(loc="best", fontsize=8) if np.isfinite(margins.gain_crossover) else None
-    a1.set_title(title)
-    fig.tight_layout()
+    a1.axvline(np.pi / response.dt, color="0.5", lw=0.8)
+    if np.isfinite(margins.phase_crossover):
+        a1.legend(loc="best", fontsize=8)
+    if np.isfinite(margins.gain_crossover):
+        a2.legend(loc="best", fontsize=8)
+    a1.set_title(f"loop broken at {response.actuator}" if title is None else title)
+    if new:
+        fig.tight_layout()
     return fig
 
 
-def plot_nyquist(L: ct.StateSpace, dt: float, title: str) -> plt.Figure:
-    """Nyquist curve of a loop (positive and negative frequencies) with the -1 point."""
-    w = _omega(dt)
-    resp = np.asarray(L.frequency_response(w).complex).ravel()
-    fig, ax = plt.subplots(figsize=(6, 6))
+def plot_nyquist(response: LoopResponse, title: str | None = None, ax: Axes | None = None) -> Figure:
+    """Nyquist curve of a loop (positive and negative frequencies) with the -1 point.
+
+    ``response`` and ``title`` as for :func:`plot_bode`; ``ax``: the axes to draw on (default: a
+    new figure). Returns the figure.
+    """
+    resp = response.response
+    fig, axes, new = figure_axes(ax, 1, 1, (6, 6))
+    ax = axes[0, 0]
     ax.plot(resp.real, resp.imag, "C0", label="L(e^{jwT}), w > 0")
     ax.plot(resp.real, -resp.imag, "C0--", lw=0.8, label="w < 0")
     ax.plot([-1], [0], "r+", ms=14, mew=2, label="-1")
@@ -83,17 +146,22 @@ def plot_nyquist(L: ct.StateSpace, dt: float, title: str) -> plt.Figure:
     ax.set_xlabel("Re")
     ax.set_ylabel("Im")
     ax.legend(fontsize=8)
-    ax.set_title(title)
-    fig.tight_layout()
+    ax.set_title(f"loop broken at {response.actuator}" if title is None else title)
+    if new:
+        fig.tight_layout()
     return fig
 
 
-def plot_poles(analysis: CoachAnalysis) -> plt.Figure:
-    """Closed-loop poles (discrete, z-plane) with the unit circle."""
-    fig, ax = plt.subplots(figsize=(6, 6))
+def plot_poles(analysis: CoachAnalysis, ax: Axes | None = None) -> Figure:
+    """Closed-loop poles (discrete, z-plane) with the unit circle and the plant's open-loop poles.
+
+    ``ax``: the axes to draw on (default: a new figure). Returns the figure.
+    """
+    fig, axes, new = figure_axes(ax, 1, 1, (6, 6))
+    ax = axes[0, 0]
     circle = np.exp(1j * np.linspace(0, 2 * np.pi, 400))
     ax.plot(circle.real, circle.imag, "k", lw=0.8)
-    ol = np.linalg.eigvals(analysis.linearization.Ad)
+    ol = analysis.open_loop_poles
     ax.plot(ol.real, ol.imag, "x", color="0.5", label="open loop (plant)")
     z = np.array([p.value for p in analysis.discrete.poles])
     colors = ["C0" if p.stable else "C3" for p in analysis.discrete.poles]
@@ -103,65 +171,63 @@ def plot_poles(analysis: CoachAnalysis) -> plt.Figure:
     ax.set_ylabel("Im z")
     ax.legend(fontsize=8)
     ax.set_title(f"{analysis.env_id} / {analysis.spec_name}: poles (dt = {analysis.dt:g} s)")
-    fig.tight_layout()
+    if new:
+        fig.tight_layout()
     return fig
 
 
-def plot_responses(analysis: CoachAnalysis, coach: Coach, horizon_s: float = 20.0) -> plt.Figure:
-    """Closed-loop setpoint-step and initial-deviation responses of every loop's signal."""
-    cl = analysis.discrete.sys
-    dt = analysis.dt
-    steps = round(horizon_s / dt)
-    t = np.arange(steps) * dt
-    lay = coach.layout
-    n = lay.n_loops
-    fig, axes = plt.subplots(n, 2, figsize=(10, 2.4 * n), squeeze=False)
-    for j, lp in enumerate(lay.spec.loops):
-        sig = lay.observation_names.index(lp.signal)
-        resp = ct.forced_response(cl, T=t, U=np.tile(np.eye(n)[j][:, None], (1, steps)))
-        axes[j, 0].plot(t, np.asarray(resp.outputs)[sig])
-        axes[j, 0].set_title(f"unit step of {lp.name} setpoint -> {lp.signal}", fontsize=9)
-        ys = initial_response(cl, analysis.plant, sig, 0.05, steps)[:, sig]
-        axes[j, 1].plot(t, ys)
-        axes[j, 1].set_title(f"initial {lp.signal} = 0.05 -> {lp.signal}", fontsize=9)
-    for ax in axes[-1]:
-        ax.set_xlabel("time (s)")
-    fig.tight_layout()
+def plot_responses(responses: ClosedLoopResponses, ax: Any = None) -> Figure:
+    """Closed-loop setpoint-step and initial-deviation responses of every loop's signal.
+
+    Parameters
+    ----------
+    responses : ClosedLoopResponses
+        :func:`pidlab.controller.analysis.closed_loop_responses`.
+    ax : array_like of Axes, shape (n_loops, 2), optional
+        Per loop: setpoint step, initial deviation; default: a new figure.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    t = responses.timepts
+    n = len(responses.loops)
+    fig, axes, new = figure_axes(ax, n, 2, (10, 2.4 * n))
+    for j, (name, signal) in enumerate(zip(responses.loops, responses.signals, strict=True)):
+        axes[j, 0].plot(t, responses.signal_step(j))
+        axes[j, 0].set_title(f"unit step of {name} setpoint -> {signal}", fontsize=9)
+        axes[j, 1].plot(t, responses.signal_initial(j))
+        axes[j, 1].set_title(f"initial {signal} = {responses.deviation:g} -> {signal}", fontsize=9)
+    for bottom in axes[-1]:
+        bottom.set_xlabel("time (s)")
+    if new:
+        fig.tight_layout()
     return fig
+
+
+def coach_figures(analysis: CoachAnalysis, coach: Coach) -> Iterator[tuple[str, Figure]]:
+    """The figures of a coach analysis, one at a time, each with its file stem.
+
+    Bode and Nyquist plots per actuator loop (``bode_ACTUATOR``, ``nyquist_ACTUATOR``), the pole
+    map (``poles``) and the responses (``responses``). The data come from
+    :func:`pidlab.controller.analysis.loop_responses` and
+    :func:`pidlab.controller.analysis.closed_loop_responses`.
+    """
+    for response in loop_responses(analysis, coach):
+        title = f"{analysis.spec_name}: loop broken at {response.actuator}"
+        yield f"bode_{response.actuator}", plot_bode(response, title)
+        yield f"nyquist_{response.actuator}", plot_nyquist(response, title)
+    yield "poles", plot_poles(analysis)
+    yield "responses", plot_responses(closed_loop_responses(analysis, coach))
 
 
 def write_plots(analysis: CoachAnalysis, coach: Coach, folder: str | Path) -> list[Path]:
-    """Write Bode and Nyquist plots per actuator loop, the pole map and the responses as PNG."""
+    """Write the figures of :func:`coach_figures` into ``folder`` as ``STEM.png``; returns their paths."""
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    plant = analysis.plant
-    coach_d = coach.linear_model()
-    ny = plant.noutputs
-    coach_y = ct.ss(
-        coach_d.A, np.asarray(coach_d.B)[:, :ny], coach_d.C, np.asarray(coach_d.D)[:, :ny], coach_d.dt
-    )
-    written = []
-    for margins in analysis.discrete.margins:
-        i = list(plant.input_labels).index(margins.actuator)
-        L = loop_at_actuator(plant, coach_y, i)
-        title = f"{analysis.spec_name}: loop broken at {margins.actuator}"
-        for kind, fig in (
-            ("bode", plot_bode(L, margins, analysis.dt, title)),
-            ("nyquist", plot_nyquist(L, analysis.dt, title)),
-        ):
-            path = folder / f"{kind}_{margins.actuator}.png"
-            fig.savefig(path, dpi=110)
-            plt.close(fig)
-            written.append(path)
-    for name, fig in (("poles", plot_poles(analysis)), ("responses", plot_responses(analysis, coach))):
-        path = folder / f"{name}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
-    return written
+    return [save_figure(fig, folder / f"{stem}.png") for stem, fig in coach_figures(analysis, coach)]
 
 
-def _draw_bounds(ax: plt.Axes, bounds: Any, variables: tuple[str, str]) -> None:
+def _draw_bounds(ax: Axes, bounds: Any, variables: tuple[str, str]) -> None:
     from pidlab.region.roa import ellipse_slice
 
     if all(v in bounds.variables for v in variables) and bounds.rho > 0:
@@ -176,7 +242,7 @@ def _draw_bounds(ax: plt.Axes, bounds: Any, variables: tuple[str, str]) -> None:
         x0, x1 = max(lows[0], xl[0]), min(highs[0], xl[1])
         y0, y1 = max(lows[1], yl[0]), min(highs[1], yl[1])
         ax.add_patch(
-            plt.Rectangle(
+            Rectangle(
                 (x0, y0), x1 - x0, y1 - y0, fill=False, lw=1.5, ls="--", color="C0", label="critical box"
             )
         )
@@ -188,13 +254,31 @@ def plot_roa_slice(
     trajectories: list[Any],
     units: dict[str, str],
     bounds: Any | None = None,
-) -> plt.Figure:
+    ax: Axes | None = None,
+) -> Figure:
     """The certified set in the plane of two variables, with simulated trajectories overlaid.
 
-    ``bounds`` (:class:`pidlab.region.bounds.CriticalBounds`): also draw the takeover ellipsoid's slice and
-    the critical box where they constrain these variables.
+    Parameters
+    ----------
+    result : pidlab.region.roa.RegionOfAttraction
+    variables : tuple of 2 str
+        The observation variables of the plane (x, y).
+    trajectories : list
+        Simulated trajectories in that plane (``path``, shape (steps, 2); ``recovered``).
+    units : dict
+        Variable name -> unit, for the axis labels.
+    bounds : pidlab.region.bounds.CriticalBounds, optional
+        Also draw the takeover ellipsoid's slice and the critical box where they constrain these
+        variables.
+    ax : Axes, optional
+        The axes to draw on; default: a new figure.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
-    fig, ax = plt.subplots(figsize=(7, 6))
+    fig, axes, new = figure_axes(ax, 1, 1, (7, 6))
+    ax = axes[0, 0]
     if result.lyapunov is not None:
         L = result.lyapunov
         from pidlab.region.roa import ellipse_slice
@@ -210,7 +294,7 @@ def plot_roa_slice(
         )
     else:
         hx, hy = (result.box.get(v, np.nan) for v in variables)
-        ax.add_patch(plt.Rectangle((-hx, -hy), 2 * hx, 2 * hy, fill=False, lw=2, label="recoverable box"))
+        ax.add_patch(Rectangle((-hx, -hy), 2 * hx, 2 * hy, fill=False, lw=2, label="recoverable box"))
     for k, tr in enumerate(trajectories):
         if len(tr.path) == 0:
             continue
@@ -226,15 +310,25 @@ def plot_roa_slice(
     ax.set_ylabel(f"{variables[1]} ({units.get(variables[1], '')})")
     ax.set_title(f"{result.env_id} / {result.spec_name}\n{result.method}", fontsize=9)
     ax.legend(fontsize=8, loc="upper right")
-    fig.tight_layout()
+    if new:
+        fig.tight_layout()
     return fig
 
 
 def plot_phase_portrait(
-    paths: list[np.ndarray], variables: tuple[str, str], units: dict[str, str], title: str
-) -> plt.Figure:
-    """Coached trajectories from a grid of initial conditions in the plane of two variables."""
-    fig, ax = plt.subplots(figsize=(7, 6))
+    paths: list[np.ndarray],
+    variables: tuple[str, str],
+    units: dict[str, str],
+    title: str,
+    ax: Axes | None = None,
+) -> Figure:
+    """Coached trajectories from a grid of initial conditions in the plane of two variables.
+
+    ``paths``: one array per trajectory, shape (steps, 2); ``ax``: the axes to draw on (default: a
+    new figure). Returns the figure.
+    """
+    fig, axes, new = figure_axes(ax, 1, 1, (7, 6))
+    ax = axes[0, 0]
     for p in paths:
         if len(p):
             ax.plot(p[:, 0], p[:, 1], color="C0", lw=0.6, alpha=0.8)
@@ -246,5 +340,6 @@ def plot_phase_portrait(
     ax.set_xlabel(f"{variables[0]} ({units.get(variables[0], '')})")
     ax.set_ylabel(f"{variables[1]} ({units.get(variables[1], '')})")
     ax.set_title(title, fontsize=9)
-    fig.tight_layout()
+    if new:
+        fig.tight_layout()
     return fig

@@ -182,7 +182,25 @@ class GrowthTrigger:
         return bool(sign[-1] != 0 and np.all(sign == sign[-1]) and np.all(np.diff(np.abs(v)) > 0))
 
 
-Schedule = Callable[[float], float]
+ProgressFn = Callable[[float], float]
+"""A value as a function of training progress in [0, 1]; a :class:`pidlab.rl.schedule.Schedule` is one."""
+
+
+def _check_options(
+    mode: str, reward: str, nudge_steps: int, max_coach_steps: int, trigger: GrowthTrigger | None
+) -> None:
+    """Raise :class:`CoachingError` on options that cannot work together."""
+    if mode not in MODES:
+        raise CoachingError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
+    if reward not in REWARDS:
+        raise CoachingError(f"reward {reward!r}: expected one of {', '.join(REWARDS)}")
+    if nudge_steps < 1 or max_coach_steps < 1:
+        raise CoachingError("nudge_steps and max_coach_steps must be >= 1")
+    if trigger is not None and mode == "takeover":
+        raise CoachingError(
+            "a growth trigger needs mode = nudge: takeover hands back once inside the critical "
+            "region, so it is triggered by leaving it"
+        )
 
 
 class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -225,8 +243,8 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         nudge_steps: int = 1,
         max_coach_steps: int = 1000,
         reward: str = "agent",
-        probability: Schedule | None = None,
-        width: Schedule | None = None,
+        probability: ProgressFn | None = None,
+        width: ProgressFn | None = None,
         off_after: float | None = None,
         loaded: LoadedModel | None = None,
         seed: int | None = None,
@@ -247,17 +265,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             seed=seed,
         )
         gym.Wrapper.__init__(self, env)
-        if mode not in MODES:
-            raise CoachingError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
-        if reward not in REWARDS:
-            raise CoachingError(f"reward {reward!r}: expected one of {', '.join(REWARDS)}")
-        if nudge_steps < 1 or max_coach_steps < 1:
-            raise CoachingError("nudge_steps and max_coach_steps must be >= 1")
-        if trigger is not None and mode == "takeover":
-            raise CoachingError(
-                "a growth trigger needs mode = nudge: takeover hands back once inside the critical "
-                "region, so it is triggered by leaving it"
-            )
+        _check_options(mode, reward, nudge_steps, max_coach_steps, trigger)
         self.coach_spec = spec
         self.mode = mode
         self.nudge_steps = nudge_steps
@@ -334,9 +342,10 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             return False
         if self.trigger is not None:
             fired = self.trigger.fires(self._history)
-        else:
-            assert self.region is not None
+        elif self.region is not None:
             fired = not self.region.inside(obs)
+        else:  # a coach always has a trigger or a region (see __init__)
+            return False
         if not fired:
             return False
         p = self.intervention_probability()
@@ -351,15 +360,15 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.episode_agent_return += float(reward)
         coach_steps = 0
         coach_reward = 0.0
+        coach = self.coach
         intervened = not (terminated or truncated) and self._triggered(obs)
-        if intervened:
-            assert self.coach is not None
+        if intervened and coach is not None:  # _triggered is False without a coach
             self.episode_interventions += 1
             self.total_interventions += 1
-            self.coach.reset(obs)
+            coach.reset(obs)
             limit = self.nudge_steps if self.mode == "nudge" else self.max_coach_steps
             while coach_steps < limit:
-                obs, r, terminated, truncated, _ = self.env.step(self.coach.act(obs))
+                obs, r, terminated, truncated, _ = self.env.step(coach.act(obs))
                 self._observe(obs)
                 coach_steps += 1
                 coach_reward += float(r)

@@ -70,11 +70,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from pidlab.controller import autotune
 from pidlab.data import coach_dir
-from pidlab.errors import PidlabError, RecipeError
+from pidlab.errors import PidlabError, RecipeError, ScheduleError
 from pidlab.files import read_toml
 from pidlab.rl.coaching import MODES, REGIONS, REWARDS, GrowthTrigger
-from pidlab.rl.schedule import Schedule, ScheduleError, parse_schedule, schedule_to_dict
+from pidlab.rl.schedule import Schedule, parse_schedule, schedule_to_dict
 
 RECIPE_SCHEMA = "pidlab.recipe/1"
 ALGOS = ("ppo", "sac")
@@ -324,7 +325,8 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
 
 _TOP = {"schema", "env_id", "description", "algo", "steps", "n_envs", "vec_env", "seed", "threads",
         "normalize", "win", "evaluation", "checkpoint", "coaching", "pipeline", *ALGOS}  # fmt: skip
-PRESETS = ("robust", "weak")
+PRESETS = tuple(autotune.PRESETS)
+"""Auto-tuning presets a ``[pipeline]`` table may name (those of :mod:`pidlab.controller.autotune`)."""
 
 
 @dataclass(frozen=True)
@@ -496,15 +498,17 @@ def with_overrides(
     """
     if algo is not None:
         if algo not in ALGOS:
-            raise RecipeError(f"--algo {algo!r}: expected one of {', '.join(ALGOS)}")
+            raise RecipeError(f"algo={algo!r}: expected one of {', '.join(ALGOS)}", param="algo")
         if algo not in recipe.algorithms:
-            raise RecipeError(f"--algo {algo}: the recipe {recipe.path or ''} has no [{algo}] table")
+            raise RecipeError(
+                f"algo={algo!r}: the recipe {recipe.path or ''} has no [{algo}] table", param="algo"
+            )
     if steps is not None and steps < 1:
-        raise RecipeError(f"--steps {steps}: expected a positive number of env steps")
+        raise RecipeError(f"steps={steps!r}: expected a positive number of env steps", param="steps")
     if n_envs is not None and n_envs < 1:
-        raise RecipeError(f"--n-envs {n_envs}: expected 1 or more")
+        raise RecipeError(f"n_envs={n_envs!r}: expected 1 or more", param="n_envs")
     if seed is not None and seed < 0:
-        raise RecipeError(f"--seed {seed}: expected a non-negative integer")
+        raise RecipeError(f"seed={seed!r}: expected a non-negative integer", param="seed")
     return replace(
         recipe,
         algo=algo or recipe.algo,

@@ -1,19 +1,18 @@
 """Run directories: what a training run writes, how it is read back, and how it is cut back on resume.
 
 A run directory holds ``config.toml`` (the resolved recipe and the coach's name, source and
-digest), ``coach.toml`` (the spec), ``run.json`` (seed, command, versions, git SHA, resumes),
-``episodes.csv``, ``evaluations.csv``, ``tb/``, ``checkpoints/<env steps>/`` and, once the
-budget is spent, ``final_model.zip`` and ``summary.json``. See :mod:`pidlab.rl.train`.
+digest), ``coach.toml`` (the spec), ``run.json`` (seed, command, versions, git SHA, resumes: a
+:class:`pidlab.provenance.Record`), ``episodes.csv``, ``evaluations.csv``, ``tb/``,
+``checkpoints/<env steps>/`` and, once the budget is spent, ``final_model.zip`` and
+``summary.json``. See :mod:`pidlab.rl.train`.
 """
 
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 import os
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +20,16 @@ import tomli_w
 
 from pidlab.controller.spec import CoachSpec, dumps_spec, loads_spec
 from pidlab.errors import RunDirError
-from pidlab.files import atomic_write_text, read_toml, write_json
-from pidlab.provenance import git_state, package_versions
+from pidlab.files import atomic_write_text, read_toml
+from pidlab.provenance import (
+    Refusals,
+    add_resume,
+    check_folder,
+    digest,
+    new_record,
+    read_record,
+    write_record,
+)
 from pidlab.rl.recipe import Recipe, parse_recipe, recipe_to_dict
 
 EPISODE_COLUMNS = (
@@ -132,7 +139,7 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 
 def spec_digest(spec: CoachSpec) -> str:
     """SHA-256 of the spec's canonical text (what a run was coached by)."""
-    return hashlib.sha256(dumps_spec(spec).encode("utf-8")).hexdigest()
+    return digest(dumps_spec(spec))
 
 
 def config_dict(recipe: Recipe, spec: CoachSpec | None, coach_source: str | None) -> dict[str, Any]:
@@ -174,6 +181,19 @@ def default_run_dir(recipe: Recipe, spec: CoachSpec | None, root: str | Path = "
     return Path(root) / recipe.env_id / f"{coach}-{recipe.algo}-seed{recipe.seed}"
 
 
+RUN_SCHEMA = "pidlab.run/1"
+
+
+def _refusals(run_dir: Path) -> Refusals:
+    taken = f"{run_dir} exists and is not empty; resume it with --resume {run_dir}, or choose --run-dir"
+    return Refusals(
+        not_a_folder=f"{run_dir} exists and is not a folder; choose another --run-dir",
+        not_a_record=taken,
+        not_ours=taken,
+        another=lambda _record: taken,
+    )
+
+
 def prepare_run_dir(
     run_dir: Path, recipe: Recipe, spec: CoachSpec | None, coach_source: str | None, argv: list[str] | None
 ) -> None:
@@ -182,30 +202,34 @@ def prepare_run_dir(
     Raises
     ------
     RunDirError
-        ``run_dir`` exists and is not empty (nothing is overwritten).
+        ``run_dir`` exists and is not empty, or is a file (nothing is overwritten).
     """
-    if run_dir.exists() and any(run_dir.iterdir()):
-        raise RunDirError(
-            f"{run_dir} exists and is not empty; resume it with --resume {run_dir}, or choose --run-dir"
-        )
+    refusals = _refusals(run_dir)
+    if check_folder(run_dir, "run.json", RUN_SCHEMA, None, refusals, RunDirError) is not None:
+        raise RunDirError(refusals.not_ours)  # a run is resumed with resume(), never started again
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / "config.toml", tomli_w.dumps(config_dict(recipe, spec, coach_source)))
     if spec is not None:
         atomic_write_text(run_dir / "coach.toml", dumps_spec(spec))
-    write_json(
-        run_dir / "run.json",
-        {
-            "seed": recipe.seed,
-            "env_id": recipe.env_id,
-            "coach": spec.name if spec is not None else "none",
-            "algo": recipe.algo,
-            "command": argv if argv is not None else sys.argv,
-            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "versions": package_versions(),
-            "git": git_state(),
-            "resumes": [],
-        },
-    )
+    kind = {"seed": recipe.seed, "env_id": recipe.env_id, "coach": spec.name if spec is not None else "none",
+            "algo": recipe.algo}  # fmt: skip
+    record = new_record(RUN_SCHEMA, argv if argv is not None else sys.argv, extra=kind)
+    write_record(run_dir / "run.json", record)
+
+
+def record_resume(run_dir: Path, argv: list[str] | None, from_env_steps: int, budget_env_steps: int) -> None:
+    """Add a resume (now, the command, versions, git state, where it resumed) to ``run.json``.
+
+    Raises
+    ------
+    RunDirError
+        ``run.json`` is unreadable.
+    """
+    path = run_dir / "run.json"
+    record = read_record(path, RUN_SCHEMA, RunDirError)
+    command = argv if argv is not None else sys.argv
+    resumed = add_resume(record, command, from_env_steps=from_env_steps, budget_env_steps=budget_env_steps)
+    write_record(path, resumed)
 
 
 def evaluated_at(run_dir: Path, env_steps: int) -> bool:

@@ -42,7 +42,6 @@ import tomli_w
 
 from pidlab.controller.spec import CoachSpec
 from pidlab.files import atomic_write_bytes, atomic_write_text, read_json, write_json
-from pidlab.provenance import git_state
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, sb3_policy
 from pidlab.rl.recipe import LINEAR_SCHEDULES, Recipe
@@ -56,6 +55,7 @@ from pidlab.rl.rundir import (
     latest_checkpoint,
     load_run_config,
     prepare_run_dir,
+    record_resume,
     truncate_csv,
 )
 
@@ -544,15 +544,7 @@ def resume(
         raise RunDirError(f"--steps {steps}: the run has already done {state['env_steps']} env steps")
     truncate_csv(run_dir / "episodes.csv", EPISODE_COLUMNS, int(state["episodes"]) if state else 0)
     truncate_csv(run_dir / "evaluations.csv", EVALUATION_COLUMNS, int(state["evaluations"]) if state else 0)
-    info = read_json(run_dir / "run.json")
-    info.setdefault("resumes", []).append({
-        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "from_env_steps": int(state["env_steps"]) if state else 0,
-        "budget_env_steps": recipe.steps,
-        "command": argv if argv is not None else sys.argv,
-        "git": git_state(),
-    })  # fmt: skip
-    write_json(run_dir / "run.json", info)
+    record_resume(run_dir, argv, int(state["env_steps"]) if state else 0, recipe.steps)
     coach = config.get("coach", {})
     atomic_write_text(run_dir / "config.toml", tomli_w.dumps(config_dict(recipe, spec, coach.get("source"))))
     summary_path.unlink(missing_ok=True)
