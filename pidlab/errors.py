@@ -96,12 +96,28 @@ class RunDirError(PidlabError):
     """A run directory that cannot be used as asked (exists already, not a run, mismatched resume)."""
 
 
+class CheckpointError(RunDirError):
+    """A checkpoint of a run that cannot be resumed from (a damaged model, statistics, state or log)."""
+
+
 class RegionError(PidlabError, ValueError):
     """No region of attraction can be given (unstable closed loop, nothing certified)."""
 
 
 class PipelineError(PidlabError, ValueError):
     """A pipeline that cannot run as asked."""
+
+
+class AnalysisError(PidlabError, ArithmeticError):
+    """A closed loop whose poles or margins are undefined: gains so large that the numbers overflow."""
+
+
+class OutputError(PidlabError, OSError):
+    """A file or folder pidlab was asked to write that cannot be written (read-only, a file, a folder)."""
+
+
+class BudgetError(PidlabError, ValueError):
+    """A budget (episodes, model size) too large to finish in reasonable time; the message says the limit."""
 
 
 class JobCancelled(Exception):

@@ -10,11 +10,13 @@ from __future__ import annotations
 import io
 import json
 import os
+import stat
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pidlab.errors import PidlabError
+from pidlab.checks import clip
+from pidlab.errors import OutputError, PidlabError
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -24,16 +26,138 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temporary file, fsync, rename)."""
+
+def _writable(path: Path) -> bool:
+    """Whether pidlab may change ``path``: the OS allows it and the mode has a write bit.
+
+    The root user may write anything the OS lets it; pidlab still treats a file or folder without
+    any write bit (``chmod a-w``) as read-only, for every user.
+    """
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return False
+    return os.access(path, os.W_OK) and bool(mode & 0o222)
+
+
+def _refusal(path: Path, reason: str, param: str | None) -> OutputError:
+    """An :class:`OutputError` about ``path``: ``param=PATH: reason`` when a parameter named it."""
+    head = f"{param}={clip(str(path), 200)!r}" if param else clip(str(path), 200)
+    return OutputError(f"{head}: {reason}", param=param)
+
+
+def _folder_problem(folder: Path) -> str | None:
+    """Why no file can be written in ``folder`` (created with its parents if need be), or None."""
+    if folder.exists() and not folder.is_dir():
+        return f"{folder} is a file, not a folder"
+    base = folder
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if not base.is_dir():
+        return f"{base} is a file, not a folder"
+    if not (_writable(base) and os.access(base, os.X_OK)):
+        return f"the folder {base} is read-only"
+    return None
+
+
+def check_output_folder(folder: str | Path, param: str | None = None) -> Path:
+    """Refuse a folder that pidlab could not create or write in; nothing is written.
+
+    Call it before long work, so that a bad output place fails at once.
+
+    Parameters
+    ----------
+    folder : path
+        The folder to create (with its parents) or to write in.
+    param : str, optional
+        The parameter that named it (the error message starts with ``param=``).
+
+    Raises
+    ------
+    OutputError
+        ``folder`` (or a part of its path) is a file, or the folder where it would be created
+        is read-only.
+    """
+    folder = Path(folder)
+    problem = _folder_problem(folder)
+    if problem is not None:
+        raise _refusal(folder, f"cannot write there: {problem}", param)
+    return folder
+
+
+def check_output_file(path: str | Path, param: str | None = None) -> Path:
+    """Refuse a file that pidlab could not write (or replace); nothing is written.
+
+    Parameters
+    ----------
+    path : path
+        The file to write; it may exist (it is replaced, keeping its mode) or not.
+    param : str, optional
+        The parameter that named it.
+
+    Raises
+    ------
+    OutputError
+        ``path`` is a folder, a read-only file, or lies where no file can be created.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise _refusal(path, "is a folder; give a file name", param)
+    if path.exists() and not _writable(path):
+        reason = "the file is read-only; pidlab does not replace it (make it writable first)"
+        raise _refusal(path, reason, param)
+    problem = _folder_problem(path.parent)
+    if problem is not None:
+        raise _refusal(path, f"cannot write there: {problem}", param)
+    return path
+
+
+def make_folder(folder: str | Path, param: str | None = None) -> Path:
+    """Create ``folder`` and its parents (the one way pidlab makes a folder); returns it.
+
+    Raises
+    ------
+    OutputError
+        As :func:`check_output_folder`, or the OS refused (the reason in one line).
+    """
+    folder = check_output_folder(folder, param)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _refusal(folder, f"cannot create the folder: {exc.strerror or exc}", param) from None
+    return folder
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file, fsync, rename).
+
+    A file that is replaced keeps its mode. On any failure (or an interrupt) the temporary file
+    is removed and the old file, if any, is left as it was.
+
+    Raises
+    ------
+    OutputError
+        ``path`` is a folder or a read-only file, its folder cannot be made or written, or the
+        write itself failed (no space left, name too long, ...).
+    """
+    path = check_output_file(path)
+    make_folder(path.parent)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    replaced = False
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if path.exists():
+            os.chmod(tmp, stat.S_IMODE(path.stat().st_mode))
+        os.replace(tmp, path)
+        replaced = True
+    except OSError as exc:
+        raise _refusal(path, f"cannot write the file: {exc.strerror or exc}", None) from None
+    finally:
+        if not replaced:
+            tmp.unlink(missing_ok=True)
     return path
 
 
@@ -48,8 +172,46 @@ def write_json(path: str | Path, data: Any) -> Path:
 
 
 def read_json(path: str | Path) -> Any:
-    """Read a JSON file."""
+    """Read a JSON file (trusted: one pidlab wrote; see :func:`load_json` for one a user may have damaged)."""
     return json.loads(Path(path).read_text(encoding="utf-8"))
+
+
+def read_text(path: str | Path, what: str, error: type[PidlabError]) -> str:
+    """The UTF-8 text of ``path`` (a ``what``, e.g. "recipe"), or ``error`` in one line naming the file.
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``: the file cannot be read (missing, a folder, no permission) or is not
+        UTF-8 text (binary, UTF-16, a stray latin-1 byte).
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise error(f"cannot read {what} {clip(str(path), 200)!r}: {exc.strerror or exc}") from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(
+            f"{clip(str(path), 200)}: the {what} is not UTF-8 text "
+            f"(byte 0x{data[exc.start]:02x} at offset {exc.start}); save it as UTF-8"
+        ) from None
+
+
+def load_json(path: str | Path, what: str, error: type[PidlabError]) -> Any:
+    """Read a JSON file that may be damaged (cut short, not JSON, not text): ``error`` in one line.
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``, naming the file.
+    """
+    text = read_text(path, what, error)
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise error(f"{clip(str(path), 200)}: the {what} is damaged (not valid JSON: {exc})") from None
 
 
 def save_figure(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
@@ -75,18 +237,21 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
 
 
 def parse_toml(text: str, where: str, error: type[PidlabError]) -> dict[str, Any]:
-    """Parse TOML ``text``; invalid TOML raises ``error`` naming ``where``."""
+    """Parse TOML ``text``; invalid TOML raises ``error`` naming ``where``.
+
+    The one TOML parser of pidlab: a syntax error, a NUL or control character, or nesting deep
+    enough to exhaust Python's recursion limit all become one line.
+    """
+    if not isinstance(text, str):
+        raise TypeError(f"text: expected str, got {type(text).__name__}")
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{where}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise error(f"{where}: not valid TOML: nested too deeply") from None
 
 
 def read_toml(path: str | Path, what: str, error: type[PidlabError]) -> dict[str, Any]:
     """Read and parse the TOML file ``path`` (a ``what``, e.g. "recipe"), raising ``error`` on failure."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise error(f"cannot read {what} {str(path)!r}: {exc.strerror}") from None
-    return parse_toml(text, str(path), error)
+    return parse_toml(read_text(path, what, error), clip(str(path), 200), error)

@@ -27,7 +27,10 @@ Everything lands in one folder::
       report.md, report.html
 
 Run again, the same command skips finished stages and resumes the sweep from its checkpoints. A
-folder that holds a pipeline with other settings is refused and left untouched.
+folder that holds a pipeline with other settings is refused and left untouched. Everything the
+pipeline reads back (its record, the files of finished stages, the experiment's record) is checked
+before it writes anything, and a damaged one is named in one line. The pipeline holds the lock of
+OUT (:func:`pidlab.provenance.hold_lock`) from start to end: a second command in it is refused.
 """
 
 from __future__ import annotations
@@ -39,11 +42,24 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pidlab.checks import MAX_SEEDS, integer
+from pidlab.controller.rollout import MAX_EPISODES
 from pidlab.data import source_root
-from pidlab.errors import PipelineError
-from pidlab.files import atomic_write_text, read_json, write_json
-from pidlab.provenance import Record, Refusals, add_resume, check_folder, new_record, now, write_record
+from pidlab.errors import PidlabError, PipelineError
+from pidlab.files import atomic_write_text, load_json, read_json, write_json
+from pidlab.provenance import (
+    Record,
+    Refusals,
+    add_resume,
+    check_folder,
+    hold_lock,
+    new_record,
+    now,
+    read_record,
+    write_record,
+)
 from pidlab.rl.recipe import (
+    MAX_STEPS,
     PRESETS,
     PipelineSettings,
     Recipe,
@@ -120,11 +136,11 @@ def settings_for(
             param="env_id",
         )
     base = load_pipeline_settings(path)
-    checks = {"seeds": (seeds, 1), "steps": (steps, 1), "roa_samples": (roa_samples, 1),
-              "episodes": (episodes, 0)}  # fmt: skip
-    for name, (value, low) in checks.items():
-        if value is not None and value < low:
-            raise PipelineError(f"{name}={value}: expected an integer >= {low}", param=name)
+    checks = {"seeds": (seeds, 1, MAX_SEEDS), "steps": (steps, 1, MAX_STEPS),
+              "roa_samples": (roa_samples, 1, 10**7), "episodes": (episodes, 0, MAX_EPISODES)}  # fmt: skip
+    for name, (value, low, high) in checks.items():
+        if value is not None:
+            integer(value, name, PipelineError, low=low, high=high, param=name)
     if preset is not None and preset not in PRESETS:
         raise PipelineError(f"preset={preset!r}: expected one of {', '.join(PRESETS)}", param="preset")
     given: dict[str, Any] = {"seeds": seeds, "steps": steps, "preset": preset, "roa_samples": roa_samples,
@@ -229,24 +245,79 @@ class _Session:
         return _stage(name, self.stages, done_before, self.say)
 
 
-def _start(
-    env_id: str, out: str | Path, settings: PipelineSettings, argv: Sequence[str]
-) -> tuple[Path, Record, Recipe]:
-    """Check the folder, create it and write (or extend, on resume) ``pipeline.json``."""
+def _stage_file(path: Path, stage: str, read: Callable[[Path], Any]) -> None:
+    """``read(path)`` when the file exists; a damaged one is refused, naming it and the stage."""
+    if not path.exists():
+        return
+    try:
+        data = read(path)
+    except PidlabError as exc:
+        raise PipelineError(f"{exc}; delete it to redo the {stage} stage") from None
+    if data is None:
+        raise PipelineError(f"{path}: damaged (not a JSON object); delete it to redo the {stage} stage")
+
+
+def _check_stage_files(folder: Path) -> None:
+    """The files of finished stages that a resumed pipeline reads back: each must read.
+
+    Raises
+    ------
+    PipelineError
+        A damaged file (named), with how to redo its stage.
+    """
+    from pidlab.controller.spec import load_spec
+    from pidlab.experiment.sweep import EXPERIMENT_SCHEMA
+
+    def json_object(path: Path) -> dict[str, Any] | None:
+        data = load_json(path, "stage record", PipelineError)
+        return data if isinstance(data, dict) else None
+
+    _stage_file(folder / "tune.json", "tune", json_object)
+    _stage_file(folder / "tuned.toml", "tune", load_spec)
+    _stage_file(folder / "roa.json", "bounds", json_object)
+    _stage_file(folder / "coach.toml", "bounds", load_spec)
+    record = folder / "experiment" / "experiment.json"
+    if record.exists():
+        try:
+            read_record(record, EXPERIMENT_SCHEMA, PipelineError)
+        except PipelineError as exc:
+            raise PipelineError(f"{exc}; move the folder {record.parent} away to train again") from None
+
+
+def _check(
+    env_id: str, out: str | Path, settings: PipelineSettings, workers: int | None
+) -> tuple[Path, Record | None, Recipe, LoadedModel]:
+    """Everything a pipeline session reads, checked before it writes anything.
+
+    Returns the folder, its record (None: a new pipeline), the env's recipe and model.
+    """
+    from pidlab.plant.model import load_model
+
+    if workers is not None and (type(workers) is not int or workers < 1):
+        raise PipelineError(f"workers={workers!r}: expected 1 or more", param="workers")
     folder = Path(out).resolve()
-    identity = _identity(env_id, settings)
-    old = check_out_folder(folder, identity)
+    old = check_out_folder(folder, _identity(env_id, settings))
     recipe = load_recipe(default_recipe_path(env_id))
+    loaded = load_model(env_id)
+    loaded.require_card()
+    _check_stage_files(folder)
+    return folder, old, recipe, loaded
+
+
+def _start(folder: Path, old: Record | None, env_id: str, settings: PipelineSettings, argv: Sequence[str],
+           recipe: Recipe) -> Record:  # fmt: skip
+    """Create the folder's figures folder and write (or extend, on resume) ``pipeline.json``."""
     try:
         (folder / "figures").mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise PipelineError(f"out={out}: cannot create the folder ({exc.strerror})", param="out") from None
+        raise PipelineError(f"out={folder}: cannot create the folder ({exc.strerror})", param="out") from None
     if old is None:
+        identity = _identity(env_id, settings)
         record = new_record(PIPELINE_SCHEMA, argv, identity=identity, extra={"recipe": _shown(recipe.path)})
     else:
         record = add_resume(old, argv)
     write_record(folder / "pipeline.json", record)
-    return folder, record, recipe
+    return record
 
 
 def _linearize(s: _Session) -> tuple[Linearization, LtiReport]:
@@ -418,6 +489,7 @@ class _Made:
 def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple[Path, Path]:
     """Stage 6: the experiment's own report, the learning curves and the pipeline's report."""
     from pidlab.experiment.analysis import analyze
+    from pidlab.experiment.sweep import lock_experiment
     from pidlab.files import save_figure
     from pidlab.report.curves import plot_learning_curves
     from pidlab.report.experiment import render_html, write_report
@@ -427,7 +499,8 @@ def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple
     with s.stage("report"):
         exp_record = read_json(sweep_plan.out / "experiment.json")
         results = analyze(exp_record["identity"], sweep_plan.out, sweep_plan.recipes)
-        write_report(sweep_plan, progress_bar=False, analysis=results)
+        with lock_experiment(sweep_plan):
+            write_report(sweep_plan, progress_bar=False, analysis=results)
         curves = folder / "figures" / "learning-curves.png"
         if (env_id, "none") in results.cells or (env_id, "coached") in results.cells:
             save_figure(plot_learning_curves(results, env_id), curves)
@@ -494,12 +567,21 @@ def run_pipeline(
     PipelineError, RecipeError, SpecError, RegionError, ExperimentError
         One line naming what is wrong; nothing already finished is lost.
     """
-    from pidlab.plant.model import load_model
+    folder = _check(env_id, out, settings, workers)[0]  # refused here, nothing is made
+    with hold_lock(folder, PipelineError, param="out"):
+        folder, old, recipe, loaded = _check(env_id, out, settings, workers)  # again, under the lock
+        record = _start(folder, old, env_id, settings, argv, recipe)
+        return _stages(
+            _Session(env_id, folder, settings, loaded, progress_bar, say, []), record, recipe, workers, argv
+        )
 
-    folder, record, recipe = _start(env_id, out, settings, argv)
-    loaded = load_model(env_id)
-    units = {v.name: v.unit for v in loaded.require_card().observation}
-    s = _Session(env_id, folder, settings, loaded, progress_bar, say, [])
+
+def _stages(
+    s: _Session, record: Record, recipe: Recipe, workers: int | None, argv: Sequence[str]
+) -> PipelineResult:
+    """The six stages of one session, after its record was written."""
+    folder = s.folder
+    units = {v.name: v.unit for v in s.loaded.require_card().observation}
     lin, lti = _linearize(s)
     spec, tuning, tuned_path = _tune(s, lin)
     analysis, figures, score = _analyze(s, spec, tuned_path)

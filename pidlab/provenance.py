@@ -12,7 +12,9 @@ One record type serves all three (``run.json``, ``experiment.json``, ``pipeline.
     resumes    one entry per later session: at, command, versions, git and the kind's own fields
 
 :func:`check_folder` is the one folder guard: it says whether a folder is new, holds this very
-record (to resume), or must be refused. :func:`digest` is the one digest of settings and specs.
+record (to resume), or must be refused. :func:`hold_lock` is the one lock: every command that writes
+into a run, an experiment or a pipeline folder (or into a coach spec) holds it for as long as it
+runs. :func:`digest` is the one digest of settings and specs.
 
 Records written before this module (run.json with ``started``, experiment.json resumes keyed
 ``time``, pipeline.json without a top-level ``schema``) are read with the new names and written
@@ -21,20 +23,24 @@ back with them on the next write (:func:`record_from_dict`).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
+import os
 import platform
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 from pidlab.errors import PidlabError
-from pidlab.files import read_json, write_json
+from pidlab.files import check_output_folder, make_folder, write_json
 
 PACKAGES = (
     "pidlab",
@@ -49,6 +55,8 @@ PACKAGES = (
     "tensorboard",
 )
 TIME_FORMAT = "%Y-%m-%dT%H:%M:%S%z"
+LOCK_NAME = ".pidlab.lock"
+"""The lock file :func:`hold_lock` keeps in a folder while a command works in it (holds its pid)."""
 COMMON_FIELDS = ("schema", "created", "command", "versions", "git", "identity", "resumes")
 RESUME_FIELDS = ("at", "command", "versions", "git")
 
@@ -257,13 +265,22 @@ def record_from_dict(data: Mapping[str, Any], schema: str) -> Record:
     )
 
 
-def _load(path: Path, schema: str) -> Record | None:
-    """The record in ``path``, or None when it is unreadable or not a JSON object."""
+def _load(path: Path, schema: str) -> Record | str:
+    """The record in ``path``, or why it is none (unreadable, damaged, not a JSON object)."""
     try:
-        data = read_json(path)
-    except (OSError, ValueError):
-        return None
-    return record_from_dict(data, schema) if isinstance(data, dict) else None
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except OSError as exc:
+        return f"unreadable: {exc.strerror or exc}"
+    except UnicodeDecodeError:
+        return "not UTF-8 text"
+    except (ValueError, RecursionError) as exc:
+        return f"damaged: not valid JSON: {exc}"
+    if not isinstance(data, dict):
+        return "not a JSON object"
+    try:
+        return record_from_dict(data, schema)
+    except (TypeError, ValueError):
+        return "damaged: a field of the wrong type"
 
 
 def read_record(path: str | Path, schema: str, error: type[PidlabError] = PidlabError) -> Record:
@@ -272,11 +289,12 @@ def read_record(path: str | Path, schema: str, error: type[PidlabError] = Pidlab
     Raises
     ------
     PidlabError
-        Of class ``error``: the file is unreadable or holds no JSON object.
+        Of class ``error``, in one line naming the file: it is unreadable, damaged (cut short,
+        not JSON, not text) or holds no JSON object.
     """
     record = _load(Path(path), schema)
-    if record is None:
-        raise error(f"{path}: not a pidlab record (unreadable, or not a JSON object)")
+    if isinstance(record, str):
+        raise error(f"{path}: not a pidlab record ({record})")
     return record
 
 
@@ -339,24 +357,197 @@ def check_folder(
     -------
     Record or None
         The folder's record when it holds this very one (resume); None when the folder does
-        not exist or is empty (new).
+        not exist or is empty (new). A lock file (:data:`LOCK_NAME`) does not count: a folder
+        that holds only the one a killed command left is empty.
 
     Raises
     ------
     PidlabError
         Of class ``error``, with one of ``refusals``' messages.
+    OutputError
+        The folder cannot be created or written (a file in its path, a read-only folder).
     """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise error(refusals.not_a_folder, param=param)
+    check_output_folder(folder, param)  # a folder that cannot be made or written: refused now
     path = folder / filename
     if path.exists():
         record = _load(path, schema)
-        if record is None:
+        if isinstance(record, str):
             raise error(refusals.not_a_record, param=param)
         if record.schema != schema or record.identity != identity:
             raise error(refusals.another(record), param=param)
         return record
-    if folder.exists() and any(folder.iterdir()):
+    if folder.exists() and any(p.name != LOCK_NAME for p in folder.iterdir()):
         raise error(refusals.not_ours, param=param)
     return None
+
+
+# --------------------------------------------------------------------------- the lock
+
+_HELD: dict[Path, int] = {}  # lock file -> how many blocks of this process hold it
+_HELD_GUARD = threading.Lock()
+
+
+def _lock_file(target: Path) -> Path:
+    """The file to flock for ``target``: a file itself, a folder's :data:`LOCK_NAME`."""
+    return target if target.is_file() else target / LOCK_NAME
+
+
+def _holder(fd: int) -> int | None:
+    """The pid holding the flock on ``fd``'s file: from /proc/locks (Linux), else from the file."""
+    st = os.fstat(fd)
+    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    try:
+        with open("/proc/locks", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                parts = line.split()
+                if len(parts) > 5 and parts[1] == "FLOCK" and parts[5] == key and parts[4].isdigit():
+                    return int(parts[4])
+    except OSError:
+        pass
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", errors="replace").strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _try_flock(path: Path, folder_lock: bool) -> tuple[int, bool]:
+    """Open ``path`` and try to flock it: (fd, True) when this process now holds it.
+
+    A lock taken on a file that was meanwhile unlinked or replaced (its holder removed it on
+    release, or a file target was rewritten) is not the lock of ``path``: (-1, True) says "try
+    again". (fd, False): another process holds it; the caller closes ``fd``.
+    """
+    flags = os.O_RDWR | os.O_CREAT if folder_lock else os.O_RDONLY
+    fd = os.open(path, flags, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return fd, False
+    held = os.fstat(fd)
+    try:
+        there = os.stat(path)
+        same = (there.st_dev, there.st_ino) == (held.st_dev, held.st_ino)
+    except FileNotFoundError:
+        same = False
+    if not same:
+        os.close(fd)
+        return -1, True
+    return fd, True
+
+
+def _acquire(path: Path, folder_lock: bool, shown: str, error: type[PidlabError], param: str | None,
+             wait_s: float) -> int:  # fmt: skip
+    """Flock ``path`` for this process (waiting up to ``wait_s`` seconds); its fd."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            fd, mine = _try_flock(path, folder_lock)
+        except OSError as exc:
+            reason = exc.strerror or exc
+            raise error(f"{shown}: cannot take its lock {path.name}: {reason}", param=param) from None
+        if mine and fd >= 0:
+            return fd
+        if not mine:
+            pid = _holder(fd)
+            os.close(fd)
+            if time.monotonic() >= deadline:
+                by = f" (pid {pid})" if pid is not None else ""
+                raise error(
+                    f"{shown}: in use by another pidlab command{by}; nothing was changed. "
+                    "Wait for it to end (or stop it), then run this again",
+                    param=param,
+                )
+            time.sleep(0.1)
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """``folder`` and those of its parents that do not exist, deepest first."""
+    missing = []
+    while not folder.exists() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    return missing
+
+
+@contextmanager
+def hold_lock(
+    target: str | Path,
+    error: type[PidlabError],
+    *,
+    param: str | None = None,
+    wait_s: float = 0.0,
+) -> Iterator[Path]:
+    """Hold the exclusive lock of a folder (or of a file) for the duration of the block.
+
+    Every command that writes into a run, an experiment or a pipeline folder, or rewrites a
+    coach spec, holds it from its first write to its end, so two commands never work in one
+    folder. It is an ``fcntl.flock``: the OS releases it when its process ends in any way
+    (SIGKILL too), so a lock is never left behind by a killed command.
+
+    A folder's lock is the file :data:`LOCK_NAME` in it (created, with the folder and its
+    parents, when missing; it holds the pid of its holder and is removed on release). The folder
+    guard :func:`check_folder` ignores it, and folders this call created are removed again when
+    they are still empty at the end. A file's lock is the file itself (nothing is created).
+    Within one process the lock is re-entrant: a block inside a block that holds it is a no-op.
+
+    Parameters
+    ----------
+    target : path
+        The folder (existing or not) or the existing file to lock.
+    error : type
+        The caller's error class.
+    param : str, optional
+        The parameter that named ``target`` (the message then starts with ``param=``).
+    wait_s : float
+        How long to wait for another process to release it (default: not at all).
+
+    Yields
+    ------
+    Path
+        The lock file.
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``, in one line: another process holds the lock (its pid, where known),
+        or the lock cannot be taken (a read-only folder, ...). Nothing was changed then.
+    OutputError
+        The folder cannot be created, or is read-only.
+    """
+    target = Path(target).resolve()
+    shown = f"{param}={target}" if param else str(target)
+    created = [] if target.is_file() else _missing_folders(target)
+    if not target.is_file():
+        check_output_folder(target, param)  # a read-only folder gets no lock file either
+    if created:
+        make_folder(target, param)
+    path = _lock_file(target)
+    with _HELD_GUARD:
+        depth = _HELD.get(path, 0)
+        _HELD[path] = depth + 1
+    fd = -1
+    try:
+        if depth == 0:
+            fd = _acquire(path, path != target, shown, error, param, wait_s)
+            if path != target:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
+        yield path
+    finally:
+        with _HELD_GUARD:
+            _HELD[path] -= 1
+            if _HELD[path] == 0:
+                del _HELD[path]
+        if fd >= 0:
+            if path != target:
+                path.unlink(missing_ok=True)  # before the release: a waiter then retries on a new file
+            os.close(fd)
+        for folder in created:  # deepest first; only those still empty
+            try:
+                folder.rmdir()
+            except OSError:
+                break

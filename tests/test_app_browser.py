@@ -27,7 +27,7 @@ def server(tmp_path_factory):
     port = free_port()
     proc = start_server("InvertedPendulum-v5", SPEC, tuning, port, extra=["--bounds-samples", "100"], log=log)
     yield f"http://localhost:{port}/", tuning, log
-    stop_server(proc)
+    assert stop_server(proc) == 130, log.read_text()[-2000:]  # SIGTERM: a clean stop, as every command
 
 
 @pytest.fixture(scope="module")

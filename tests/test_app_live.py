@@ -248,3 +248,49 @@ def test_tuner_works_outside_a_server_as_in_a_notebook(ip, tmp_path):
         assert tuner.spec.loop("pole").kd == spec.loop("pole").kd
     finally:
         tuner.runner.shutdown()
+
+
+def _status(port: int, host: str, path: str = "/static/js/bokeh.min.js") -> int:
+    """The HTTP status of ``GET path`` on the tuner with ``Host: host:port`` (a static file: no session)."""
+    import http.client
+
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+    try:
+        conn.request("GET", path, headers={"Host": f"{host}:{port}"})
+        return conn.getresponse().status
+    finally:
+        conn.close()
+
+
+def test_tuner_answers_only_local_host_names_and_sigint_exits_130(tmp_path):
+    """A page asked for under a foreign name (DNS rebinding) is refused; Ctrl-C exits 130."""
+    import signal
+
+    from pidlab.app.browser import free_port, start_server
+
+    port = free_port()
+    log = tmp_path / "server.log"
+    extra = ["--allow-host", "tuner.example"]
+    proc = start_server("InvertedPendulum-v5", TUNING / "InvertedPendulum-v5.pidlab-robust.toml",
+                        tmp_path / "tuning", port, extra=extra, log=log)  # fmt: skip
+    try:
+        hosts = ("localhost", "127.0.0.1", "LocalHost", "tuner.example", "evil.example", "localhost.evil.example")
+        codes = {host: _status(port, host) for host in hosts}
+        codes["evil.example /"] = _status(port, "evil.example", "/")  # the page itself
+    finally:
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=30)
+    assert codes == {"localhost": 200, "127.0.0.1": 200, "LocalHost": 200, "tuner.example": 200,
+                     "evil.example": 403, "localhost.evil.example": 403, "evil.example /": 403}, log.read_text()  # fmt: skip
+    assert code == 130, log.read_text()
+    assert "pidlab: interrupted" in log.read_text() and "Traceback" not in log.read_text()
+
+
+@pytest.mark.parametrize("name", ["evil.example/x", "host:5006", "[::1]", "", "-x"])
+def test_allow_host_takes_host_names_only(name):
+    from pidlab.app.serve import check_hosts
+    from pidlab.errors import PidlabError
+
+    with pytest.raises(PidlabError, match="allow_host="):
+        check_hosts([name])
+    assert check_hosts(["Tuner.Example", "10.0.0.2", "*"]) == ("tuner.example", "10.0.0.2", "*")

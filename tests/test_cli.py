@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import PAPER_ENVS
+from tests.helpers import PAPER_ENVS, cli_in_process
 
 PIDLAB = [sys.executable, "-m", "pidlab"]
 
@@ -173,3 +173,97 @@ def _resolve(target, at):
     from pidlab.plant.operating_point import resolve_operating_point
 
     return resolve_operating_point(load_model(target), at)
+
+
+def _chain(path: Path, joints: int) -> Path:
+    """An MJCF model of ``joints`` pendulums side by side (2 * joints states, one motor)."""
+    bodies = "".join(
+        f'<body name="b{i}" pos="{0.05 * i} 0 0"><joint name="j{i}" type="hinge" axis="0 1 0"/>'
+        '<geom type="capsule" fromto="0 0 0 0 0 -0.1" size="0.01"/></body>'
+        for i in range(joints)
+    )
+    path.write_text(f'<mujoco><worldbody>{bodies}</worldbody><actuator><motor joint="j0"/></actuator></mujoco>')
+    return path
+
+
+def test_usage_errors_are_one_line_in_the_real_executable():
+    """Click's usage box becomes one line, exit 2, in the installed ``pidlab`` too."""
+    exe = Path(sys.executable).parent / "pidlab"
+    cmd = [str(exe)] if exe.exists() else PIDLAB
+    res = subprocess.run([*cmd, "linearize", "InvertedPendulum-v5", "--eps", "tiny"],
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert res.returncode == 2
+    assert res.stderr.splitlines() == [
+        "pidlab: error: --eps 'tiny': expected a number (see 'pidlab linearize --help')"
+    ]
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (["train", "X", "--steps", "lots"], "--steps 'lots': expected an integer (see 'pidlab train --help')"),
+        (["roa"], "missing argument 'SPEC' (see 'pidlab roa --help')"),
+        (["roa", "x.toml", "--sampels", "3"], "no such option: --sampels"),
+        (["frob"], "no such command 'frob'"),
+    ],
+)
+def test_usage_errors_are_one_line_in_process(args, line):
+    code, stderr = cli_in_process(*args)
+    assert code == 2
+    lines = stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"pidlab: error: {line}"), stderr
+
+
+def test_linearize_refuses_a_model_too_large_to_analyze(tmp_path):
+    from pidlab.cli.main import MAX_LINEARIZE_STATES
+
+    xml = _chain(tmp_path / "chain.xml", MAX_LINEARIZE_STATES // 2 + 1)
+    code, stderr = cli_in_process("linearize", str(xml))
+    assert code == 2 and len(stderr.splitlines()) == 1, stderr
+    assert f"{MAX_LINEARIZE_STATES + 2} states (2 nv + na) is more than pidlab linearize analyzes" in stderr
+
+
+def test_linearize_says_first_how_long_a_large_model_takes(tmp_path, monkeypatch):
+    import pidlab.linear.linearize as lin
+
+    monkeypatch.setattr(lin, "estimate_seconds", lambda loaded, discretization: 1500.0)
+    code, stderr = cli_in_process("linearize", str(_chain(tmp_path / "chain.xml", 3)))
+    assert code == 0
+    assert stderr.splitlines() == [
+        "pidlab: chain.xml has 6 states: linearizing and analyzing it takes about 25 min (--progress shows a bar)"
+    ]
+
+
+def test_linearize_progress_bars_and_estimate(tmp_path):
+    from pidlab.linear.linearize import estimate_seconds, finite_difference_columns, linearize
+    from pidlab.plant.model import load_model
+
+    loaded = load_model(_chain(tmp_path / "chain.xml", 40))
+    seen = []
+    linearize(loaded, progress=lambda done, total: seen.append((done, total)))
+    total = finite_difference_columns(loaded)
+    assert total == 2 * (80 + 1) and seen[-1] == (total, total) and len(seen) == total
+    assert 0 < estimate_seconds(loaded, analysis=False) < float("inf") and estimate_seconds(loaded) > 0
+    code, stderr = cli_in_process("linearize", str(tmp_path / "chain.xml"), "--progress")
+    assert code == 0 and "finite differences" in stderr and "modes of the discrete model" in stderr
+
+
+def test_linearize_names_a_large_matrix_instead_of_printing_it():
+    import numpy as np
+    from rich.console import Console
+
+    from pidlab.report.console import MAX_TABLE_SIDE, matrix_table
+
+    names = [f"s{i}" for i in range(MAX_TABLE_SIDE + 1)]
+    con = Console(width=200, record=True)
+    con.print(matrix_table("A", np.zeros((len(names), len(names))), names, names))
+    assert f"{len(names)} x {len(names)}: more than {MAX_TABLE_SIDE}" in con.export_text()
+
+
+def test_a_model_that_loads_passes_mujocos_warnings_on_and_one_that_fails_does_not(tmp_path, capfd):
+    from pidlab.errors import ModelCompileError
+    from pidlab.plant.model import load_model
+
+    with pytest.raises(ModelCompileError, match="is a folder"):
+        load_model(tmp_path)
+    assert "2GB" not in capfd.readouterr().err  # MuJoCo's own warning about a folder is not printed

@@ -321,3 +321,112 @@ def test_ellipsoid_region_on_a_box_only_spec_says_why(models):
     bare = dataclasses.replace(spec, bounds=None)
     with pytest.raises(CoachingError, match=r"no \[bounds.ellipsoid\]; run `pidlab bounds SPEC --write`"):
         CriticalRegion(bare, names, "ellipsoid")
+
+
+# ---------------------------------------------------------------- conditions files (issue 17, items 2, 8, 13)
+
+
+def _conditions(**condition):
+    return {"schema": "pidlab.conditions/1", "condition": {"c": {"coach": "none", **condition}}}
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        (
+            _conditions(bounds={"hinge_pos": [False, True]}),
+            "bounds.hinge_pos = False: expected a finite number",
+        ),
+        (
+            _conditions(bounds={"hinge_pos": [float("nan"), 1.0]}),
+            "bounds.hinge_pos = nan: expected a finite number",
+        ),
+        (_conditions(bounds={"hinge_pos": [0.0, float("inf")]}), "bounds.hinge_pos = inf"),
+        (
+            _conditions(bounds={"hinge_pos": [0.0]}),
+            "bounds.hinge_pos = [0.0]: expected [low, high] with low < high",
+        ),
+        (_conditions(coaching={"width": -1.0}), "coaching.width"),
+        (_conditions(coaching={"probability": float("nan")}), "coaching.probability = nan"),
+        (_conditions(coaching={"mode": "dance"}), "coaching.mode = 'dance': expected one of takeover, nudge"),
+        (_conditions(coaching={"nudge_steps": True}), "coaching.nudge_steps = True"),
+        (_conditions(coaching={"trigger": {"variable": "v", "high": 0.3, "steps": 0}}), "trigger.steps = 0"),
+        (_conditions(coach="../../x"), "coach = '../../x': expected a name"),
+        (_conditions(coach=3), "coach = 3: expected none, a spec file"),
+        (_conditions(description=3), "description = 3: expected a string"),
+        (
+            {"schema": "pidlab.conditions/1", "condition": {"../../x": {"coach": "none"}}},
+            "condition name = '../../x': expected a name of 1-64 letters",
+        ),
+        (
+            {"schema": "pidlab.conditions/1", "condition": {"y" * 100_000: {"coach": "none"}}},
+            "condition name = 'yyy",
+        ),
+        (_conditions(env={"../x": {"coach": "none"}}), "env: env id = '../x': expected a name"),
+        (_conditions(env={"InvertedPendulum-v5": 3}), "expected a table"),
+        ({"schema": "pidlab.conditions/1", "condition": {"c": 3}}, "condition.c: expected a table"),
+    ],
+)
+def test_conditions_check_names_and_numbers_where_they_are_parsed(data, message):
+    from pidlab.errors import ConditionError
+    from pidlab.experiment.conditions import parse_conditions
+
+    with pytest.raises(ConditionError) as err:
+        parse_conditions(data, "conditions.toml")
+    assert message in str(err.value) and "\n" not in str(err.value) and len(str(err.value)) < 400
+
+
+@pytest.mark.parametrize("value", [None, [], "conditions", 3, {1: 2}])
+def test_parse_conditions_of_no_table_is_a_condition_error(value):
+    from pidlab.errors import ConditionError
+    from pidlab.experiment.conditions import parse_conditions
+
+    with pytest.raises(ConditionError, match="expected a table"):
+        parse_conditions(value)
+
+
+def test_a_trigger_without_mode_is_checked_as_a_nudge_and_resolved_with_the_recipe():
+    from pidlab.experiment.conditions import parse_conditions
+
+    trigger = {"variable": "hinge_vel", "high": 0.3, "steps": 2}
+    conds = parse_conditions(
+        _conditions(coaching={"mode": "nudge"}, env={"X-v0": {"coaching": {"trigger": trigger}}})
+    )
+    assert conds["c"].for_env("X-v0").coaching == {"mode": "nudge", "trigger": trigger}
+
+
+def test_spec_names_cannot_leave_tuning():
+    from pidlab.errors import ConditionError
+    from pidlab.experiment.conditions import spec_path
+
+    assert spec_path("InvertedPendulum-v5", "pidlab-robust").name == "InvertedPendulum-v5.pidlab-robust.toml"
+    assert str(spec_path("InvertedPendulum-v5", "../mine.toml")) == "../mine.toml"  # a file the user names
+    for env, coach in (("InvertedPendulum-v5", "../../x"), ("../x", "paper"), ("InvertedPendulum-v5", "a/b")):
+        with pytest.raises(ConditionError) as err:
+            spec_path(env, coach)
+        assert err.value.param in ("coach", "env_id")
+
+
+def test_default_run_dir_stays_under_runs():
+    from pidlab.controller.spec import CoachSpec, Loop
+    from pidlab.errors import RunDirError
+    from pidlab.rl.recipe import load_recipe
+    from pidlab.rl.rundir import default_run_dir
+    from tests.helpers import COACH
+
+    recipe = load_recipe(COACH / "InvertedPendulum-v5.toml")
+    loop = Loop(name="p", signal="hinge_pos", actuators=(("slide", 1.0),))
+    good = CoachSpec("InvertedPendulum-v5", "pidlab-robust", (loop,))
+    assert default_run_dir(recipe, good) == Path("runs/InvertedPendulum-v5/pidlab-robust-ppo-seed0")
+    for name in ("../../../../tmp/x", "x" * 300, "a/b"):
+        with pytest.raises(RunDirError):
+            default_run_dir(recipe, dataclasses.replace(good, name=name))
+
+
+def test_an_unknown_condition_with_a_long_name_is_one_short_line():
+    from pidlab.errors import ConditionError
+    from pidlab.experiment.conditions import load_conditions, select
+
+    with pytest.raises(ConditionError) as err:
+        select(load_conditions(), ["none", "z" * 100_000], "coach/conditions.toml")
+    assert err.value.param == "condition_names" and len(str(err.value)) < 400

@@ -107,7 +107,7 @@ def test_a_condition_with_coaching_the_recipe_rejects_fails_on_resolve():
     conds = parse_conditions(
         {
             "schema": "pidlab.conditions/1",
-            "condition": {"odd": {"coach": "pidlab-robust", "coaching": {"mode": "dance"}}},
+            "condition": {"odd": {"coach": "pidlab-robust", "coaching": {"trigger": {"variable": "hinge_vel", "high": 0.3, "steps": 2}}}},
         }
     )
     with pytest.raises(ConditionError, match="mode"):

@@ -58,7 +58,7 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A venv with pidlab installed from a wheel built off the tracked files."""
     work = tmp_path_factory.mktemp("install")
     src = work / "src"
-    tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True)
+    tracked = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"], cwd=ROOT, capture_output=True, text=True, check=True)
     for rel in tracked.stdout.splitlines():
         if rel.startswith(("docs/", "tests/", "benchmarks/")) or not (ROOT / rel).is_file():
             continue

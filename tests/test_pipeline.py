@@ -142,7 +142,7 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     ("args", "message"),
     [
         (["NoSuchEnv-v0"], "no recipe"),
-        (["InvertedPendulum-v5", "--seeds", "0"], "--seeds 0: expected an integer >= 1"),
+        (["InvertedPendulum-v5", "--seeds", "0"], "--seeds 0: expected an integer in [1, 10000]"),
         (["InvertedPendulum-v5", "--steps", "-5"], "--steps -5"),
         (["InvertedPendulum-v5", "--preset", "strong"], "--preset 'strong': expected one of robust, weak"),
         (["InvertedPendulum-v5", "--workers", "0"], "--workers 0"),
@@ -176,7 +176,7 @@ def test_recipe_pipeline_table_defaults_and_errors(tmp_path, monkeypatch):
     base = {"schema": "pidlab.recipe/1", "env_id": "X-v0", "steps": 5000, "ppo": {}}
     s = parse_pipeline(base)
     assert (s.seeds, s.steps, s.preset, s.roa_samples, s.episodes) == (3, 5000, "robust", 1000, 10)
-    with pytest.raises(RecipeError, match=r"recipe\.pipeline\.seeds = 0: expected >= 1"):
+    with pytest.raises(RecipeError, match=r"recipe\.pipeline\.seeds = 0: expected an integer in \[1, 10000\]"):
         parse_pipeline({**base, "pipeline": {"seeds": 0}})
     with pytest.raises(RecipeError, match="unknown field"):
         parse_pipeline({**base, "pipeline": {"budget": 3}})

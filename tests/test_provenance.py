@@ -303,9 +303,9 @@ def test_the_three_callers_keep_their_messages(tmp_path):
 @pytest.mark.parametrize(
     ("call", "param", "cli"),
     [
-        (lambda: settings_for(IP, roa_samples=0), "roa_samples", "--samples 0: expected an integer >= 1"),
-        (lambda: settings_for(IP, seeds=0), "seeds", "--seeds 0: expected an integer >= 1"),
-        (lambda: settings_for(IP, episodes=-1), "episodes", "--episodes -1: expected an integer >= 0"),
+        (lambda: settings_for(IP, roa_samples=0), "roa_samples", "--samples 0: expected an integer in [1, 10000000]"),
+        (lambda: settings_for(IP, seeds=0), "seeds", "--seeds 0: expected an integer in [1, 10000]"),
+        (lambda: settings_for(IP, episodes=-1), "episodes", "--episodes -1: expected an integer in [0, 10000]"),
         (lambda: settings_for(IP, preset="x"), "preset", "--preset 'x': expected one of"),
         (lambda: settings_for("Nope-v0"), "env_id", "ENV 'Nope-v0': no recipe"),
         (lambda: parse_seeds("x"), "seeds", "--seeds 'x': expected a count (10)"),

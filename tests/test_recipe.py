@@ -58,13 +58,13 @@ def base() -> dict:
     [
         ({"schema": "pidlab.recipe/9"}, "expected 'pidlab.recipe/1'"),
         ({"stepz": 10}, "unknown field(s) ['stepz']"),
-        ({"steps": -5}, "steps = -5: expected >= 1"),
-        ({"steps": "many"}, "steps: expected an integer"),
+        ({"steps": -5}, "steps = -5: expected an integer in [1, 1000000000000]"),
+        ({"steps": "many"}, "steps = 'many': expected an integer"),
         ({"algo": "td3"}, "algo = 'td3': expected one of ppo, sac"),
         ({"vec_env": "ray"}, "vec_env = 'ray': expected one of dummy, subproc"),
         ({"ppo": {"n_stepz": 3}}, "unknown PPO argument(s) ['n_stepz']"),
         ({"ppo": {"learning_rate": "fast"}}, "learning_rate = 'fast'"),
-        ({"ppo": {"clip_range": "lin_x"}}, "clip_range = 'lin_x': expected a number or 'lin_<number>'"),
+        ({"ppo": {"clip_range": "lin_x"}}, "clip_range = 'lin_x': expected a number > 0, or 'lin_<number>'"),
         ({"ppo": {"policy_kwargs": {"activation_fn": "sigmoid"}}}, "activation_fn = 'sigmoid'"),
         ({"coaching": {"mode": "always"}}, "coaching.mode = 'always': expected one of takeover, nudge"),
         ({"coaching": {"region": "ball"}}, "coaching.region = 'ball'"),
@@ -75,7 +75,7 @@ def base() -> dict:
         ({"coaching": {"mode": "nudge", "trigger": {"variable": "v", "high": 0.3, "steps": 0}}}, "steps = 0"),
         ({"win": {}}, "win.target: missing"),
         ({"evaluation": {"episodes": 0}}, "evaluation.episodes = 0"),
-        ({"normalize": {"obs": "yes"}}, "normalize.obs: expected true or false"),
+        ({"normalize": {"obs": "yes"}}, "normalize.obs = 'yes': expected true or false"),
     ],
 )
 def test_malformed_recipes_name_the_field(change, message):
@@ -104,9 +104,12 @@ def test_overrides():
     ("kwargs", "param", "message"),
     [
         ({"algo": "td3"}, "algo", "algo='td3': expected one of ppo, sac"),
-        ({"steps": 0}, "steps", "steps=0: expected a positive number of env steps"),
-        ({"n_envs": 0}, "n_envs", "n_envs=0: expected 1 or more"),
-        ({"seed": -1}, "seed", "seed=-1: expected a non-negative integer"),
+        ({"steps": 0}, "steps", "steps=0: expected an integer in [1, 1000000000000]"),
+        ({"n_envs": 0}, "n_envs", "n_envs=0: expected an integer in [1, 1024]"),
+        ({"seed": -1}, "seed", "seed=-1: expected an integer in [0, 4294967295]"),
+        ({"seed": 2**40}, "seed", "seed=1099511627776: expected an integer in [0, 4294967295]"),
+        ({"seed": True}, "seed", "seed=True: expected an integer in [0, 4294967295]"),
+        ({"n_envs": 10**9}, "n_envs", "n_envs=1000000000: expected an integer in [1, 1024]"),
     ],
 )
 def test_overrides_name_the_python_parameter(kwargs, param, message):
@@ -118,3 +121,189 @@ def test_overrides_name_the_python_parameter(kwargs, param, message):
 
 def test_one_list_of_presets():
     assert PRESETS == tuple(TUNING_PRESETS) == ("robust", "weak")
+
+
+# ---------------------------------------------------------------- SB3 arguments (issue 17, item 9)
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_every_accepted_argument_is_one_of_sb3s(algo):
+    import inspect
+
+    from stable_baselines3 import PPO, SAC
+
+    from pidlab.rl.recipe import ARGUMENTS, algorithm_arguments
+
+    params = set(inspect.signature({"ppo": PPO, "sac": SAC}[algo]).parameters)
+    assert set(ARGUMENTS[algo]) <= params
+    assert algorithm_arguments(algo) == tuple(ARGUMENTS[algo])
+
+
+EDGES = {
+    "ppo": {"learning_rate": "lin_1e-9", "n_steps": 2, "batch_size": 2, "n_epochs": 1, "gamma": 1.0,
+            "gae_lambda": 0.0, "clip_range": "lin_0.1", "clip_range_vf": 1e-6, "normalize_advantage": True,
+            "ent_coef": 0.0, "vf_coef": 0.0, "max_grad_norm": 1e-9, "use_sde": True, "sde_sample_freq": -1,
+            "target_kl": 1e-9, "stats_window_size": 1,
+            "policy_kwargs": {"net_arch": {"pi": [1], "vf": []}, "activation_fn": "silu", "ortho_init": False,
+                              "log_std_init": -20.0, "full_std": False, "use_expln": True,
+                              "share_features_extractor": True, "normalize_images": False}},
+    "sac": {"learning_rate": 1e-9, "buffer_size": 1, "learning_starts": 0, "batch_size": 1, "tau": 1.0,
+            "gamma": 1e-9, "train_freq": [1, "episode"], "gradient_steps": -1, "n_steps": 3, "ent_coef": "auto_1e-3",
+            "target_update_interval": 1, "target_entropy": -1e3, "use_sde": True, "sde_sample_freq": 0,
+            "use_sde_at_warmup": True, "stats_window_size": 1,
+            "policy_kwargs": {"net_arch": {"pi": [], "qf": [1, 1]}, "activation_fn": "gelu", "log_std_init": 20.0,
+                              "use_expln": False, "clip_mean": 1e-3, "n_critics": 1,
+                              "share_features_extractor": False, "normalize_images": True}},
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_sb3_takes_every_value_the_recipe_accepts_at_its_edges(algo):
+    """Values at the ends of each accepted range build the SB3 model: nothing fails after the run folder is made."""
+    import gymnasium as gym
+
+    from pidlab.rl.train import _algorithm_class, sb3_arguments
+
+    data = base()
+    data[algo] = EDGES[algo]
+    data["algo"] = algo
+    recipe = parse_recipe(data)
+    env = gym.make("InvertedPendulum-v5")
+    try:
+        model = _algorithm_class(algo)("MlpPolicy", env, seed=0, **sb3_arguments(recipe))
+        assert model is not None
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize(
+    ("algo", "key", "value", "message"),
+    [
+        ("ppo", "n_steps", "abc", "ppo.n_steps = 'abc': expected an integer in [1, 10000000]"),
+        ("ppo", "n_steps", 1, "expected a PPO rollout (n_steps * n_envs) of at least 2 steps"),
+        ("ppo", "n_steps", 2.0, "n_steps = 2.0: expected an integer"),
+        ("ppo", "batch_size", -1, "ppo.batch_size = -1: expected an integer in [1, 10000000]"),
+        ("ppo", "batch_size", 1, "ppo.batch_size = 1: expected an integer >= 2 (or normalize_advantage = false)"),
+        ("ppo", "gamma", 5.0, "ppo.gamma = 5.0: expected a finite number in (0, 1]"),
+        ("ppo", "gamma", 0.0, "ppo.gamma = 0.0: expected a finite number in (0, 1]"),
+        ("ppo", "gamma", float("nan"), "ppo.gamma = nan"),
+        ("ppo", "gae_lambda", 1.01, "gae_lambda = 1.01: expected a finite number in [0, 1]"),
+        ("ppo", "learning_rate", -1.0, "learning_rate = -1.0: expected a finite number > 0"),
+        ("ppo", "learning_rate", "lin_-1", "learning_rate = 'lin_-1': expected a number > 0, or 'lin_<number>'"),
+        ("ppo", "learning_rate", True, "learning_rate = True"),
+        ("ppo", "clip_range", 0, "clip_range = 0: expected a finite number > 0"),
+        ("ppo", "ent_coef", -0.1, "ent_coef = -0.1: expected a finite number >= 0"),
+        ("ppo", "max_grad_norm", 0.0, "max_grad_norm = 0.0: expected a finite number > 0"),
+        ("ppo", "n_epochs", 0, "n_epochs = 0: expected an integer in [1, 10000]"),
+        ("ppo", "normalize_advantage", 1, "normalize_advantage = 1: expected true or false"),
+        ("ppo", "rollout_buffer_class", "x", "unknown PPO argument(s) ['rollout_buffer_class']"),
+        ("ppo", "policy_kwargs", {"net_arch": [64, 0]}, "net_arch[1] = 0: expected an integer in [1, 10000]"),
+        ("ppo", "policy_kwargs", {"net_arch": {"pi": [8], "qf": [8]}}, "policy_kwargs.net_arch = "),
+        ("ppo", "policy_kwargs", {"net_arch": "big"}, "net_arch = 'big': expected a list of at most 100 layer"),
+        ("ppo", "policy_kwargs", {"optimizer_class": "Adam"}, "unknown PPO policy argument(s) ['optimizer_class']"),
+        ("ppo", "policy_kwargs", {"log_std_init": float("inf")}, "log_std_init = inf"),
+        ("ppo", "policy_kwargs", [1], "policy_kwargs: expected a table of policy arguments, got [1]"),
+        ("sac", "tau", 0.0, "sac.tau = 0.0: expected a finite number in (0, 1]"),
+        ("sac", "buffer_size", 0, "sac.buffer_size = 0: expected an integer in [1, 100000000]"),
+        ("sac", "learning_starts", -1, "sac.learning_starts = -1"),
+        ("sac", "train_freq", 0, "sac.train_freq = 0: expected an integer in [1, 1000000000]"),
+        ("sac", "train_freq", [4, "week"], "train_freq = [4, 'week']: expected an integer >= 1 or [n, \"step\""),
+        ("sac", "gradient_steps", -2, "gradient_steps = -2: expected an integer in [-1, 1000000]"),
+        ("sac", "ent_coef", "auto_0", "ent_coef = 'auto_0': expected a number >= 0, 'auto' or 'auto_<number > 0>'"),
+        ("sac", "ent_coef", -1.0, "ent_coef = -1.0: expected a finite number >= 0"),
+        ("sac", "target_entropy", "high", "target_entropy = 'high': expected 'auto' or a finite number"),
+        ("sac", "optimize_memory_usage", True, "unknown SAC argument(s) ['optimize_memory_usage']"),
+        ("sac", "policy_kwargs", {"net_arch": {"pi": [8]}}, "net_arch = {'pi': [8]}"),
+        ("sac", "policy_kwargs", {"n_critics": 0}, "n_critics = 0: expected an integer in [1, 100]"),
+    ],
+)
+def test_sb3_arguments_are_checked_for_type_and_range(algo, key, value, message):
+    data = base()
+    data[algo] = {**data[algo], key: value}
+    with pytest.raises(RecipeError) as err:
+        parse_recipe(data, "r.toml")
+    assert message in str(err.value)
+
+
+def test_an_n_envs_override_that_shrinks_the_rollout_is_refused():
+    data = base()
+    data["ppo"] = {**data["ppo"], "n_steps": 1}
+    data["n_envs"] = 2
+    r = parse_recipe(data)
+    with pytest.raises(RecipeError) as err:
+        with_overrides(r, n_envs=1)
+    assert err.value.param == "n_envs" and str(err.value).startswith("n_envs=1: expected a PPO rollout")
+    assert with_overrides(r, n_envs=3).n_envs == 3
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"env_id": "../../x"}, "env_id = '../../x': expected a name of 1-64 letters"),
+        ({"env_id": "x" * 100_000}, "env_id = 'xxxxxxxx"),
+        ({"seed": 2**32}, "seed = 4294967296: expected an integer in [0, 4294967295]"),
+        ({"seed": True}, "seed = True"),
+        ({"steps": 10**13}, "steps = 10000000000000: expected an integer in [1, 1000000000000]"),
+        ({"n_envs": 0}, "n_envs = 0: expected an integer in [1, 1024]"),
+        ({"threads": 10**6}, "threads = 1000000"),
+        ({"description": ["x"]}, "description = ['x']: expected a string"),
+        ({"win": {"target": float("inf")}}, "win.target = inf: expected a finite number"),
+        ({"win": {"target": 1.0, "window": 0}}, "win.window = 0"),
+        ({"evaluation": {"seed": 2**32 - 5}}, "evaluation.seed = 4294967291: expected an integer in [0, 4294967286]"),
+        ({"evaluation": {"every": True}}, "evaluation.every = True"),
+        ({"checkpoint": {"every": 0}}, "checkpoint.every = 0"),
+        ({"coaching": {"probability": {"shape": "linear", "start": float("nan")}}}, "schedule start = nan"),
+        ({"coaching": {"width": True}}, "coaching.width = True: expected a number >= 0 or a table"),
+        ({"coaching": {"nudge_steps": 10**9}}, "nudge_steps = 1000000000"),
+        ({"coaching": {"mode": "nudge", "trigger": {"variable": "v", "high": float("nan"), "steps": 2}}},
+         "trigger.high = nan"),
+        ({"coaching": {"mode": "nudge", "trigger": {"variable": "v", "low": 0.5, "high": 0.1, "steps": 2}}},
+         "trigger.high = 0.1: expected a finite number >= 0.5"),
+        ({"coaching": {"mode": "nudge", "trigger": {"variable": "v", "high": 0.3, "steps": 10**20}}},
+         "trigger.steps = 100000000000000000000"),
+        ({"pipeline": {"seeds": 10**12}}, "pipeline.seeds = 1000000000000: expected an integer in [1, 10000]"),
+        ({"pipeline": {"episodes": -1}}, "pipeline.episodes = -1"),
+    ],
+)
+def test_recipe_numbers_and_names_are_checked(change, message):
+    data = base()
+    for key, value in change.items():
+        data[key] = {**data[key], **value} if isinstance(value, dict) and key in data else value
+    with pytest.raises(RecipeError) as err:
+        parse_recipe(data, "r.toml")
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("value", [None, [], "recipe", 3, {1: 2}])
+def test_parse_recipe_of_no_table_is_a_recipe_error(value):
+    with pytest.raises(RecipeError, match="expected a table"):
+        parse_recipe(value)
+
+
+def test_default_recipe_path_refuses_names_that_leave_coach():
+    from pidlab.rl.recipe import default_recipe_path
+
+    for env in ("../../etc/passwd", "/abs", "", "a/b", "x" * 300):
+        with pytest.raises(RecipeError) as err:
+            default_recipe_path(env)
+        assert err.value.param == "env_id"
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ({"shape": "linear", "start": True}, "schedule start = True: expected a finite number >= 0"),
+        ({"shape": "linear", "begin": -0.1}, "schedule begin = -0.1: expected a finite number in [0, 1]"),
+        ({"shape": "linear", "finish": float("inf")}, "schedule finish = inf"),
+        ({"shape": 3}, "schedule shape 3: expected one of constant"),
+        ({"shape": ["x"]}, "schedule shape ['x']"),
+        (float("nan"), "w = nan: expected a finite number >= 0"),
+        (-1, "w = -1: expected a finite number >= 0"),
+        (None, "w = None: expected a number >= 0 or a table"),
+        ({1: 2}, "w = {1: 2}: expected a number >= 0 or a table"),
+    ],
+)
+def test_schedule_values_are_checked(value, message):
+    with pytest.raises(ScheduleError) as err:
+        parse_schedule(value, "w")
+    assert message in str(err.value)

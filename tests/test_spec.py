@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from pidlab.controller.pid import Coach
-from pidlab.controller.spec import dumps_spec, load_spec, loads_spec, save_spec
+from pidlab.controller.spec import dumps_spec, load_spec, loads_spec, parse_spec, save_spec
 from pidlab.errors import SpecError
 
 TUNING = Path(__file__).resolve().parents[1] / "tuning"
@@ -48,9 +48,19 @@ BASE = (TUNING / "InvertedPendulum-v5.paper.toml").read_text(encoding="utf-8")
             'schema = "pidlab.coach-spec/0"',
             "expected 'pidlab.coach-spec/1'",
         ),
-        ("kp = 15.0", 'kp = "fifteen"', "loop 'pole'.kp: expected a number"),
-        ("kp = 15.0", "kp = true", "loop 'pole'.kp: expected a number"),
-        ("tf = 0.0", "tf = -0.01", "tf: -0.01 is negative"),
+        ("kp = 15.0", 'kp = "fifteen"', "loop 'pole'.kp = 'fifteen': expected a finite number"),
+        ("kp = 15.0", "kp = true", "loop 'pole'.kp = True: expected a finite number"),
+        ("kp = 15.0", "kp = nan", "loop 'pole'.kp = nan: expected a finite number"),
+        ("kp = 15.0", "kp = inf", "loop 'pole'.kp = inf: expected a finite number"),
+        ("tf = 0.0", "tf = -0.01", "tf = -0.01: expected a finite number >= 0 (s)"),
+        ("tt = 0.0", "tt = nan", "tt = nan: expected a finite number >= 0 (s)"),
+        (
+            "[loop.actuators]\nslide = 1.0",
+            "[loop.actuators]\nslide = nan",
+            "actuators.slide = nan: expected a finite",
+        ),
+        ("[loop.actuators]\nslide = 1.0", "[loop.actuators]\nslide = false", "actuators.slide = False"),
+        ('name = "pole"', 'name = "po.le"', "name = 'po.le': expected a name of 1-64 letters"),
         ('anti_windup = "clamping"', 'anti_windup = "magic"', "allowed: none, clamping, back-calculation"),
         (
             'anti_windup = "clamping"',
@@ -59,12 +69,16 @@ BASE = (TUNING / "InvertedPendulum-v5.paper.toml").read_text(encoding="utf-8")
         ),
         ('action = "direct"', 'action = "sideways"', "allowed: reverse, direct"),
         ("kd = 2.25", "kd = 2.25\ngain = 3", "unknown field(s) ['gain']"),
-        ('env_id = "InvertedPendulum-v5"', 'env_id = ""', "env_id: expected a non-empty string"),
+        ('env_id = "InvertedPendulum-v5"', 'env_id = ""', "env_id = '': expected a name of 1-64 letters"),
+        ('name = "paper"', 'name = "../../../../tmp/x"', "name = '../../../../tmp/x': expected a name of"),
+        ('name = "paper"', 'name = "' + "x" * 100_000 + '"', "name = 'xxxxxxxxx"),
+        ('name = "paper"', "name = 3", "name = 3: expected a name"),
         ("[loop.actuators]\nslide = 1.0", "[loop.actuators]", "give either actuators"),
         ("[loop.actuators]\nslide = 1.0", 'feeds = "nowhere"', "no loop 'nowhere'"),
         ("[loop.actuators]\nslide = 1.0", 'feeds = "pole"', "feeds itself"),
         ("output_limits = [\n    -inf,\n    inf,\n]", "output_limits = [1.0, -1.0]", "must be below high"),
         ("output_limits = [\n    -inf,\n    inf,\n]", "output_limits = [1.0]", "expected [low, high]"),
+        ("output_limits = [\n    -inf,\n    inf,\n]", "output_limits = [nan, 1.0]", "(inf allowed, not nan)"),
         ('name = "pole"', 'name = "pole"\nname = "x"', "not valid TOML"),
         ("[[loop]]", "[loop]", "expected at least one [[loop]]"),
     ],
@@ -126,3 +140,107 @@ def test_cascade_cycle():
     )
     with pytest.raises(SpecError, match="cascade cycle"):
         loads_spec(text)
+
+
+ROBUST = TUNING / "InvertedPendulum-v5.pidlab-robust.toml"
+
+
+def _robust() -> dict:
+    import tomllib
+
+    return tomllib.loads(ROBUST.read_text(encoding="utf-8"))
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda d: d.update(description=3), "description = 3: expected a string"),
+        (
+            lambda d: d["bounds"]["ellipsoid"].update(level=float("nan")),
+            "ellipsoid.level = nan: expected a finite number > 0",
+        ),
+        (
+            lambda d: d["bounds"]["ellipsoid"].update(level=0.0),
+            "ellipsoid.level = 0.0: expected a finite number > 0",
+        ),
+        (lambda d: d["bounds"]["ellipsoid"].update(rho=True), "ellipsoid.rho = True"),
+        (lambda d: d["bounds"]["ellipsoid"]["center"].__setitem__(0, float("nan")), "ellipsoid.center = nan"),
+        (lambda d: d["bounds"]["ellipsoid"]["shape"][0].__setitem__(1, 1.0), "expected a symmetric matrix"),
+        (
+            lambda d: d["bounds"]["ellipsoid"].update(
+                shape=[[-1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
+            ),
+            "expected a positive definite matrix",
+        ),
+        (lambda d: d["bounds"]["ellipsoid"].update(variables=["hinge_pos"] * 4), "a variable is named twice"),
+        (
+            lambda d: d["bounds"]["box"].update(hinge_pos=[False, True]),
+            "box.hinge_pos = False: expected a finite number",
+        ),
+        (
+            lambda d: d["bounds"]["box"].update(hinge_pos=[-1.0, float("inf")]),
+            "box.hinge_pos = inf: expected a finite",
+        ),
+        (lambda d: d["bounds"].update(provenance=3), "bounds.provenance: expected a table"),
+        (lambda d: d["offset"].update(slide=float("nan")), "offset.slide = nan: expected a finite number"),
+    ],
+)
+def test_numbers_in_a_spec_are_checked(edit, message):
+    data = _robust()
+    edit(data)
+    with pytest.raises(SpecError) as err:
+        parse_spec(data, "s.toml")
+    assert message in str(err.value)
+
+
+def test_parse_spec_of_no_table_is_a_spec_error():
+    for value in (None, [], "x", 3):
+        with pytest.raises(SpecError, match="expected a table"):
+            parse_spec(value, "s")  # type: ignore[arg-type]
+
+
+def test_a_long_name_is_one_short_line():
+    data = _robust()
+    data["name"] = "x" * 100_000
+    with pytest.raises(SpecError) as err:
+        parse_spec(data, "s.toml")
+    assert len(str(err.value)) < 200 and "\n" not in str(err.value)
+
+
+def test_an_unstable_coachs_responses_plot_their_finite_part(models):
+    """Walker2d's paper coach is unstable: its responses overflow; the plot draws them up to ``DIVERGED``."""
+    import io
+
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from pidlab.controller.analysis import DIVERGED, analyze_coach, closed_loop_responses
+    from pidlab.report.plots import plot_responses
+
+    spec = load_spec(TUNING / "Walker2d-v5.paper.toml")
+    coach = Coach(spec, models[spec.env_id])
+    analysis = analyze_coach(coach, models[spec.env_id])
+    assert not analysis.stable
+    responses = closed_loop_responses(analysis, coach)
+    for data in (responses.step, responses.initial):
+        finite = np.isfinite(data)
+        assert finite[:, 0].all() and not finite.all()  # starts finite, is cut where it diverges
+        assert np.all(np.abs(data[finite]) <= DIVERGED)
+        assert np.all(np.diff(finite.astype(int), axis=1) <= 0)  # once cut, stays cut
+    fig = plot_responses(responses)
+    fig.savefig(io.BytesIO(), format="png")  # raised OverflowError in the tick formatter before
+    plt.close(fig)
+
+
+@pytest.mark.parametrize(("kp", "weight"), [(-1e300, 1.0), (1e200, 1e200)])
+def test_gains_that_overflow_the_analysis_name_the_loop(models, kp, weight):
+    from pidlab.controller.analysis import analyze_coach
+    from pidlab.errors import AnalysisError
+
+    text = BASE.replace("kp = 15.0", f"kp = {kp!r}").replace("slide = 1.0", f"slide = {weight!r}")
+    spec = loads_spec(text)
+    loaded = models[spec.env_id]
+    with pytest.raises(AnalysisError) as err:
+        analyze_coach(Coach(spec, loaded), loaded)
+    message = str(err.value)
+    assert "loop 'pole'" in message and "\n" not in message

@@ -18,7 +18,7 @@ import tomli_w
 
 from pidlab.controller.spec import load_spec
 from pidlab.rl.recipe import load_recipe, parse_recipe
-from pidlab.rl.rundir import read_csv_rows
+from pidlab.rl.rundir import latest_checkpoint, read_csv_rows
 from pidlab.rl.train import resume, train
 from tests.helpers import cli_in_process
 
@@ -154,7 +154,7 @@ def _kill_after_checkpoint(cmd: list[str], run: Path, sig: int) -> tuple[int, in
     deadline = time.time() + 120
     kept = -1
     while time.time() < deadline and proc.poll() is None:
-        states = list((run / "checkpoints").glob("*/state.json")) if (run / "checkpoints").exists() else []
+        states = sorted((run / "checkpoints").glob("*/state.json")) if (run / "checkpoints").exists() else []
         if states:
             kept = json.loads(states[-1].read_text())["episodes"]
             if len(rows(run)) > kept + 2:
@@ -176,7 +176,7 @@ def test_resume_after_a_kill_loses_no_episode(tmp_path, ip_spec):
     assert not (run / "summary.json").exists()
     import json
 
-    state = json.loads(next((run / "checkpoints").glob("*/state.json")).read_text())
+    state = json.loads((latest_checkpoint(run) / "state.json").read_text())
     logged_before = rows(run)
     assert len(logged_before) > state["episodes"]  # episodes after the checkpoint were logged, then lost
     done = subprocess.run([PIDLAB, "train", IP, "--resume", str(run), "--no-progress"], capture_output=True,
@@ -230,7 +230,7 @@ def test_sigterm_stops_with_a_checkpoint_and_resumes(tmp_path):
 
     summary = json.loads((run / "summary.json").read_text())
     assert not summary["completed"]
-    stop_state = json.loads(next((run / "checkpoints").glob("*/state.json")).read_text())
+    stop_state = json.loads((latest_checkpoint(run) / "state.json").read_text())
     assert stop_state["episodes"] == len(rows(run))  # the stop checkpoint keeps every logged episode
     twin = tmp_path / "twin"
     import shutil
@@ -249,8 +249,8 @@ def test_sac_resume_keeps_the_replay_buffer(tmp_path, ip_spec):
     run = tmp_path / "sac"
     result = train(load_recipe(path), None, run, progress_bar=False)  # uncoached: 600 agent steps, 400 trained
     assert result.completed and result.agent_steps == 600
-    checkpoint = next((run / "checkpoints").iterdir())
-    assert (checkpoint / "replay_buffer.pkl").exists()
+    checkpoint = latest_checkpoint(run)
+    assert checkpoint is not None and (checkpoint / "replay_buffer.pkl").exists()
     extended = resume(run, steps=900, progress_bar=False)  # a longer budget continues the run
     assert extended.completed and extended.env_steps >= 900 and extended.agent_steps > result.agent_steps
     from stable_baselines3 import SAC
@@ -258,7 +258,7 @@ def test_sac_resume_keeps_the_replay_buffer(tmp_path, ip_spec):
     model = SAC.load(run / "final_model.zip", device="cpu")
     assert model.num_timesteps == extended.agent_steps == 900
     assert model.replay_buffer.size() == 0  # the final model is the policy; the buffer lives in the checkpoint
-    model.load_replay_buffer(next((run / "checkpoints").iterdir()) / "replay_buffer.pkl")
+    model.load_replay_buffer(latest_checkpoint(run) / "replay_buffer.pkl")
     assert model.replay_buffer.size() == 900  # 600 before the resume, kept, and 300 after
 
 

@@ -122,11 +122,18 @@ def start_server(
         time.sleep(0.5)
 
 
-def stop_server(proc: subprocess.Popen[bytes]) -> None:
-    """Stop a server started by :func:`start_server` (SIGTERM, then SIGKILL after 20 s)."""
+def stop_server(proc: subprocess.Popen[bytes]) -> int:
+    """Stop a server started by :func:`start_server` (SIGTERM, then SIGKILL after 20 s).
+
+    Returns
+    -------
+    int
+        Its exit code: 130 when it stopped cleanly (the code of every interrupted command),
+        -9 when it had to be killed.
+    """
     proc.terminate()
     try:
-        proc.wait(timeout=20)
+        return proc.wait(timeout=20)
     except subprocess.TimeoutExpired:
         proc.kill()
-        proc.wait()
+        return proc.wait()

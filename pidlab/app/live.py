@@ -10,7 +10,6 @@ loop that runs, so that one update takes a few tens of milliseconds on the pendu
 from __future__ import annotations
 
 import math
-import re
 import time
 import warnings
 from dataclasses import dataclass, replace
@@ -19,6 +18,7 @@ from typing import Any
 import control as ct
 import numpy as np
 
+from pidlab.checks import NAME_RULE, is_name
 from pidlab.controller.analysis import (
     INITIAL_DEVIATION,
     LoopMargins,
@@ -50,8 +50,6 @@ RESPONSE_HORIZON_S = 20.0
 """Length of the step and initial-condition responses, s."""
 
 BODE_POINTS = 400
-
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
 @dataclass(frozen=True)
@@ -137,14 +135,13 @@ def check_field(field: str, text: str) -> FieldCheck:
 
 
 def check_name(text: str) -> FieldCheck:
-    """Check a spec name for ``tuning/ENV.NAME.toml``; ``value`` is 0.0 when it is fine."""
-    if _NAME.match(text.strip()):
+    """Check a spec name for ``tuning/ENV.NAME.toml``; ``value`` is 0.0 when it is fine.
+
+    The rule is pidlab's one rule for names in paths, :data:`pidlab.checks.NAME_RULE`.
+    """
+    if is_name(text.strip()):
         return FieldCheck(0.0)
-    return FieldCheck(
-        None,
-        f"name {text.strip()[:30]!r}: expected 1-64 letters, digits, '.', '_' or '-', starting with a letter "
-        "or digit",
-    )
+    return FieldCheck(None, f"name {text.strip()[:30]!r}: expected {NAME_RULE}")
 
 
 def with_loop_value(spec: CoachSpec, loop: str, field: str, value: float) -> CoachSpec:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import logging
+import re
 import signal
 import socket
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +46,65 @@ def check_port(port: int) -> None:
             ) from None
 
 
+LOCAL_HOSTS = ("localhost", "127.0.0.1")
+"""The names the tuner answers to by default (the HTTP ``Host`` header, without the port).
+
+The server listens on 127.0.0.1 only, so ``[::1]`` never reaches it directly (and Panel cannot
+serve a page under a bracketed IPv6 host)."""
+_HOST_NAME = re.compile(r"^(\*|[A-Za-z0-9]([A-Za-z0-9.-]{0,252}[A-Za-z0-9])?)$")
+
+
+def check_hosts(names: Sequence[str]) -> tuple[str, ...]:
+    """The extra host names the tuner should answer to (``--allow-host``), checked.
+
+    Raises
+    ------
+    PidlabError
+        A name that is not a host name or an IPv4 address (letters, digits, dots and dashes)
+        or ``*`` (any host).
+    """
+    for name in names:
+        if not isinstance(name, str) or not _HOST_NAME.match(name):
+            raise PidlabError(
+                f"allow_host={name!r}: expected a host name such as tuner.example.org, an IPv4 "
+                "address, or * (any host); without the port",
+                param="allow_host",
+            )
+    return tuple(n.lower() for n in names)
+
+
+def refuse_foreign_hosts(app: Any, hosts: Sequence[str]) -> None:
+    """Answer 403 to any request whose ``Host`` header is not one of ``hosts`` (any port).
+
+    Bokeh checks the ``Origin`` of websocket connections but serves its pages to any ``Host``; a
+    page reached under a foreign name (DNS rebinding) could then drive the tuner. Tornado routes by
+    host name first, so one rule in front of Bokeh's refuses every other name, for pages,
+    static files and websockets alike.
+
+    Parameters
+    ----------
+    app : tornado.web.Application
+        The server's application (Bokeh's ``BokehTornado``).
+    hosts : sequence of str
+        Host names without the port; ``*`` allows any.
+    """
+    from tornado.web import RequestHandler
+
+    if "*" in hosts:
+        return
+    allowed = "|".join(re.escape(h.lower()) for h in hosts)
+
+    class _ForeignHost(RequestHandler):
+        def prepare(self) -> None:
+            self.set_status(403)
+            self.finish(
+                f"pidlab tuner: the host name {self.request.host_name!r} is not allowed; open "
+                "http://localhost:PORT/ or start the tuner with --allow-host NAME\n"
+            )
+
+    app.add_handlers(rf"(?!(?:{allowed})$).*", [(r".*", _ForeignHost)])
+
+
 def serve_tuner(
     spec: CoachSpec,
     source: str,
@@ -52,11 +113,20 @@ def serve_tuner(
     animation: str = "auto",
     bounds_samples: int = 1000,
     announce: Any = print,
+    allow_hosts: Sequence[str] = (),
 ) -> None:
-    """Serve the tuner for ``spec`` until interrupted (Ctrl-C).
+    """Serve the tuner for ``spec`` until SIGINT (Ctrl-C) or SIGTERM, then raise KeyboardInterrupt.
 
     Every browser session gets its own :class:`pidlab.app.tuner.Tuner`; the worker pool that
-    runs the slow parts is shared and stopped on exit.
+    runs the slow parts is shared and stopped on exit. The server listens on 127.0.0.1 and
+    answers only to the host names :data:`LOCAL_HOSTS` and ``allow_hosts``.
+
+    Raises
+    ------
+    KeyboardInterrupt
+        After a clean stop by SIGINT or SIGTERM (the command line exits with code 130).
+    PidlabError
+        The port cannot be used, or a name in ``allow_hosts`` is not a host name.
     """
     import panel as pn
 
@@ -64,6 +134,7 @@ def serve_tuner(
     from pidlab.app.tuner import Tuner
 
     check_port(port)
+    hosts = (*LOCAL_HOSTS, *check_hosts(allow_hosts))
     logging.getLogger("pidlab.app").addHandler(logging.StreamHandler())
     logging.getLogger("asyncio").addFilter(_ClosedSocketNoise())
     runner = JobRunner()
@@ -73,22 +144,43 @@ def serve_tuner(
             spec, source, tuning_dir, runner=runner, animation=animation, bounds_samples=bounds_samples
         ).panel()
 
-    def stop(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt  # SIGTERM stops like Ctrl-C: the workers are shut down below
-
-    signal.signal(signal.SIGTERM, stop)
-    url = f"http://localhost:{port}/"
-    announce(f"pidlab tuner for {spec.env_id} at {url} (Ctrl-C to stop)")
     try:
-        pn.serve(
+        server = pn.serve(
             {"/": page},
             port=port,
             address="127.0.0.1",
-            websocket_origin=[f"localhost:{port}", f"127.0.0.1:{port}"],
+            websocket_origin=_origins(hosts, port),
             show=False,
             title=f"pidlab tuner: {spec.env_id}",
             threaded=False,
-            print=False,
+            verbose=False,
+            start=False,
         )
+        refuse_foreign_hosts(server._tornado, hosts)  # Bokeh's application; it has no public name
+        announce(f"pidlab tuner for {spec.env_id} at http://localhost:{port}/ (Ctrl-C to stop)")
+        _run_until_signal(server)
     finally:
         runner.shutdown()
+    raise KeyboardInterrupt  # stopped by a signal: the same exit (130) as every other command
+
+
+def _origins(hosts: Sequence[str], port: int) -> list[str]:
+    """Bokeh's websocket origin allowlist for ``hosts`` (``*:PORT`` for any)."""
+    return [f"{h}:{port}" for h in hosts]
+
+
+def _run_until_signal(server: Any) -> None:
+    """Run the server's loop until SIGINT or SIGTERM; both stop it the same way."""
+    loop = server.io_loop
+
+    def stop(signum: int, frame: Any) -> None:
+        loop.asyncio_loop.call_soon_threadsafe(loop.stop)
+
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        server.start()
+        loop.start()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        server.stop()

@@ -36,6 +36,7 @@ from pidlab.app.live import (
     tuner_context,
     with_loop_value,
 )
+from pidlab.checks import path_under
 from pidlab.controller.analysis import MARGIN_COLUMNS
 from pidlab.controller.spec import CoachSpec, dumps_spec, load_spec, loads_spec, save_spec, validate_against
 from pidlab.errors import PidlabError
@@ -821,18 +822,21 @@ class Tuner:
         try:
             again = loads_spec(text, "tuner")
             validate_against(again, self.loaded.require_card().observation_names, self.loaded.input_names)
+            path = path_under(self.tuning_dir, f"{self.env_id}.{name}.toml")
         except PidlabError as exc:
             self.file_msg.object = f"<span class='pidlab-msg' {RED}>not saved: {html.escape(str(exc))}</span>"
             return
-        path = self.tuning_dir / f"{self.env_id}.{name}.toml"
-        if path.exists() and not self.overwrite.value and path.read_text() != text:
+        if path.is_file() and not self.overwrite.value and _text_or_none(path) != text:
             self.file_msg.object = (
                 f"<span class='pidlab-msg' {RED}>{html.escape(str(path))} exists; tick "
                 "'overwrite an existing file' to replace it</span>"
             )
             return
-        path.parent.mkdir(parents=True, exist_ok=True)
-        save_spec(spec, path)
+        try:
+            save_spec(spec, path)  # refuses a read-only file or folder in one line
+        except PidlabError as exc:
+            self.file_msg.object = f"<span class='pidlab-msg' {RED}>not saved: {html.escape(str(exc))}</span>"
+            return
         note = " (without bounds: none valid for these gains)" if spec.bounds is None else ""
         ignored = f"; fields with errors kept their last valid value: {', '.join(bad)}" if bad else ""
         self.file_msg.object = (
@@ -862,3 +866,11 @@ class Tuner:
             return
         self._adopt(spec, str(path))
         self.file_msg.object = f"<span class='pidlab-ok' {GREEN}>loaded {html.escape(str(path))}</span>"
+
+
+def _text_or_none(path: Path) -> str | None:
+    """The UTF-8 text of ``path``, or None when it cannot be read as such."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None

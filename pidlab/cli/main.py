@@ -1,25 +1,147 @@
 """The ``pidlab`` command line.
 
 Every verb is a thin layer over the Python API: parse options, call, print. Bad input
-(a :class:`pidlab.errors.PidlabError`) becomes one line on stderr and exit code 2.
+(a :class:`pidlab.errors.PidlabError`, or a usage error such as ``--steps lots``) becomes one line
+on stderr and exit code 2; an interrupt (Ctrl-C, SIGINT or SIGTERM) exits with code 130.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
+import re
+import signal
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from typing import Annotated, Any, NoReturn, TypeVar
 
 import numpy as np
 import typer
+from typer.core import TyperGroup
+
+try:  # Typer 0.2x vendors Click; older Typer uses the click package
+    from typer._click import exceptions as _click
+except ImportError:  # pragma: no cover
+    from click import exceptions as _click  # type: ignore[no-redef]
 
 from pidlab import __version__
 from pidlab.errors import PidlabError
 
+EXIT_BAD_INPUT = 2
+"""Exit code of bad input: a usage error or a :class:`PidlabError` (one line on stderr)."""
+EXIT_INTERRUPTED = 130
+"""Exit code of every command stopped by SIGINT (Ctrl-C) or SIGTERM (128 + SIGINT, as shells report)."""
+MAX_LINEARIZE_STATES = 1000
+"""The largest model ``pidlab linearize`` analyzes (states: 2 nv + na); its PBH tests take
+four SVDs of about n x n per mode, hours beyond this size."""
+LONG_WORK_S = 10.0
+"""Work expected to take longer than this says so first (when no progress bar is shown)."""
+
+_EXPECTED = (
+    (re.compile(r"valid integer"), "expected an integer"),
+    (re.compile(r"valid (?:number|float)"), "expected a number"),
+    (re.compile(r"valid boolean"), "expected true or false"),
+    (re.compile(r"is not in the range (?P<range>.+?)\.?$"), "expected a value in {range}"),
+    (re.compile(r"is not (?:one of )?(?P<choices>'.+?)\.?$"), "expected one of {choices}"),
+)
+"""Click's and Typer's messages about a value of the wrong kind, and how pidlab says them."""
+_QUOTED_VALUE = re.compile(r"^(?P<value>'.*?'|\S+) is not ")
+
+
+def _given(exc: Exception) -> str | None:
+    """The value a :class:`BadParameter` refused, quoted, when the error says it."""
+    errors = getattr(exc.__cause__, "errors", None)  # Typer checks values with pydantic
+    if callable(errors):
+        found = errors()
+        if found and "input" in found[0]:
+            return repr(str(found[0]["input"]))
+    hit = _QUOTED_VALUE.match(str(getattr(exc, "message", "")))
+    return hit["value"] if hit else None
+
+
+def usage_message(exc: Exception) -> str:
+    """A Click usage error in one line, e.g. ``--steps 'lots': expected an integer``, and where help is.
+
+    Parameters
+    ----------
+    exc : click.ClickException
+        Click's (or Typer's vendored Click's) exception.
+    """
+    ctx = getattr(exc, "ctx", None)
+    where = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
+    param = getattr(exc, "param", None)
+    if isinstance(exc, _click.BadParameter) and not isinstance(exc, _click.MissingParameter) and param:
+        opts = [o for o in getattr(param, "opts", []) if o.startswith("-")]
+        hint = max(opts, key=len) if opts else param.human_readable_name
+        given = _given(exc)
+        head = f"{hint} {given}" if given else hint
+        for pattern, expected in _EXPECTED:
+            hit = pattern.search(exc.message)
+            if hit:
+                return f"{head}: {expected.format(**hit.groupdict())}{where}"
+        return f"{head}: {exc.message.rstrip('.')}{where}"
+    text = " ".join(str(getattr(exc, "format_message", exc.__str__)()).split())  # one line
+    return f"{text[:1].lower()}{text[1:].rstrip('.')}{where}"
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt  # SIGTERM stops a command as Ctrl-C does (clean-up runs, exit 130)
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Iterator[None]:
+    """While a command runs, SIGTERM raises :class:`KeyboardInterrupt` (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+class PidlabGroup(TyperGroup):
+    """The ``pidlab`` group: every usage error in one line, every interrupt exits 130.
+
+    Click prints a usage error as a box with the usage; pidlab prints ``pidlab: error: ...`` and
+    exits 2, for every command, whether it runs as the ``pidlab`` executable or in a test's
+    ``CliRunner``.
+    """
+
+    def main(  # type: ignore[override]
+        self,
+        args: Sequence[str] | None = None,
+        prog_name: str | None = None,
+        complete_var: str | None = None,
+        standalone_mode: bool = True,
+        **extra: Any,
+    ) -> Any:
+        """Run the command line; in standalone mode, exit with the command's code."""
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            with _sigterm_interrupts():
+                code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except _click.NoArgsIsHelpError:
+            code = EXIT_BAD_INPUT  # the help was printed
+        except _click.ClickException as exc:
+            typer.echo(f"pidlab: error: {usage_message(exc)}", err=True)
+            code = exc.exit_code
+        except PidlabError as exc:  # one raised outside a command's friendly_errors
+            typer.echo(f"pidlab: error: {cli_message(exc)}", err=True)
+            code = EXIT_BAD_INPUT
+        except (typer.Abort, KeyboardInterrupt):
+            typer.echo("pidlab: interrupted", err=True)
+            code = EXIT_INTERRUPTED
+        sys.exit(code if isinstance(code, int) else 0)
+
+
 app = typer.Typer(
+    cls=PidlabGroup,
     name="pidlab",
     help="MuJoCo models -> linearization -> PID coach -> regions of attraction -> coached RL.",
     no_args_is_help=True,
@@ -33,11 +155,11 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 def _fail(message: str) -> NoReturn:
     typer.echo(f"pidlab: error: {message}", err=True)
-    raise typer.Exit(code=2)
+    raise typer.Exit(code=EXIT_BAD_INPUT)
 
 
 FLAGS = {"env_id": "ENV", "roa_samples": "--samples", "conditions_file": "--conditions-file",
-         "recipe_files": "--recipe", "condition_names": "--conditions"}  # fmt: skip
+         "recipe_files": "--recipe", "condition_names": "--conditions", "horizon_s": "--horizon"}  # fmt: skip
 """Python parameter -> the flag that sets it, where the flag is not ``--`` + the name with dashes."""
 
 
@@ -52,7 +174,7 @@ def cli_message(exc: PidlabError) -> str:
 
 
 def friendly_errors(func: F) -> F:
-    """Turn :class:`PidlabError` (bad input) into one line on stderr and exit code 2."""
+    """Turn :class:`PidlabError` (bad input) into one line and exit code 2, an interrupt into 130."""
 
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -60,17 +182,17 @@ def friendly_errors(func: F) -> F:
             return func(*args, **kwargs)
         except PidlabError as exc:
             _fail(cli_message(exc))
+        except KeyboardInterrupt:
+            typer.echo("pidlab: interrupted", err=True)
+            raise typer.Exit(code=EXIT_INTERRUPTED) from None
 
     return wrapper  # type: ignore[return-value]
 
 
 def _vector(text: str | None, what: str) -> list[float] | None:
-    if text is None:
-        return None
-    try:
-        return [float(v) for v in text.replace(";", ",").split(",") if v.strip()]
-    except ValueError:
-        _fail(f"--{what} {text!r}: expected comma-separated numbers, e.g. --{what} 0,0.1")
+    from pidlab.checks import parse_vector
+
+    return None if text is None else parse_vector(text, what)
 
 
 def _version(value: bool) -> None:
@@ -134,8 +256,19 @@ def linearize(
     ] = "step",
     eps: Annotated[float, typer.Option(help="Finite-difference step.")] = 1e-6,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON for machines.")] = False,
+    progress: Annotated[
+        bool,
+        typer.Option(
+            "--progress",
+            help="Progress bars on stderr (always shown when stderr is a terminal; otherwise a model "
+            f"that takes over {LONG_WORK_S:g} s gets an estimate line first).",
+        ),
+    ] = False,
 ) -> None:
-    """Linearize a MuJoCo model: named A/B tables, eigenvalues, controllability."""
+    """Linearize a MuJoCo model: named A/B tables, eigenvalues, controllability.
+
+    Models of up to 1000 states (2 nv + na) are analyzed (one SVD per mode: minutes for hundreds).
+    """
     from pidlab.linear.linearize import linearize as run_linearize
     from pidlab.linear.lti import analyze_lti
     from pidlab.linear.serialize import linearization_to_dict
@@ -147,15 +280,77 @@ def linearize(
     if not eps > 0:
         _fail(f"--eps {eps}: expected a positive step, e.g. 1e-6")
     loaded = load_model(target)
+    _check_linearize_size(loaded, discretization, progress)
     vectors = {"qpos": _vector(qpos, "qpos"), "qvel": _vector(qvel, "qvel"), "ctrl": _vector(ctrl, "ctrl")}
     op = _operating_point(loaded, at, vectors, equilibrium_ctrl, settle_joints)
-    lin = run_linearize(loaded, op, eps=eps, discretization=discretization)  # type: ignore[arg-type]
-    report_c = analyze_lti(lin.sys)
-    report_d = analyze_lti(lin.sysd)
+    with _progress_bars(progress) as bar:
+        lin = run_linearize(loaded, op, eps=eps, discretization=discretization,  # type: ignore[arg-type]
+                            progress=bar("finite differences"))  # fmt: skip
+        report_c, report_d = (analyze_lti(lin.sys, progress=bar("modes of the continuous model")),
+                              analyze_lti(lin.sysd, progress=bar("modes of the discrete model")))  # fmt: skip
     if as_json:
         typer.echo(json.dumps(linearization_to_dict(lin, report_c, report_d), indent=2))
         return
     wide_console().print(linearization_view(lin, report_d if discrete else report_c, discrete))
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def _check_linearize_size(loaded: Any, discretization: str, progress: bool) -> None:
+    """Refuse a model without state or too large to analyze; say how long a large one will take."""
+    from pidlab.linear.linearize import check_has_state, estimate_seconds
+
+    check_has_state(loaded)
+    m = loaded.model
+    n = 2 * m.nv + m.na
+    if n > MAX_LINEARIZE_STATES:
+        _fail(
+            f"{loaded.source}: {n} states (2 nv + na) is more than pidlab linearize analyzes "
+            f"({MAX_LINEARIZE_STATES}): the controllability test of every mode would take hours; "
+            "the Python function pidlab.linearize gives the matrices alone"
+        )
+    if _show_progress(progress):
+        return
+    seconds = estimate_seconds(loaded, discretization)
+    if seconds > LONG_WORK_S:
+        typer.echo(
+            f"pidlab: {loaded.name} has {n} states: linearizing and analyzing it takes about "
+            f"{_duration(seconds)} (--progress shows a bar)",
+            err=True,
+        )
+
+
+def _show_progress(progress: bool) -> bool:
+    """Whether to draw progress bars: ``--progress`` was given, or stderr is a terminal."""
+    return progress or sys.stderr.isatty()
+
+
+@contextlib.contextmanager
+def _progress_bars(progress: bool) -> Iterator[Callable[[str], Callable[[int, int], None] | None]]:
+    """Progress bars on stderr: yields ``bar(description)``, a ``callback(done, total)`` or None.
+
+    Shown when ``progress`` is True (``--progress``: drawn even into a file or pipe) or stderr is
+    a terminal; the bars vanish when the work is done.
+    """
+    if not _show_progress(progress):
+        yield lambda _description: None
+        return
+    from rich.console import Console
+    from rich.progress import Progress
+
+    with Progress(console=Console(stderr=True, force_terminal=progress or None), transient=True) as bars:
+
+        def bar(description: str) -> Callable[[int, int], None]:
+            task = bars.add_task(description, total=None)
+            return lambda done, total: bars.update(task, completed=done, total=total)
+
+        yield bar
 
 
 def _operating_point(
@@ -194,6 +389,15 @@ def tune(
     bounds_samples: Annotated[
         int, typer.Option(help="--ui: simulated states certifying the region behind Derive bounds.")
     ] = 1000,
+    allow_host: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--allow-host",
+            metavar="NAME",
+            help="--ui: also answer to this host name (repeatable; * for any). By default the tuner "
+            "answers only to localhost and 127.0.0.1.",
+        ),
+    ] = None,
     bandwidth: Annotated[float | None, typer.Option(help="Target gain crossover, rad/s.")] = None,
     phase_margin: Annotated[float | None, typer.Option(help="Target phase margin, degrees.")] = None,
     preset: Annotated[str, typer.Option(help="robust or weak.")] = "robust",
@@ -205,18 +409,20 @@ def tune(
     from pidlab.controller.autotune import PRESETS
     from pidlab.controller.autotune import tune as run_tune
     from pidlab.controller.spec import save_spec
+    from pidlab.files import check_output_file
     from pidlab.plant.model import load_model
     from pidlab.report.console import wide_console
 
     if auto == ui:
         _fail("give exactly one of --auto (write a tuned spec) or --ui (interactive tuner in the browser)")
     if ui:
-        _tune_ui(env, spec, port, tuning_dir, animation, bounds_samples)
+        _tune_ui(env, spec, port, tuning_dir, (animation, bounds_samples, allow_host or []))
         return
     if preset not in PRESETS:
         _fail(f"--preset {preset!r}: expected {' or '.join(PRESETS)}")
-    loaded = load_model(env)
     out = output or f"tuning/{env}.pidlab-{preset}.toml"
+    check_output_file(out, "output")  # before the tuning, not after
+    loaded = load_model(env)
     with Progress(transient=True) as bar:
         task = bar.add_task(f"tuning {env} ({preset})", total=None)
         result = run_tune(
@@ -246,19 +452,23 @@ def tune(
 
 
 def _tune_ui(
-    env: str, spec_file: str | None, port: int, tuning_dir: str, animation: str, bounds_samples: int
+    env: str, spec_file: str | None, port: int, tuning_dir: str, options: tuple[str, int, list[str]]
 ) -> None:
+    """``tune --ui``: check everything, then serve until interrupted (exit 130, as every command)."""
     from pathlib import Path
 
-    from pidlab.app.serve import serve_tuner
+    from pidlab.app.serve import check_hosts, serve_tuner
     from pidlab.controller.spec import load_spec, validate_against
     from pidlab.experiment.conditions import spec_path
     from pidlab.plant.model import load_model
+    from pidlab.region.roa import MAX_SAMPLES
 
+    animation, bounds_samples, allow_host = options
+    check_hosts(allow_host)
     if animation not in ("auto", "mujoco", "schematic"):
         _fail(f"--animation {animation!r}: expected auto, mujoco or schematic")
-    if bounds_samples < 1:
-        _fail(f"--bounds-samples {bounds_samples}: expected a positive number")
+    if not 1 <= bounds_samples <= MAX_SAMPLES:
+        _fail(f"--bounds-samples {bounds_samples}: expected 1 to {MAX_SAMPLES:,} simulated states")
     loaded = load_model(env)
     if loaded.card is None:
         _fail(f"{env}: the tuner needs a model card (one of the paper envs)")
@@ -281,6 +491,7 @@ def _tune_ui(
         animation=animation,
         bounds_samples=bounds_samples,
         announce=typer.echo,
+        allow_hosts=allow_host,
     )
 
 
@@ -289,23 +500,37 @@ def _tune_ui(
 def analyze(
     spec_file: Annotated[str, typer.Argument(metavar="FILE", help="A coach spec (TOML).")],
     plots: Annotated[str | None, typer.Option(metavar="DIR", help="Write PNG plots to DIR.")] = None,
-    episodes: Annotated[int, typer.Option(help="Coach-alone episodes on the real env (0: skip).")] = 10,
+    episodes: Annotated[
+        int, typer.Option(help="Coach-alone episodes on the real env, 0 (skip) to 10,000.")
+    ] = 10,
+    progress: Annotated[
+        bool,
+        typer.Option("--progress", help="A progress bar on stderr (always shown when stderr is a terminal)."),
+    ] = False,
 ) -> None:
     """Analyze a coach: margins, poles, responses, and its score alone on the real env."""
     from pidlab.controller.analysis import analyze_coach
     from pidlab.controller.pid import Coach
-    from pidlab.controller.rollout import coach_alone
+    from pidlab.controller.rollout import MAX_EPISODES, coach_alone
     from pidlab.controller.spec import load_spec
+    from pidlab.files import check_output_folder
     from pidlab.plant.model import load_model
     from pidlab.report.console import analysis_view, wide_console
 
     if episodes < 0:
-        _fail(f"--episodes {episodes}: expected 0 or more")
+        _fail(f"--episodes {episodes}: expected 0 or more (0 skips the episodes)")
+    if episodes > MAX_EPISODES:
+        _fail(f"--episodes {episodes}: expected at most {MAX_EPISODES:,}; more would run for hours")
+    if plots:
+        check_output_folder(plots, "plots")
     spec = load_spec(spec_file)
     loaded = load_model(spec.env_id)
     coach = Coach(spec, loaded)
     result = analyze_coach(coach, loaded)
-    score = coach_alone(spec, loaded, episodes=episodes) if episodes else None
+    score = None
+    if episodes:
+        with _progress_bars(progress) as bar:
+            score = coach_alone(spec, loaded, episodes=episodes, progress=bar("coach-alone episodes"))
     con = wide_console()
     con.print(analysis_view(result, score))
     if plots:
@@ -340,6 +565,10 @@ def roa(
         _fail(f"--samples {samples}: expected a positive number")
     if not horizon > 0:
         _fail(f"--horizon {horizon}: expected a positive time in s")
+    if plots:
+        from pidlab.files import check_output_folder
+
+        check_output_folder(plots, "plots")
     spec = load_spec(spec_file)
     loaded = load_model(spec.env_id)
     units = {v.name: v.unit for v in loaded.require_card().observation}
@@ -398,15 +627,12 @@ def _write_roa_plots(
     plots: str,
 ) -> Any:
     """``roa --plots``: the region's slice and the coached phase portrait as PNG; returns the folder."""
-    from pathlib import Path
-
-    from pidlab.files import save_figure
+    from pidlab.files import make_folder, save_figure
     from pidlab.region.roa import phase_portrait
     from pidlab.report.plots import plot_phase_portrait, plot_roa_slice
 
     result, kept = estimate
-    folder = Path(plots)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(plots, "plots")
     fig = plot_roa_slice(result, pair, kept, units)
     save_figure(fig, folder / f"roa_{pair[0]}_{pair[1]}.png")
     paths = phase_portrait(spec, loaded, pair, _portrait_extent(result, pair), horizon_s=horizon)
@@ -433,45 +659,53 @@ def bounds(
     seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
 ) -> None:
     """Derive critical-state bounds (ellipsoid and box) from the certified region."""
-    from pidlab.controller.spec import load_spec, save_spec
+    from pidlab.controller.spec import SpecError, load_spec, save_spec
     from pidlab.plant.model import load_model
+    from pidlab.provenance import hold_lock
     from pidlab.region.bounds import check_variables, derive_bounds, with_bounds
     from pidlab.region.roa import estimate_roa
     from pidlab.report.console import bounds_view, roa_view, wide_console
 
     if samples < 1:
         _fail(f"--samples {samples}: expected a positive number")
+    if write:
+        from pidlab.files import check_output_file
+
+        check_output_file(spec_file, "write")  # a read-only spec is refused before the work
     spec = load_spec(spec_file)
     loaded = load_model(spec.env_id)
     names = [v.strip() for v in variables.split(",") if v.strip()] if variables else None
     if names:
         check_variables(names, loaded)
-    result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed)
-    crit = derive_bounds(result, spec, loaded, variables=names, seed=seed)
-    con = wide_console()
-    card = loaded.require_card()
-    con.print(roa_view(result, {v.name: v.unit for v in card.observation}))
-    con.print(bounds_view(crit))
-    if write:
-        path = save_spec(with_bounds(spec, crit), spec_file)
-        con.print(f"wrote the bounds into {path}")
+    # --write: the spec is locked from here to its rewrite (a second command on it is refused)
+    with hold_lock(spec_file, SpecError) if write else contextlib.nullcontext():
+        result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed)
+        crit = derive_bounds(result, spec, loaded, variables=names, seed=seed)
+        con = wide_console()
+        card = loaded.require_card()
+        con.print(roa_view(result, {v.name: v.unit for v in card.observation}))
+        con.print(bounds_view(crit))
+        if write:
+            path = save_spec(with_bounds(spec, crit), spec_file)
+            con.print(f"wrote the bounds into {path}")
 
 
 def _resolve_coach(env: str, coach: str) -> tuple[Any, str | None]:
     """``none``, a spec file, or a spec name in ``tuning/`` (``pidlab-robust``)."""
     from pathlib import Path
 
+    from pidlab.checks import exists, shown
     from pidlab.controller.spec import load_spec
     from pidlab.experiment.conditions import spec_path
 
     if coach == "none":
         return None, None
     path = Path(coach)
-    if not path.exists() and path.suffix != ".toml":
+    if not exists(path) and path.suffix != ".toml":
         path = spec_path(env, coach)
-    if not path.exists():
+    if not exists(path):
         _fail(
-            f"--coach {coach!r}: expected none, a coach spec file, or the name of a spec in tuning/ "
+            f"--coach {shown(coach)}: expected none, a coach spec file, or the name of a spec in tuning/ "
             f"(e.g. pidlab-robust for tuning/{env}.pidlab-robust.toml)"
         )
     spec = load_spec(path)
@@ -633,10 +867,14 @@ def experiment(
     )  # fmt: skip
     if report_only and not (p.out / "experiment.json").exists():
         _fail(f"--report-only: {p.out} holds no experiment (no experiment.json)")
-    failed = 0 if report_only else _sweep(p, backend, workers, address, progress)
+    from pidlab.experiment.sweep import check_sweep, lock_experiment
     from pidlab.report.experiment import write_report
 
-    typer.echo(f"report: {write_report(p, progress_bar=progress)}")
+    if not report_only:
+        check_sweep(p, backend=backend, workers=workers, address=address)  # before the lock makes OUT
+    with lock_experiment(p):  # held while the runs train and the report is written
+        failed = 0 if report_only else _sweep(p, backend, workers, address, progress)
+        typer.echo(f"report: {write_report(p, progress_bar=progress)}")
     if failed:
         raise typer.Exit(code=1)
 

@@ -19,7 +19,8 @@ The figures' data are computed here too, and drawn by :mod:`pidlab.report.plots`
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,6 +28,8 @@ import control as ct
 import numpy as np
 
 from pidlab.controller.pid import Coach
+from pidlab.controller.spec import CoachSpec
+from pidlab.errors import AnalysisError, PidlabError
 from pidlab.linear.linearize import Linearization, linearize
 from pidlab.linear.lti import observable_part, siso_disk_margins, siso_frequency_response
 from pidlab.plant.model import LoadedModel
@@ -36,6 +39,58 @@ SETTLE_FRACTION = 0.02
 
 INITIAL_DEVIATION = 0.05
 """Initial deviation of a loop's signal in the initial-condition responses, in the signal's unit."""
+
+DIVERGED = 1e9
+"""Magnitude beyond which :func:`closed_loop_responses` cuts a response (an unstable loop): the
+plots draw the part before it."""
+
+_NUMERIC_FAILURES = (np.linalg.LinAlgError, ArithmeticError, ValueError, RuntimeError)
+"""What NumPy, SciPy and python-control raise on overflowing matrices (LinAlgError on NaN,
+OverflowError, ``algebraic loop detected``, ...)."""
+
+
+@contextmanager
+def undefined_as_error(what: str) -> Iterator[None]:
+    """Turn the numerical failures of an overflowing closed loop into one :class:`AnalysisError`.
+
+    Parameters
+    ----------
+    what : str
+        The loop, e.g. ``"the loop broken at actuator 'slide'"``; the message starts with it.
+
+    Raises
+    ------
+    AnalysisError
+        Instead of ``LinAlgError``, ``OverflowError``, python-control's "algebraic loop", ...
+    """
+    try:
+        yield
+    except PidlabError:
+        raise
+    except _NUMERIC_FAILURES as exc:
+        reason = " ".join(str(exc).split())[:120] or type(exc).__name__
+        raise AnalysisError(
+            f"{what}: poles and margins are undefined ({reason}); the gains are too large for a linear "
+            "analysis, expected gains that keep the loop's numbers finite"
+        ) from None
+
+
+def _require_finite(matrix: np.ndarray, what: str) -> None:
+    if not np.all(np.isfinite(matrix)):
+        raise AnalysisError(
+            f"{what}: the closed loop's matrices overflow (inf or nan); the gains are too large for a "
+            "linear analysis, expected gains that keep the loop's numbers finite"
+        )
+
+
+def _largest_gain(spec: CoachSpec) -> str:
+    """Which loop of ``spec`` has the largest gain, e.g. ``"loop 'pole' (kp = -1e+300)"``."""
+    best = max(
+        ((abs(getattr(lp, key)) * max((abs(w) for _, w in lp.actuators), default=1.0), lp.name, key,
+          getattr(lp, key)) for lp in spec.loops for key in ("kp", "ki", "kd")),
+        key=lambda item: item[0] if np.isfinite(item[0]) else np.inf,
+    )  # fmt: skip
+    return f"loop {best[1]!r} ({best[2]} = {best[3]:g})"
 
 
 @dataclass(frozen=True)
@@ -555,28 +610,35 @@ def closed_loop_report(plant: ct.StateSpace, coach: ct.StateSpace, loops: list[s
     """
     discrete = bool(plant.isdtime(strict=True))
     setpoints = [f"{name}_setpoint" for name in loops]
-    with warnings.catch_warnings():
+    what = f"the closed loop of loop(s) {', '.join(repr(n) for n in loops)}"
+    with undefined_as_error(what), warnings.catch_warnings(), np.errstate(all="ignore"):
         warnings.simplefilter("ignore")
+        hand = hand_closed_loop(plant, coach)
+        _require_finite(hand, what)
         cl = ct.interconnect(
             [plant, coach],
             inplist=setpoints,
             outlist=list(plant.output_labels) + list(plant.input_labels),
             name="closed_loop",
         )
-    eig_ct = np.linalg.eigvals(np.asarray(cl.A))
-    eig_hand = np.linalg.eigvals(hand_closed_loop(plant, coach))
+        eig_ct = np.linalg.eigvals(np.asarray(cl.A))
+        eig_hand = np.linalg.eigvals(hand)
+        _require_finite(eig_hand, what)
     check = float(np.max(np.abs(np.sort_complex(eig_ct) - np.sort_complex(eig_hand)))) if eig_ct.size else 0.0
     poles = _poles(eig_hand, float(plant.dt) if discrete else None)
     driven = [
         i for i in range(plant.ninputs) if np.any(np.asarray(coach.D)[i]) or np.any(np.asarray(coach.C)[i])
     ]
-    margins = tuple(loop_margins(loop_at_actuator(plant, coach, i), plant.input_labels[i]) for i in driven)
+    margins = []
+    for i in driven:
+        with undefined_as_error(f"the loop broken at actuator {plant.input_labels[i]!r}"):
+            margins.append(loop_margins(loop_at_actuator(plant, coach, i), plant.input_labels[i]))
     return ClosedLoopReport(
         discrete=discrete,
         sys=cl,
         poles=poles,
         stable=all(p.stable for p in poles),
-        margins=margins,
+        margins=tuple(margins),
         pole_check=check,
     )
 
@@ -768,6 +830,23 @@ def loop_responses(analysis: CoachAnalysis, coach: Coach, points: int = 1500) ->
     )
 
 
+def _cut_diverged(responses: np.ndarray) -> np.ndarray:
+    """``responses`` with NaN from where each output first exceeds :data:`DIVERGED` (or overflows).
+
+    Parameters
+    ----------
+    responses : ndarray, shape (n_loops, steps, n_outputs)
+
+    Returns
+    -------
+    ndarray, shape (n_loops, steps, n_outputs)
+        Plots draw the finite part; an unstable loop's growth would reach inf.
+    """
+    with np.errstate(invalid="ignore"):
+        gone = ~(np.abs(responses) <= DIVERGED)
+    return np.where(np.maximum.accumulate(gone, axis=1), np.nan, responses)
+
+
 def closed_loop_responses(
     analysis: CoachAnalysis, coach: Coach, horizon_s: float = 20.0, deviation: float = INITIAL_DEVIATION
 ) -> ClosedLoopResponses:
@@ -795,8 +874,10 @@ def closed_loop_responses(
     signals = tuple(lp.signal for lp in loops)
     index = [lay.observation_names.index(sig) for sig in signals]
     shape = (len(loops), steps, cl.noutputs)
-    stepped = np.array([step_response(cl, j, steps) for j in range(len(loops))]).reshape(shape)
-    initial = np.array([initial_response(cl, plant, sig, deviation, steps) for sig in index]).reshape(shape)
+    stepped = _cut_diverged(np.array([step_response(cl, j, steps) for j in range(len(loops))]).reshape(shape))
+    initial = _cut_diverged(
+        np.array([initial_response(cl, plant, sig, deviation, steps) for sig in index]).reshape(shape)
+    )
     return ClosedLoopResponses(
         timepts=np.arange(steps) * analysis.dt,
         loops=tuple(lp.name for lp in loops),
@@ -825,15 +906,26 @@ def analyze_coach(
     Returns
     -------
     CoachAnalysis
+
+    Raises
+    ------
+    AnalysisError
+        Gains so large that the poles or margins are undefined; names the loop with the largest gain.
     """
     if lin is None:
         lin = linearize(loaded)
     loops = [lp.name for lp in coach.spec.loops]
-    coach_d = coach.linear_model()
-    plant_d, removed = observable_part(lin.sysd)
-    plant_c, _ = observable_part(lin.sys)
-    discrete = closed_loop_report(plant_d, coach_d, loops)
-    continuous = closed_loop_report(plant_c, coach_to_continuous(coach_d), loops)
+    try:
+        with undefined_as_error(f"the closed loop of loop(s) {', '.join(repr(n) for n in loops)}"):
+            coach_d = coach.linear_model()
+            plant_d, removed = observable_part(lin.sysd)
+            plant_c, _ = observable_part(lin.sys)
+            discrete = closed_loop_report(plant_d, coach_d, loops)
+            continuous = closed_loop_report(plant_c, coach_to_continuous(coach_d), loops)
+    except AnalysisError as exc:
+        raise AnalysisError(
+            f"coach {coach.spec.name!r}: {exc}; largest gain: {_largest_gain(coach.spec)}"
+        ) from None
     return CoachAnalysis(
         env_id=coach.spec.env_id,
         spec_name=coach.spec.name,

@@ -259,9 +259,9 @@ def _check_request(
             f"no tuning template for {loaded.name}: its model card (models/{loaded.name}.toml) needs "
             "[[tuning.loop]] tables"
         )
-    if bandwidth is not None and not bandwidth > 0:
+    if bandwidth is not None and not (math.isfinite(bandwidth) and bandwidth > 0):
         raise PidlabError(
-            f"bandwidth={bandwidth!r}: expected a positive frequency in rad/s", param="bandwidth"
+            f"bandwidth={bandwidth!r}: expected a positive frequency in rad/s (finite)", param="bandwidth"
         )
     if phase_margin is not None and not 0 < phase_margin < 90:
         raise PidlabError(

@@ -8,6 +8,7 @@ or its time limit truncates the episode.
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -15,8 +16,33 @@ import numpy as np
 
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
+from pidlab.errors import BudgetError
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import check_termination
+
+MAX_EPISODES = 10_000
+"""The most coach-alone episodes :func:`coach_alone` runs at once (about 15 minutes of 1000-step
+episodes on one core); more would run for hours without adding precision to a mean return."""
+
+
+def check_episodes(episodes: object, param: str = "episodes") -> int:
+    """``episodes`` as an int from 1 to :data:`MAX_EPISODES`, or a :class:`BudgetError` saying so.
+
+    Raises
+    ------
+    TypeError
+        ``episodes`` is not an int (a bool is not).
+    BudgetError
+        ``episodes`` is below 1 or above :data:`MAX_EPISODES`.
+    """
+    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)):
+        raise TypeError(f"{param}: expected an int, got {type(episodes).__name__}")
+    if not 1 <= episodes <= MAX_EPISODES:
+        raise BudgetError(
+            f"{param}={episodes!r}: expected 1 to {MAX_EPISODES:,} episodes (more would run for hours)",
+            param=param,
+        )
+    return int(episodes)
 
 
 @dataclass(frozen=True)
@@ -117,7 +143,12 @@ def termination_cause(loaded: LoadedModel, env: gym.Env) -> str:
 
 
 def coach_alone(
-    spec: CoachSpec, loaded: LoadedModel, episodes: int = 10, seed0: int = 0, max_steps: int | None = None
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    episodes: int = 10,
+    seed0: int = 0,
+    max_steps: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> CoachScore:
     """Run the coach alone on the real env for ``episodes`` seeded episodes.
 
@@ -126,15 +157,24 @@ def coach_alone(
     spec : CoachSpec
     loaded : LoadedModel
     episodes : int
+        1 to :data:`MAX_EPISODES`.
     seed0 : int
         Episode ``i`` is reset with ``seed0 + i``.
     max_steps : int, optional
         Time limit (default: the env's own, 1000 for the paper envs).
+    progress : callable, optional
+        ``progress(done, episodes)`` after each episode (e.g. to move a progress bar).
 
     Returns
     -------
     CoachScore
+
+    Raises
+    ------
+    BudgetError
+        ``episodes`` is outside 1 to :data:`MAX_EPISODES`.
     """
+    episodes = check_episodes(episodes)
     env = gym.make(spec.env_id) if max_steps is None else gym.make(spec.env_id, max_episode_steps=max_steps)
     coach = Coach(spec, loaded)
     lay = coach.layout
@@ -163,6 +203,8 @@ def coach_alone(
                     saturated / max(steps, 1),
                 )
             )
+            if progress is not None:
+                progress(i + 1, episodes)
     finally:
         env.close()
     return CoachScore(env_id=spec.env_id, spec_name=spec.name, episodes=tuple(out))

@@ -37,13 +37,16 @@ Schema ``pidlab.coach-spec/1``::
 
 from __future__ import annotations
 
+import datetime
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import tomli_w
 
+from pidlab.checks import as_table, check_name, number, shown, text
 from pidlab.errors import SpecError
 from pidlab.files import parse_toml, read_toml
 
@@ -165,16 +168,39 @@ class CoachSpec:
         return tuple(done)
 
 
-def _num(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SpecError(f"{where}: expected a number, got {value!r}")
-    return float(value)
+def _num(value: Any, where: str, **kw: Any) -> float:
+    return number(value, where, SpecError, **kw)
 
 
 def _str(value: Any, where: str) -> str:
-    if not isinstance(value, str) or not value:
-        raise SpecError(f"{where}: expected a non-empty string, got {value!r}")
-    return value
+    return text(value, where, SpecError, empty=False)
+
+
+def _table(value: Any, where: str, what: str) -> dict[str, Any]:
+    return as_table(value, where, SpecError, what)
+
+
+_TOML_SCALARS = (str, int, float, bool, datetime.date, datetime.time)
+
+
+def _free_form(value: Any, where: str) -> dict[str, Any]:
+    """A free-form table (``[provenance]``): anything TOML can hold, so that the spec saves again."""
+    table = _table(value, where, "a table")
+    stack: list[Any] = [table]
+    seen: set[int] = set()
+    while stack:
+        item = stack.pop()
+        if isinstance(item, (dict, list)):
+            if id(item) in seen:  # shared (or, from Python, cyclic): checked once
+                continue
+            seen.add(id(item))
+            if isinstance(item, dict):
+                as_table(item, where, SpecError, "a table with string keys")
+            stack.extend(item.values() if isinstance(item, dict) else item)
+        elif not isinstance(item, _TOML_SCALARS):
+            expected = "strings, numbers, booleans, dates, lists and tables"
+            raise SpecError(f"{where}: {shown(item)} is not a TOML value; expected {expected}")
+    return table
 
 
 _LOOP_KEYS = {
@@ -196,59 +222,55 @@ _LOOP_KEYS = {
 _TOP_KEYS = {"schema", "env_id", "name", "description", "offset", "loop", "provenance", "bounds"}
 
 
+def _choice(value: Any, where: str, allowed: tuple[str, ...]) -> str:
+    if not isinstance(value, str) or value not in allowed:
+        raise SpecError(f"{where}: {shown(value)}; allowed: {', '.join(allowed)}")
+    return value
+
+
 def _loop_dynamics(t: dict[str, Any], w: str) -> dict[str, Any]:
     """A loop's action, gains, derivative filter and anti-windup fields, checked."""
-    action = t.get("action", "reverse")
-    if action not in ACTIONS:
-        raise SpecError(f"{w}.action: {action!r}; allowed: {', '.join(ACTIONS)}")
-    aw = t.get("anti_windup", "clamping")
-    if aw not in ANTI_WINDUP:
-        raise SpecError(f"{w}.anti_windup: {aw!r}; allowed: {', '.join(ANTI_WINDUP)}")
-    tf = _num(t.get("tf", 0.0), f"{w}.tf")
-    if tf < 0 or not math.isfinite(tf):
-        raise SpecError(f"{w}.tf: {tf} is negative; the derivative filter time constant must be >= 0 s")
-    tt = _num(t.get("tt", 0.0), f"{w}.tt")
+    action = _choice(t.get("action", "reverse"), f"{w}.action", ACTIONS)
+    aw = _choice(t.get("anti_windup", "clamping"), f"{w}.anti_windup", ANTI_WINDUP)
+    tf = _num(t.get("tf", 0.0), f"{w}.tf", low=0.0, unit="s")
+    tt = _num(t.get("tt", 0.0), f"{w}.tt", low=0.0, unit="s")
     if aw == "back-calculation" and not tt > 0:
         raise SpecError(f"{w}.tt: back-calculation needs a tracking time constant > 0 s, got {tt}")
-    if tt < 0:
-        raise SpecError(f"{w}.tt: {tt} is negative; expected >= 0 s")
-    gains = {}
-    for key in ("setpoint", "kp", "ki", "kd"):
-        gains[key] = _num(t.get(key, 0.0), f"{w}.{key}")
-        if not math.isfinite(gains[key]):
-            raise SpecError(f"{w}.{key}: expected a finite number, got {gains[key]}")
+    gains = {key: _num(t.get(key, 0.0), f"{w}.{key}") for key in ("setpoint", "kp", "ki", "kd")}
     return {"action": action, "tf": tf, "anti_windup": aw, "tt": tt, **gains}
+
+
+def _limits(value: Any, where: str, finite: bool) -> tuple[float, float]:
+    """``[low, high]`` with ``low < high`` (infinite ends allowed unless ``finite``)."""
+    if not isinstance(value, list) or len(value) != 2:
+        raise SpecError(f"{where}: expected [low, high], got {shown(value)}")
+    lo, hi = (_num(v, where, finite=finite) for v in value)
+    if not lo < hi:
+        raise SpecError(f"{where}: low ({lo}) must be below high ({hi})")
+    return lo, hi
 
 
 def _loop_output(t: dict[str, Any], w: str) -> dict[str, Any]:
     """Where a loop's output goes: its limits, and its actuators or the loop it feeds, checked."""
-    limits = t.get("output_limits", [-math.inf, math.inf])
-    if not isinstance(limits, list) or len(limits) != 2:
-        raise SpecError(f"{w}.output_limits: expected [low, high], got {limits!r}")
-    lo, hi = (_num(v, f"{w}.output_limits") for v in limits)
-    if not lo < hi:
-        raise SpecError(f"{w}.output_limits: low ({lo}) must be below high ({hi})")
-    acts = t.get("actuators", {})
-    if not isinstance(acts, dict):
-        raise SpecError(f"{w}.actuators: expected a table of actuator = weight")
+    limits = _limits(t.get("output_limits", [-math.inf, math.inf]), f"{w}.output_limits", finite=False)
+    acts = _table(t.get("actuators", {}), f"{w}.actuators", "a table of actuator = weight")
     actuators = tuple((k, _num(v, f"{w}.actuators.{k}")) for k, v in acts.items())
     feeds = t.get("feeds")
     if feeds is not None:
         feeds = _str(feeds, f"{w}.feeds")
     if bool(actuators) == (feeds is not None):
         raise SpecError(f'{w}: give either actuators = {{...}} or feeds = "<loop>" (exactly one)')
-    return {"output_limits": (lo, hi), "actuators": actuators, "feeds": feeds}
+    return {"output_limits": limits, "actuators": actuators, "feeds": feeds}
 
 
 def _parse_loop(t: Any, i: int, where: str) -> Loop:
     """The ``i``-th ``[[loop]]`` table, checked."""
     w = f"{where}: loop[{i}]"
-    if not isinstance(t, dict):
-        raise SpecError(f"{w}: expected a table")
+    t = _table(t, w, "a table")
     unknown = set(t) - _LOOP_KEYS
     if unknown:
         raise SpecError(f"{w}: unknown field(s) {sorted(unknown)}; allowed: {sorted(_LOOP_KEYS)}")
-    lname = _str(t.get("name"), f"{w}.name")
+    lname = check_name(t.get("name"), f"{w}.name", SpecError, dots=False)
     w = f"{where}: loop {lname!r}"
     dynamics = _loop_dynamics(t, w)
     output = _loop_output(t, w)
@@ -269,7 +291,7 @@ def _check_loop_names(loops: list[Loop], where: str) -> None:
     for lp in loops:
         if lp.feeds is not None and lp.feeds not in names:
             raise SpecError(
-                f"{where}: loop {lp.name!r}.feeds: no loop {lp.feeds!r}; loops: {', '.join(names)}"
+                f"{where}: loop {lp.name!r}.feeds: no loop {shown(lp.feeds)}; loops: {', '.join(names)}"
             )
         if lp.feeds == lp.name:
             raise SpecError(f"{where}: loop {lp.name!r} feeds itself")
@@ -278,38 +300,37 @@ def _check_loop_names(loops: list[Loop], where: str) -> None:
 def parse_spec(data: dict[str, Any], where: str = "spec") -> CoachSpec:
     """Build a :class:`CoachSpec` from parsed TOML, checking types and values.
 
+    Every number must be finite (``output_limits`` may be infinite) and in its range; ``name``
+    and ``env_id`` follow :data:`pidlab.checks.NAME_RULE` (a run folder is named after them).
     Names (signals, actuators) are checked against the env by :func:`validate_against`.
 
     Raises
     ------
     SpecError
     """
+    data = _table(data, where, "a table (parsed TOML)")
     unknown = set(data) - _TOP_KEYS
     if unknown:
         raise SpecError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}")
     if data.get("schema") != SPEC_SCHEMA:
-        raise SpecError(f"{where}: schema is {data.get('schema')!r}; expected {SPEC_SCHEMA!r}")
-    env_id = _str(data.get("env_id"), f"{where}: env_id")
-    name = _str(data.get("name", "coach"), f"{where}: name")
-    offset_tbl = data.get("offset", {})
-    if not isinstance(offset_tbl, dict):
-        raise SpecError(f"{where}: offset: expected a table of actuator = number")
+        raise SpecError(f"{where}: schema is {shown(data.get('schema'))}; expected {SPEC_SCHEMA!r}")
+    env_id = check_name(data.get("env_id"), f"{where}: env_id", SpecError)
+    name = check_name(data.get("name", "coach"), f"{where}: name", SpecError)
+    offset_tbl = _table(data.get("offset", {}), f"{where}: offset", "a table of actuator = number")
     offset = tuple((k, _num(v, f"{where}: offset.{k}")) for k, v in offset_tbl.items())
     raw_loops = data.get("loop")
     if not isinstance(raw_loops, list) or not raw_loops:
         raise SpecError(f"{where}: expected at least one [[loop]] table")
     loops = [_parse_loop(t, i, where) for i, t in enumerate(raw_loops)]
     _check_loop_names(loops, where)
-    provenance = data.get("provenance", {})
-    if not isinstance(provenance, dict):
-        raise SpecError(f"{where}: provenance: expected a table")
+    provenance = _free_form(data.get("provenance", {}), f"{where}: provenance")
     bounds = data.get("bounds")
     if bounds is not None:
         _check_bounds(bounds, f"{where}: bounds")
     spec = CoachSpec(
         env_id=env_id,
         name=name,
-        description=str(data.get("description", "")),
+        description=text(data.get("description", ""), f"{where}: description", SpecError),
         loops=tuple(loops),
         offset=offset,
         provenance=dict(provenance),
@@ -319,48 +340,58 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> CoachSpec:
     return spec
 
 
+def _check_ellipsoid(e: Any, where: str) -> None:
+    """``[bounds.ellipsoid]``: distinct variables, a finite centre, a positive definite shape.
+
+    Also a finite positive ``level`` and ``rho``.
+    """
+    e = _table(e, where, "a table")
+    unknown = set(e) - {"variables", "center", "shape", "level", "rho"}
+    if unknown:
+        raise SpecError(
+            f"{where}: unknown field(s) {sorted(unknown)}; allowed: variables, center, shape, level, rho"
+        )
+    names = e.get("variables")
+    if not isinstance(names, list) or not names or not all(isinstance(v, str) and v for v in names):
+        raise SpecError(f"{where}.variables: expected a list of observation variable names")
+    if len(set(names)) != len(names):
+        raise SpecError(f"{where}.variables: a variable is named twice")
+    k = len(names)
+    center = e.get("center")
+    if not isinstance(center, list) or len(center) != k:
+        raise SpecError(f"{where}.center: expected {k} numbers")
+    [_num(v, f"{where}.center") for v in center]
+    shape = e.get("shape")
+    square = isinstance(shape, list) and len(shape) == k
+    if not square or not all(isinstance(r, list) and len(r) == k for r in shape):
+        raise SpecError(f"{where}.shape: expected a {k} x {k} matrix")
+    P = np.array([[_num(v, f"{where}.shape") for v in r] for r in shape])
+    scale = float(np.max(np.abs(P))) or 1.0
+    if not np.allclose(P, P.T, rtol=1e-9, atol=1e-12 * scale):
+        raise SpecError(f"{where}.shape: expected a symmetric matrix")
+    with np.errstate(all="ignore"):
+        eig = np.linalg.eigvalsh(P / scale)
+    if not (np.all(np.isfinite(eig)) and eig.min() > 0):
+        raise SpecError(f"{where}.shape: expected a positive definite matrix (an ellipsoid)")
+    for key in ("level", "rho"):
+        _num(e.get(key), f"{where}.{key}", low=0.0, low_open=True)
+
+
 def _check_bounds(b: Any, where: str) -> None:
-    if not isinstance(b, dict):
-        raise SpecError(f"{where}: expected a table")
+    b = _table(b, where, "a table")
     unknown = set(b) - {"method", "ellipsoid", "box", "provenance"}
     if unknown:
         raise SpecError(
             f"{where}: unknown field(s) {sorted(unknown)}; allowed: method, ellipsoid, box, provenance"
         )
     _str(b.get("method"), f"{where}.method")
+    _free_form(b.get("provenance", {}), f"{where}.provenance")
     if "ellipsoid" in b:
-        e = b["ellipsoid"]
-        if not isinstance(e, dict):
-            raise SpecError(f"{where}.ellipsoid: expected a table")
-        names = e.get("variables")
-        if not isinstance(names, list) or not names or not all(isinstance(v, str) for v in names):
-            raise SpecError(f"{where}.ellipsoid.variables: expected a list of observation variable names")
-        k = len(names)
-        center = e.get("center")
-        if not isinstance(center, list) or len(center) != k:
-            raise SpecError(f"{where}.ellipsoid.center: expected {k} numbers")
-        [_num(v, f"{where}.ellipsoid.center") for v in center]
-        shape = e.get("shape")
-        if (
-            not isinstance(shape, list)
-            or len(shape) != k
-            or not all(isinstance(r, list) and len(r) == k for r in shape)
-        ):
-            raise SpecError(f"{where}.ellipsoid.shape: expected a {k} x {k} matrix")
-        [_num(v, f"{where}.ellipsoid.shape") for r in shape for v in r]
-        for key in ("level", "rho"):
-            if _num(e.get(key), f"{where}.ellipsoid.{key}") <= 0:
-                raise SpecError(f"{where}.ellipsoid.{key}: must be positive")
+        _check_ellipsoid(b["ellipsoid"], f"{where}.ellipsoid")
     if "box" in b:
-        box = b["box"]
-        if not isinstance(box, dict):
-            raise SpecError(f"{where}.box: expected a table of variable = [low, high]")
+        box = _table(b["box"], f"{where}.box", "a table of variable = [low, high]")
         for name, lim in box.items():
-            if not isinstance(lim, list) or len(lim) != 2:
-                raise SpecError(f"{where}.box.{name}: expected [low, high]")
-            lo, hi = (_num(v, f"{where}.box.{name}") for v in lim)
-            if not lo < hi:
-                raise SpecError(f"{where}.box.{name}: low ({lo}) must be below high ({hi})")
+            _limits(lim, f"{where}.box.{name}", finite=True)
 
 
 def bound_variables(spec: CoachSpec) -> list[str]:
@@ -390,7 +421,7 @@ def validate_against(
     for name in bound_variables(spec):
         if name not in observation_names:
             raise SpecError(
-                f"{where}: bounds: {name!r} is not an observation variable of {spec.env_id}; "
+                f"{where}: bounds: {shown(name)} is not an observation variable of {spec.env_id}; "
                 f"valid names: {obs}"
             )
     for lp in spec.loops:
@@ -398,13 +429,13 @@ def validate_against(
             name = getattr(lp, key)
             if name is not None and name not in observation_names:
                 raise SpecError(
-                    f"{where}: loop {lp.name!r}.{key}: {name!r} is not an observation variable of "
+                    f"{where}: loop {lp.name!r}.{key}: {shown(name)} is not an observation variable of "
                     f"{spec.env_id}; valid names: {obs}"
                 )
         for act, _ in lp.actuators:
             if act not in actuator_names:
                 raise SpecError(
-                    f"{where}: loop {lp.name!r}.actuators: no actuator {act!r} in {spec.env_id}; "
+                    f"{where}: loop {lp.name!r}.actuators: no actuator {shown(act)} in {spec.env_id}; "
                     f"actuators: {', '.join(actuator_names)}"
                 )
     for act, value in spec.offset:

@@ -27,11 +27,12 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from pidlab.checks import as_table, check_name, number, path_under, shown, text
 from pidlab.controller.spec import CoachSpec, load_spec, parse_spec, spec_to_dict
 from pidlab.data import tuning_dir
 from pidlab.errors import ConditionError, RecipeError, SpecError
 from pidlab.files import read_toml
-from pidlab.rl.recipe import Recipe, parse_recipe, recipe_to_dict
+from pidlab.rl.recipe import Recipe, check_coaching, parse_recipe, recipe_to_dict
 
 CONDITIONS_SCHEMA = "pidlab.conditions/1"
 
@@ -79,39 +80,64 @@ def conditions_path() -> Path:
 _FIELDS = {"description", "coach", "coaching", "bounds", "env"}
 
 
+def _box(bounds: Any, where: str) -> dict[str, list[float]]:
+    """A bounds box: ``variable = [low, high]``, finite numbers (not booleans), ``low < high``."""
+    if not as_table(bounds, where, ConditionError, "a table of variable = [low, high]"):
+        raise ConditionError(f"{where}: expected a table of variable = [low, high]")
+    box = {}
+    for name, lim in bounds.items():
+        w = f"{where}.{name}"
+        if not isinstance(lim, list) or len(lim) != 2:
+            raise ConditionError(f"{w} = {shown(lim)}: expected [low, high] with low < high")
+        lo, hi = (number(v, w, ConditionError) for v in lim)
+        if not lo < hi:
+            raise ConditionError(f"{w} = {shown(lim)}: expected [low, high] with low < high")
+        box[name] = [lo, hi]
+    return box
+
+
+def _coach(value: Any, where: str) -> str:
+    """``none``, a spec file (``*.toml``) or a spec name in ``tuning/`` (:data:`pidlab.checks.NAME_RULE`)."""
+    expected = "none, a spec file (*.toml) or a spec name in tuning/"
+    if not isinstance(value, str) or not value:
+        raise ConditionError(f"{where} = {shown(value)}: expected {expected}")
+    if value != "none" and Path(value).suffix != ".toml":
+        check_name(value, where, ConditionError)
+    return value
+
+
 def _env_condition(table: dict[str, Any], base: EnvCondition | None, where: str) -> EnvCondition:
     unknown = set(table) - (_FIELDS - {"description", "env"} if base else _FIELDS)
     if unknown:
         allowed = "coach, coaching, bounds" if base else "description, coach, coaching, bounds, env"
         raise ConditionError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {allowed}")
-    coach = table.get("coach", base.coach if base else None)
-    if not isinstance(coach, str) or not coach:
-        raise ConditionError(f"{where}.coach: expected none, a spec name in tuning/ or a spec file")
-    coaching = table.get("coaching", {})
-    if not isinstance(coaching, dict):
-        raise ConditionError(f"{where}.coaching: expected a table of [coaching] fields of a recipe")
-    bounds = table.get("bounds", base.bounds if base else None)
-    if bounds is not None:
-        if not isinstance(bounds, dict) or not bounds:
-            raise ConditionError(f"{where}.bounds: expected a table of variable = [low, high]")
-        for name, lim in bounds.items():
-            ok = isinstance(lim, list) and len(lim) == 2 and all(isinstance(v, (int, float)) for v in lim)
-            if not ok or not lim[0] < lim[1]:
-                raise ConditionError(f"{where}.bounds.{name}: expected [low, high] with low < high")
+    coach = _coach(table.get("coach", base.coach if base else None), f"{where}.coach")
+    coaching = as_table(table.get("coaching", {}), f"{where}.coaching", ConditionError,
+                        "a table of [coaching] fields of a recipe")  # fmt: skip
     merged = {**(base.coaching if base else {}), **coaching}
-    return EnvCondition(coach=coach, coaching=merged, bounds=bounds)
+    try:
+        check_coaching(merged, where)
+    except RecipeError as exc:
+        raise ConditionError(str(exc)) from None
+    bounds = table.get("bounds")
+    box = _box(bounds, f"{where}.bounds") if bounds is not None else base.bounds if base else None
+    return EnvCondition(coach=coach, coaching=merged, bounds=box)
 
 
 def parse_conditions(data: dict[str, Any], where: str = "conditions") -> dict[str, Condition]:
     """Build the conditions of a parsed conditions file.
+
+    Condition names and env ids follow :data:`pidlab.checks.NAME_RULE` (a run folder is named
+    after them); every number is checked as the recipe checks it.
 
     Raises
     ------
     ConditionError
         Naming the field and what is expected.
     """
+    data = as_table(data, where, ConditionError, "a table (parsed TOML)")
     if data.get("schema") != CONDITIONS_SCHEMA:
-        raise ConditionError(f"{where}: schema = {data.get('schema')!r}, expected {CONDITIONS_SCHEMA!r}")
+        raise ConditionError(f"{where}: schema = {shown(data.get('schema'))}, expected {CONDITIONS_SCHEMA!r}")
     unknown = set(data) - {"schema", "condition"}
     if unknown:
         raise ConditionError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: schema, condition")
@@ -120,19 +146,18 @@ def parse_conditions(data: dict[str, Any], where: str = "conditions") -> dict[st
         raise ConditionError(f"{where}: no conditions; add [condition.NAME] tables")
     out: dict[str, Condition] = {}
     for name, table in tables.items():
+        check_name(name, f"{where}: condition name", ConditionError)
         w = f"{where}: condition.{name}"
-        if not isinstance(table, dict):
-            raise ConditionError(f"{w}: expected a table")
+        as_table(table, w, ConditionError)
         default = _env_condition(table, None, w)
-        envs = table.get("env", {})
-        if not isinstance(envs, dict):
-            raise ConditionError(f"{w}.env: expected tables named after env ids")
+        envs = as_table(table.get("env", {}), f"{w}.env", ConditionError, "tables named after env ids")
         per_env = {}
         for env_id, t in envs.items():
-            if not isinstance(t, dict):
-                raise ConditionError(f"{w}.env.{env_id}: expected a table")
+            check_name(env_id, f"{w}.env: env id", ConditionError)
+            as_table(t, f"{w}.env.{env_id}", ConditionError)
             per_env[env_id] = _env_condition(t, default, f"{w}.env.{env_id}")
-        out[name] = Condition(name, str(table.get("description", "")), default, per_env)
+        description = text(table.get("description", ""), f"{w}.description", ConditionError)
+        out[name] = Condition(name, description, default, per_env)
     return out
 
 
@@ -156,31 +181,38 @@ def select(conditions: dict[str, Condition], condition_names: list[str], source:
         A name that is not in the file, or none at all.
     """
     names = condition_names
-    shown = ",".join(names)  # as the command line takes them
+    given = shown(",".join(names), 80)  # as the command line takes them
     if not names:
         raise ConditionError(
-            f"condition_names={shown!r}: empty; name at least one condition", param="condition_names"
+            f"condition_names={given}: empty; name at least one condition", param="condition_names"
         )
-    missing = [n for n in names if n not in conditions]
+    missing = [n if len(n) <= 40 else n[:37] + "..." for n in map(str, names) if n not in conditions]
     if missing:
         raise ConditionError(
-            f"condition_names={shown!r}: unknown condition(s) {', '.join(missing)}; "
+            f"condition_names={given}: unknown condition(s) {', '.join(missing[:10])}; "
             f"{source} has: {', '.join(conditions)}",
             param="condition_names",
         )
     if len(set(names)) != len(names):
-        raise ConditionError(
-            f"condition_names={shown!r}: a condition is named twice", param="condition_names"
-        )
+        raise ConditionError(f"condition_names={given}: a condition is named twice", param="condition_names")
     return [conditions[n] for n in names]
 
 
 def spec_path(env_id: str, coach: str) -> Path:
-    """Where the spec called ``coach`` for ``env_id`` lives (a file, or ``tuning/ENV.COACH.toml``)."""
+    """Where the spec called ``coach`` for ``env_id`` lives (a file, or ``tuning/ENV.COACH.toml``).
+
+    Raises
+    ------
+    ConditionError
+        ``coach`` is no ``*.toml`` file and not a name of :data:`pidlab.checks.NAME_RULE` (or
+        ``env_id`` is not): the path would leave ``tuning/``.
+    """
     path = Path(coach)
     if path.suffix == ".toml":
         return path
-    return tuning_dir() / f"{env_id}.{coach}.toml"
+    check_name(env_id, "env_id", ConditionError, param="env_id")
+    check_name(coach, "coach", ConditionError, param="coach")
+    return path_under(tuning_dir(), f"{env_id}.{coach}.toml", error=ConditionError, param="coach")
 
 
 def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | None, str | None]:

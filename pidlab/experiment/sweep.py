@@ -12,6 +12,13 @@ An experiment is every (env, condition, seed) combination, each trained by
 A sweep that is killed and started again with the same command skips finished runs, resumes
 unfinished ones from their last checkpoint, and starts the rest. A folder that holds another
 experiment (other envs, conditions, seeds or settings) is refused, and nothing in it is touched.
+A sweep holds the lock of OUT (:func:`pidlab.provenance.hold_lock`) while it runs, and each run
+the lock of its run directory: a second sweep in OUT, or a ``pidlab train --resume`` of one of
+its runs, is refused.
+
+Pool workers stop with their parent (:func:`pidlab.orphans.stop_with_parent`): when the sweep's
+process is killed, a busy worker stops its run with a checkpoint and exits within seconds, and no
+worker starts another run.
 
 Backends: ``process`` (a local process pool, one run per core) and ``ray`` (Ray tasks on a local
 instance or, with ``address``, on a cluster whose nodes all have pidlab installed and see OUT).
@@ -19,29 +26,33 @@ instance or, with ``address``, on a cluster whose nodes all have pidlab installe
 
 from __future__ import annotations
 
-import fcntl
+import importlib.util
 import os
 import shutil
 import signal
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from pidlab.checks import MAX_SEEDS, SEED_MAX, check_name, clip, is_file, path_under, shown
+from pidlab.checks import seed as check_seed
 from pidlab.controller.spec import CoachSpec, parse_spec, spec_to_dict
-from pidlab.errors import ExperimentError
+from pidlab.errors import ExperimentError, RunDirError
 from pidlab.experiment.conditions import Condition, load_conditions, resolve, select
-from pidlab.files import read_json
-from pidlab.orphans import watch_parent
+from pidlab.files import load_json
+from pidlab.orphans import orphaned, stop_with_parent
 from pidlab.provenance import (
+    LOCK_NAME,
     Record,
     Refusals,
     add_resume,
     check_folder,
     digest,
+    hold_lock,
     new_record,
     read_record,
     write_record,
@@ -109,38 +120,61 @@ class Plan:
 def parse_seeds(seeds: str, default_count: int | None = None) -> tuple[int, ...]:
     """Seeds from ``N`` (0..N-1), ``A-B`` (inclusive) or ``A,B,C``.
 
+    At most :data:`pidlab.checks.MAX_SEEDS` seeds, each in ``[0, 2**32 - 1]`` (what SB3 accepts),
+    checked before any list is made.
+
     Raises
     ------
     ExperimentError
-        Empty, negative, repeated or unreadable.
+        Empty, negative, too large, too many, repeated or unreadable.
     """
+
+    def bad(reason: str) -> ExperimentError:
+        return ExperimentError(f"seeds={shown(seeds)}: {reason}", param="seeds")
+
+    if not isinstance(seeds, str):
+        raise bad("expected a count (10), a range (0-9) or a list (0,3,7)")
     t = seeds.strip()
+    values: list[int] = []
     try:
         if t.isdigit():
-            out = tuple(range(int(t)))
+            low, high = 0, int(t) - 1
         elif "-" in t and "," not in t:
-            a, b = (int(v) for v in t.split("-", 1))
-            out = tuple(range(a, b + 1))
+            low, high = (int(v) for v in t.split("-", 1))
         else:
-            out = tuple(int(v) for v in t.split(",") if v.strip())
+            values = [int(v) for v in t.split(",") if v.strip()]
+            low, high = min(values, default=0), max(values, default=-1)
     except ValueError:
-        raise ExperimentError(
-            f"seeds={seeds!r}: expected a count (10), a range (0-9) or a list (0,3,7)", param="seeds"
-        ) from None
-    if not out:
-        raise ExperimentError(f"seeds={seeds!r}: no seeds; expected at least one (e.g. 10)", param="seeds")
-    if min(out) < 0 or len(set(out)) != len(out):
-        raise ExperimentError(f"seeds={seeds!r}: seeds must be distinct non-negative integers", param="seeds")
+        raise bad("expected a count (10), a range (0-9) or a list (0,3,7)") from None
+    count = len(values) if values else high - low + 1
+    if count < 1:
+        raise bad("no seeds; expected at least one (e.g. 10)")
+    if count > MAX_SEEDS:
+        raise bad(f"{count} seeds; expected at most {MAX_SEEDS}")
+    if low < 0 or high > SEED_MAX:
+        raise bad(f"expected seeds in [0, {SEED_MAX}]")
+    out = tuple(values) if values else tuple(range(low, high + 1))
+    if len(set(out)) != len(out):
+        raise bad("seeds must be distinct non-negative integers")
     return out
 
 
 def _check_names(envs: Sequence[str], seeds: Sequence[int]) -> None:
+    """Each env id a name of :data:`pidlab.checks.NAME_RULE`, each seed in ``[0, 2**32 - 1]``."""
     if not envs:
         raise ExperimentError("envs=[]: no env; name at least one, e.g. InvertedPendulum-v5", param="envs")
     if not seeds:
         raise ExperimentError("seeds=[]: no seeds; expected at least one (e.g. 10)", param="seeds")
+    for env_id in envs:
+        check_name(env_id, "envs", ExperimentError, param="envs")
     if len(set(envs)) != len(envs):
         raise ExperimentError(f"envs={', '.join(envs)}: an env is named twice", param="envs")
+    if len(seeds) > MAX_SEEDS:
+        raise ExperimentError(f"seeds: {len(seeds)} seeds; expected at most {MAX_SEEDS}", param="seeds")
+    for s in seeds:
+        check_seed(s, "seeds", ExperimentError, param="seeds")
+    if len(set(seeds)) != len(seeds):
+        raise ExperimentError("seeds: seeds must be distinct", param="seeds")
 
 
 def _load_recipes(
@@ -149,8 +183,8 @@ def _load_recipes(
     """Each env's recipe (one of ``recipe_files``, else ``coach/ENV.toml``) with the overrides."""
     given: dict[str, Recipe] = {}
     for path in recipe_files:
-        if not Path(path).is_file():
-            raise ExperimentError(f"recipe_files={path}: no such file", param="recipe_files")
+        if not is_file(path):
+            raise ExperimentError(f"recipe_files={clip(str(path))}: no such file", param="recipe_files")
         r = load_recipe(path)
         if r.env_id not in envs:
             raise ExperimentError(
@@ -183,7 +217,7 @@ def _task(env_id: str, cond: Condition, base: Recipe, spec: CoachSpec | None, so
         env_id=env_id,
         condition=cond.name,
         seed=int(seed),
-        run_dir=str(root / "runs" / env_id / cond.name / f"seed-{seed}"),
+        run_dir=str(path_under(root, "runs", env_id, cond.name, f"seed-{seed}", error=ExperimentError)),
         recipe=recipe_to_dict(recipe),
         spec=spec_to_dict(spec) if spec is not None else None,
         coach_source=source,
@@ -305,37 +339,50 @@ def write_experiment_record(p: Plan, argv: Sequence[str], backend: str) -> Recor
 
 
 def finished(run_dir: Path, budget: int) -> bool:
-    """A run whose ``summary.json`` says it completed its budget."""
+    """A run whose ``summary.json`` says it completed its budget (a damaged one says nothing)."""
     path = run_dir / "summary.json"
     if not path.exists():
         return False
-    s = read_json(path)
-    return bool(s.get("completed")) and int(s.get("env_steps", 0)) >= budget
+    try:
+        s = load_json(path, "run summary", ExperimentError)
+        return isinstance(s, dict) and bool(s.get("completed")) and int(s.get("env_steps", 0)) >= budget
+    except (ExperimentError, TypeError, ValueError):
+        return False  # its resume says what is wrong, and writes it again
 
 
 STOP_FILE = ".stopping"
 STOP_TIMEOUT_S = 300.0  # how long an interrupted sweep waits for its runs to checkpoint
 
 
-@contextmanager
-def _run_lock(run_dir: Path) -> Iterator[None]:
-    """Hold an exclusive lock on one run (an orphaned worker may still be checkpointing it)."""
-    run_dir.parent.mkdir(parents=True, exist_ok=True)
-    with open(run_dir.parent / f".{run_dir.name}.lock", "w") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+RUN_LOCK_WAIT_S = 30.0
+"""How long a run waits for its lock (an orphan of a killed sweep may still be checkpointing it)."""
 
 
 def execute(task: RunTask) -> RunOutcome:
-    """Run (or resume, or skip) one task; every failure becomes an outcome, never an exception."""
+    """Run (or resume, or skip) one task; every failure becomes an outcome, never an exception.
+
+    In a pool worker whose sweep is gone, it starts nothing and ends the worker.
+    """
+    if orphaned(_PARENT[0]):
+        os._exit(0)
     _BUSY[0] = True
     try:
         return _execute(task)
     finally:
         _BUSY[0] = False
+        if orphaned(_PARENT[0]):  # nobody to report to: the run has stopped with a checkpoint
+            os._exit(0)
+
+
+def _clear(run_dir: Path) -> None:
+    """Empty a run directory but its lock (a run killed before its first checkpoint starts again)."""
+    for entry in run_dir.iterdir():
+        if entry.name == LOCK_NAME:
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
 
 
 def _execute(task: RunTask) -> RunOutcome:
@@ -349,13 +396,13 @@ def _execute(task: RunTask) -> RunOutcome:
         return RunOutcome(*key, status="stopped")
     budget = int(task.recipe["steps"])
     try:
-        with _run_lock(run_dir):
+        with hold_lock(run_dir, RunDirError, wait_s=RUN_LOCK_WAIT_S):
             if finished(run_dir, budget):
                 return RunOutcome(*key, status="skipped")
-            if run_dir.exists() and latest_checkpoint(run_dir) is None:
-                shutil.rmtree(run_dir)  # killed before its first checkpoint: nothing to keep
+            if latest_checkpoint(run_dir) is None:
+                _clear(run_dir)  # killed before its first checkpoint: nothing to keep
             argv = ["pidlab experiment", f"{task.env_id}/{task.condition}/seed-{task.seed}"]
-            if run_dir.exists():
+            if (run_dir / "config.toml").exists():
                 result = resume(run_dir, progress_bar=False, argv=argv)
             else:
                 recipe = parse_recipe(task.recipe, f"{task.env_id}/{task.condition}")
@@ -370,24 +417,29 @@ def _execute(task: RunTask) -> RunOutcome:
 
 
 _BUSY = [False]  # a pool worker is inside execute()
+_PARENT: list[int | None] = [None]  # in a pool worker: the sweep's pid
 
 
 def _term_in_worker(signum: int, frame: Any) -> None:
-    """SIGTERM in a pool worker: interrupt the task, or nothing when idle.
+    """SIGTERM in a pool worker: interrupt the task; when idle, exit if the sweep is gone.
 
     A task outside its training loop (which stops politely by itself) ends as interrupted. An idle
-    worker has nothing to save and waits for the pool's own shutdown: raising there would print a
-    worker traceback and break the pool under a run that is still checkpointing.
+    worker of a live sweep has nothing to save and waits for the pool's own shutdown: raising
+    there would print a worker traceback and break the pool under a run that is still
+    checkpointing. An idle worker whose sweep was killed exits at once.
     """
     if _BUSY[0]:
         raise KeyboardInterrupt
+    if orphaned(_PARENT[0]):
+        os._exit(0)
 
 
-def _worker_init() -> None:
-    """Pool worker: leave terminal Ctrl-C to the parent, and stop politely if the parent dies."""
+def _worker_init(parent: int) -> None:
+    """Pool worker: leave terminal Ctrl-C to the parent, and stop when the parent (pid ``parent``) dies."""
     os.setsid()
+    _PARENT[0] = parent
     signal.signal(signal.SIGTERM, _term_in_worker)
-    watch_parent(lambda: os.kill(os.getpid(), signal.SIGTERM) if _BUSY[0] else os._exit(0))
+    stop_with_parent(parent, lambda: os.kill(os.getpid(), signal.SIGTERM))
 
 
 Progress = Callable[[RunOutcome], None]
@@ -398,7 +450,9 @@ def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, 
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     ctx = mp.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+    pool = ProcessPoolExecutor(
+        max_workers=workers, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
+    )
     futures = {pool.submit(execute, t) for t in tasks}
     try:
         while futures:
@@ -426,12 +480,8 @@ def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, 
 def _run_ray(
     tasks: Sequence[RunTask], workers: int, report: Progress, out: Path, address: str | None
 ) -> None:
-    try:
-        import ray
-    except ImportError:
-        raise ExperimentError(
-            "backend=ray: Ray is not installed; install the extra: pip install 'pidlab[ray]'", param="backend"
-        ) from None
+    import ray
+
     started_here = not ray.is_initialized()
     if started_here:
         if address:
@@ -467,15 +517,33 @@ class SweepResult:
         return sum(o.status == status for o in self.outcomes)
 
 
-@contextmanager
-def _sweep_lock(out: Path) -> Iterator[None]:
-    with open(out / ".sweep.lock", "w") as fh:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            message = f"out={out}: another sweep is running in this folder"
-            raise ExperimentError(message, param="out") from None
-        yield
+def check_sweep(
+    p: Plan, *, backend: str = "process", workers: int | None = None, address: str | None = None
+) -> None:
+    """Check what :func:`run_sweep` is asked (backend, workers, the folder); nothing is written.
+
+    Raises
+    ------
+    ExperimentError
+        Unknown backend (or Ray not installed), a bad number of workers, an address without
+        Ray, or a folder that holds something else than this experiment.
+    """
+    _check_backend(backend, workers, address)
+    check_out_folder(p)
+
+
+def lock_experiment(p: Plan) -> AbstractContextManager[Path]:
+    """Hold the lock of ``p``'s folder (a second command in it is refused); the folder is made.
+
+    :func:`run_sweep` takes it; the command line takes it first, to hold it while it writes the
+    report too (the lock is re-entrant within a process).
+
+    Raises
+    ------
+    ExperimentError
+        Another pidlab command works in the folder.
+    """
+    return hold_lock(p.out, ExperimentError, param="out")
 
 
 def _term_as_interrupt(signum: int, frame: Any) -> None:
@@ -485,6 +553,10 @@ def _term_as_interrupt(signum: int, frame: Any) -> None:
 def _check_backend(backend: str, workers: int | None, address: str | None) -> None:
     if backend not in BACKENDS:
         raise ExperimentError(f"backend={backend!r}: expected one of {', '.join(BACKENDS)}", param="backend")
+    if backend == "ray" and importlib.util.find_spec("ray") is None:
+        raise ExperimentError(
+            "backend=ray: Ray is not installed; install the extra: pip install 'pidlab[ray]'", param="backend"
+        )
     if address and backend != "ray":
         raise ExperimentError(f"address={address!r}: only with the ray backend", param="address")
     if workers is not None and workers < 1:
@@ -567,12 +639,12 @@ def run_sweep(
     Raises
     ------
     ExperimentError
-        Unknown backend, a folder of another experiment, another sweep running in it.
+        Unknown backend, a folder of another experiment, another command working in it. Every
+        input is checked before the first file is written.
     """
-    _check_backend(backend, workers, address)
-    check_out_folder(p)
-    p.out.mkdir(parents=True, exist_ok=True)
-    with _sweep_lock(p.out):
+    check_sweep(p, backend=backend, workers=workers, address=address)
+    with lock_experiment(p):
+        check_out_folder(p)  # again, now that no other command can change it
         write_experiment_record(p, argv, backend)
         (p.out / STOP_FILE).unlink(missing_ok=True)
         todo = [t for t in p.tasks if not finished(Path(t.run_dir), int(t.recipe["steps"]))]

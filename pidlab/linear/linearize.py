@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -245,12 +246,14 @@ def _fd_jacobian(
     ctrl_hi: np.ndarray,
     names: tuple[str, ...],
     what: str,
+    tick: Callable[[], None] = lambda: None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Finite-difference Jacobians of ``fun(x, u)`` at ``(0, 0)`` in ``x`` and ``u``.
 
     Returns the Jacobians in ``x`` and ``u``, ``fun(0, 0)``, and the kink measure: the
     relative mismatch ``|J_forward - J_backward| / |J|`` of the one-sided differences
     (0 where the function is smooth; large where it has a kink, e.g. at a contact).
+    ``tick()`` is called after each column.
     """
     zero_x, zero_u = np.zeros(n), np.zeros(nu)
     f0 = fun(zero_x, zero_u)
@@ -283,6 +286,7 @@ def _fd_jacobian(
         if hi != 0.0 and lo != 0.0:
             one_sided_gap.append((f_hi - f0) / hi - (f0 - f_lo) / -lo)
         cols.append(col)
+        tick()
     jac = np.column_stack(cols) if cols else np.zeros((f0.size, 0))
     scale = float(np.linalg.norm(jac))
     gap = float(np.linalg.norm(np.column_stack(one_sided_gap))) if one_sided_gap else 0.0
@@ -297,6 +301,7 @@ def linearize(
     eps: float = 1e-6,
     centered: bool = True,
     discretization: Discretization = "step",
+    progress: Callable[[int, int], None] | None = None,
 ) -> Linearization:
     """Linearize ``loaded`` about ``op`` in continuous and discrete time.
 
@@ -315,6 +320,9 @@ def linearize(
         ``"step"``: differentiate ``frame_skip`` MuJoCo steps (the model's own integrator,
         exactly what the agent experiences). ``"zoh"``: sample the continuous model with a
         zero-order hold.
+    progress : callable, optional
+        ``progress(done, total)`` after each finite-difference column (of
+        :func:`finite_difference_columns`).
 
     Returns
     -------
@@ -325,23 +333,18 @@ def linearize(
     NonFiniteJacobianError
         A derivative came out NaN or inf.
     LinearizationError
-        ``eps`` is not a positive finite number or ``discretization`` is unknown.
+        ``eps`` is not positive and finite, ``discretization`` is unknown, or the model has no
+        state (no degrees of freedom, no activations).
     """
-    if not (isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0 < eps < math.inf):
-        raise LinearizationError(
-            f"eps={eps!r}: expected a positive finite-difference step, e.g. 1e-6", param="eps"
-        )
-    if discretization not in ("step", "zoh"):
-        raise LinearizationError(
-            f"discretization={discretization!r}: expected 'step' or 'zoh'", param="discretization"
-        )
+    _check_arguments(eps, discretization)
+    check_has_state(loaded)
     if op is None:
         op = resolve_operating_point(loaded)
     ev = _Evaluator(loaded, op)
     lo, hi = _ctrl_steps(loaded, op, eps)
     jacobians = functools.partial(
         _fd_jacobian, n=ev.n, nu=ev.nu, eps=eps, centered=centered, ctrl_lo=lo, ctrl_hi=hi,
-        names=loaded.state_names + loaded.input_names,
+        names=loaded.state_names + loaded.input_names, tick=_counter(progress, loaded, discretization),
     )  # fmt: skip
     sys, sysd, xdot0, kink = _systems(loaded, ev, jacobians, discretization)
     return Linearization(
@@ -367,6 +370,97 @@ def linearize(
     )
 
 
+def _check_arguments(eps: object, discretization: object) -> None:
+    """:func:`linearize`'s ``eps`` and ``discretization``, or a :class:`LinearizationError`."""
+    if not (isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0 < eps < math.inf):
+        raise LinearizationError(
+            f"eps={eps!r}: expected a positive finite-difference step, e.g. 1e-6", param="eps"
+        )
+    if discretization not in ("step", "zoh"):
+        raise LinearizationError(
+            f"discretization={discretization!r}: expected 'step' or 'zoh'", param="discretization"
+        )
+
+
+def check_has_state(loaded: LoadedModel) -> None:
+    """Refuse a model without state: no degrees of freedom (``nv = 0``) and no activations.
+
+    Raises
+    ------
+    LinearizationError
+        There is nothing to linearize.
+    """
+    m = loaded.model
+    if 2 * m.nv + m.na == 0:
+        raise LinearizationError(
+            f"{loaded.source}: the model has no degrees of freedom (no joints, nv = 0) and no "
+            "actuator activations: nothing to linearize; give the bodies joints"
+        )
+
+
+def finite_difference_columns(loaded: LoadedModel, discretization: str = "step") -> int:
+    """How many finite-difference columns :func:`linearize` computes (its ``progress`` total).
+
+    One per state and control for the vector field, the observation (with a model card) and,
+    with ``discretization="step"``, the control-period map.
+    """
+    m = loaded.model
+    passes = 1 + (loaded.card is not None) + (discretization == "step")
+    return passes * (2 * m.nv + m.na + m.nu)
+
+
+def _counter(
+    progress: Callable[[int, int], None] | None, loaded: LoadedModel, discretization: str
+) -> Callable[[], None]:
+    """A ``tick()`` that reports each finite-difference column to ``progress(done, total)``."""
+    if progress is None:
+        return lambda: None
+    total = finite_difference_columns(loaded, discretization)
+    done = [0]
+
+    def tick() -> None:
+        done[0] += 1
+        progress(min(done[0], total), total)
+
+    return tick
+
+
+def _best_time(work: Callable[[], Any], repeats: int = 3) -> float:
+    """The shortest of ``repeats`` timings of ``work()``, seconds (a busy machine's hiccups ignored)."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        work()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def estimate_seconds(loaded: LoadedModel, discretization: str = "step", analysis: bool = True) -> float:
+    """A rough wall time of :func:`linearize` (and of the modal analysis ``pidlab linearize`` adds).
+
+    Times ``mj_forward`` and one control period of ``mj_step``; with ``analysis``, also one
+    singular value decomposition of each size the PBH tests of
+    :func:`pidlab.linear.lti.analyze_lti` make (controllability and observability, for every
+    mode of the continuous and the discrete model). Takes a fraction of a second below a few
+    hundred states.
+    """
+    m = loaded.model
+    d = mujoco.MjData(m)
+    n = 2 * m.nv + m.na
+    columns = 2 * (n + m.nu)  # centered differences
+    total = columns * _best_time(lambda: mujoco.mj_forward(m, d)) * (1 + (loaded.card is not None))
+    if discretization == "step":
+        total += columns * _best_time(lambda: mujoco.mj_step(m, d, nstep=loaded.frame_skip))
+    if analysis and n:
+        outputs = len(loaded.card.observation_names) if loaded.card is not None else n
+        rng = np.random.default_rng(0)
+        for shape in ((n, n + m.nu), (n + outputs, n)):  # the PBH tests' matrices
+            probe = rng.standard_normal(shape) * (1 + 1j)
+            # one SVD of each kind for every mode of both models
+            total += 2 * n * _best_time(functools.partial(np.linalg.svd, probe, compute_uv=False))
+    return total
+
+
 def _systems(
     loaded: LoadedModel, ev: _Evaluator, jacobians: Callable[..., Any], discretization: str
 ) -> tuple[ct.StateSpace, ct.StateSpace, np.ndarray, float]:
@@ -375,10 +469,11 @@ def _systems(
     ``jacobians(fun, what=...)`` is :func:`_fd_jacobian` with the step and the perturbations set.
     """
     A, B, xdot0, kink = jacobians(ev.vector_field, what=f"linearizing {loaded.name}")
-    C, D, _, _ = jacobians(ev.observation, what=f"observation of {loaded.name}")
     outputs = loaded.card.observation_names if loaded.card is not None else loaded.state_names
-    if loaded.card is None:
+    if loaded.card is None:  # the outputs are the states
         C, D = np.eye(ev.n), np.zeros((ev.n, ev.nu))
+    else:
+        C, D, _, _ = jacobians(ev.observation, what=f"observation of {loaded.name}")
     # python-control reserves "." in system names (file names such as "arm.xml").
     sysname = loaded.name.replace(".", "_")
     sys = _named_ss(loaded, (A, B, C, D), outputs, sysname)

@@ -9,6 +9,7 @@ stabilizable and detectable.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import control as ct
@@ -127,7 +128,9 @@ def reachable_dimension(A: np.ndarray, B: np.ndarray, tol: float = 1e-9) -> int:
     return int(_orthonormal_reachable_basis(A, B, tol).shape[1])
 
 
-def analyze_lti(sys: ct.StateSpace, tol: float = 1e-9) -> LtiReport:
+def analyze_lti(
+    sys: ct.StateSpace, tol: float = 1e-9, progress: Callable[[int, int], None] | None = None
+) -> LtiReport:
     """Poles, stability, controllability and observability of ``sys``.
 
     Parameters
@@ -136,6 +139,9 @@ def analyze_lti(sys: ct.StateSpace, tol: float = 1e-9) -> LtiReport:
         Continuous- or discrete-time model.
     tol : float, default 1e-9
         Relative tolerance for ranks and for classifying poles as marginal.
+    progress : callable, optional
+        ``progress(done, n)`` after each mode's PBH tests (two SVDs of about ``n x n``
+        each: minutes for ``n`` in the hundreds).
 
     Returns
     -------
@@ -169,6 +175,8 @@ def analyze_lti(sys: ct.StateSpace, tol: float = 1e-9) -> LtiReport:
                 obsv_margin,
             )
         )
+        if progress is not None:
+            progress(len(modes), n)
     key = (lambda m: abs(m.value)) if discrete else (lambda m: m.value.real)
     modes.sort(key=key)
     return LtiReport(

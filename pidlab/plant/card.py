@@ -62,6 +62,7 @@ from typing import Any
 
 import mujoco
 
+from pidlab.checks import as_table, check_name, flag, integer, is_name, number, path_under, shown, text
 from pidlab.data import models_dir
 from pidlab.errors import ModelCardError
 from pidlab.files import read_toml
@@ -312,60 +313,70 @@ def _require(table: dict[str, Any], key: str, typ: type | tuple[type, ...], wher
     if key not in table:
         raise ModelCardError(f"{where}: missing field {key!r}")
     value = table[key]
+    if typ is dict:
+        return as_table(value, f"{where}.{key}", ModelCardError)
     if not isinstance(value, typ) or (isinstance(value, bool) and typ is not bool):
         names = typ.__name__ if isinstance(typ, type) else " or ".join(t.__name__ for t in typ)
-        raise ModelCardError(f"{where}.{key}: expected {names}, got {value!r}")
+        raise ModelCardError(f"{where}.{key}: expected {names}, got {shown(value)}")
     return value
 
 
-def _floats(values: Any, where: str) -> tuple[float, ...]:
-    if not isinstance(values, list) or not all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) for v in values
-    ):
-        raise ModelCardError(f"{where}: expected a list of numbers, got {values!r}")
-    return tuple(float(v) for v in values)
+def _tables(value: Any, where: str) -> list[dict[str, Any]]:
+    """A list of tables (``[[observation]]``, ``[[termination]]``, ``[[tuning.loop]]``)."""
+    if not isinstance(value, list):
+        raise ModelCardError(f"{where}: expected a list of tables ([[...]]), got {shown(value)}")
+    return [as_table(t, f"{where}[{i}]", ModelCardError) for i, t in enumerate(value)]
+
+
+def _floats(values: Any, where: str, length: int | None = None) -> tuple[float, ...]:
+    """A list of finite numbers (``length`` of them when given)."""
+    if not isinstance(values, list) or (length is not None and len(values) != length):
+        count = "a list of numbers" if length is None else f"a list of {length} numbers"
+        raise ModelCardError(f"{where}: expected {count}, got {shown(values)}")
+    return tuple(number(v, where, ModelCardError) for v in values)
 
 
 def _bound(value: Any, where: str) -> float:
+    """A limit: a number, or ``inf``/``-inf`` (also as the strings ``"inf"``/``"-inf"``); never NaN."""
     if isinstance(value, str) and value in ("inf", "-inf"):
         return float(value)
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    raise ModelCardError(f'{where}: expected a number or "inf"/"-inf", got {value!r}')
+    return number(value, where, ModelCardError, finite=False)
 
 
 def _parse_observation(data: dict[str, Any], path: str) -> list[ObservationVariable]:
     obs: list[ObservationVariable] = []
-    for i, t in enumerate(_require(data, "observation", list, path)):
+    for i, t in enumerate(_tables(_require(data, "observation", list, path), f"{path}: observation")):
         where = f"{path}: observation[{i}]"
         source = _require(t, "source", str, where)
         if source not in OBS_SOURCES:
             raise ModelCardError(f"{where}.source: {source!r}; allowed: {', '.join(OBS_SOURCES)}")
         transform = t.get("transform", "identity")
         if transform not in OBS_TRANSFORMS:
-            raise ModelCardError(f"{where}.transform: {transform!r}; allowed: {', '.join(OBS_TRANSFORMS)}")
+            raise ModelCardError(
+                f"{where}.transform: {shown(transform)}; allowed: {', '.join(OBS_TRANSFORMS)}"
+            )
         clip = None
         if "clip" in t:
-            lo, hi = _floats(t["clip"], f"{where}.clip")
+            lo, hi = _floats(t["clip"], f"{where}.clip", length=2)
+            if not lo < hi:
+                raise ModelCardError(f"{where}.clip: low ({lo}) must be below high ({hi})")
             clip = (lo, hi)
         obs.append(
             ObservationVariable(
-                name=_require(t, "name", str, where),
+                name=check_name(_require(t, "name", str, where), f"{where}.name", ModelCardError, dots=False),
                 source=source,
                 joint=_require(t, "joint", str, where),
                 transform=transform,
                 clip=clip,
-                unit=str(t.get("unit", "")),
-                description=str(t.get("description", "")),
+                unit=text(t.get("unit", ""), f"{where}.unit", ModelCardError),
+                description=text(t.get("description", ""), f"{where}.description", ModelCardError),
             )
         )
     return obs
 
 
 def _parse_tuning(data: dict[str, Any], path: str) -> tuple[tuple[TuningLoop, ...], bool]:
-    table = data.get("tuning", {})
-    if not isinstance(table, dict):
-        raise ModelCardError(f"{path}: tuning: expected a table")
+    table = as_table(data.get("tuning", {}), f"{path}: tuning", ModelCardError)
     unknown = sorted(set(table) - {"refine_on_env", "loop"})
     if unknown:
         raise ModelCardError(f"{path}: tuning: unknown field(s) {unknown}; allowed: refine_on_env, loop")
@@ -373,12 +384,12 @@ def _parse_tuning(data: dict[str, Any], path: str) -> tuple[tuple[TuningLoop, ..
     if not isinstance(refine, bool):
         raise ModelCardError(f"{path}: tuning.refine_on_env: expected true or false, got {refine!r}")
     loops = []
-    for i, lp in enumerate(table.get("loop", [])):
+    for i, lp in enumerate(_tables(table.get("loop", []), f"{path}: tuning.loop")):
         where = f"{path}: tuning.loop[{i}]"
-        if not isinstance(lp, dict):
-            raise ModelCardError(f"{where}: expected a table")
         acts = _require(lp, "actuators", dict, where) if "actuators" in lp else {}
-        weights = tuple((str(k), _bound(v, f"{where}.actuators.{k}")) for k, v in acts.items())
+        weights = tuple(
+            (str(k), number(v, f"{where}.actuators.{k}", ModelCardError)) for k, v in acts.items()
+        )
         rate = lp.get("rate_signal")
         core = lp.get("core", True)
         if (rate is not None and not isinstance(rate, str)) or not isinstance(core, bool):
@@ -389,9 +400,7 @@ def _parse_tuning(data: dict[str, Any], path: str) -> tuple[tuple[TuningLoop, ..
 
 
 def _parse_region(data: dict[str, Any], path: str, names: list[str]) -> tuple[str, tuple[str, ...]]:
-    table = data.get("region", {})
-    if not isinstance(table, dict):
-        raise ModelCardError(f"{path}: region: expected a table")
+    table = as_table(data.get("region", {}), f"{path}: region", ModelCardError)
     unknown = sorted(set(table) - {"method", "variables"})
     if unknown:
         raise ModelCardError(f"{path}: region: unknown field(s) {unknown}; allowed: method, variables")
@@ -414,16 +423,21 @@ def _parse_paper(data: dict[str, Any], path: str) -> PaperNumbers | None:
     where = f"{path}: paper"
     table = _require(data, "paper", dict, path)
 
-    def pair(key: str, a: str, b: str) -> tuple[float, float]:
+    def pair(key: str, a: str, b: str, episodes: bool) -> tuple[float, float]:
         sub = _require(table, key, dict, where)
-        return float(_require(sub, a, (int, float), f"{where}.{key}")), float(
-            _require(sub, b, (int, float), f"{where}.{key}")
-        )
+        w = f"{where}.{key}"
+        if episodes:  # counts of episodes
+            first, second = (
+                integer(_require(sub, k, int, w), f"{w}.{k}", ModelCardError, low=0) for k in (a, b)
+            )
+            return first, second
+        x, y = (number(_require(sub, k, (int, float), w), f"{w}.{k}", ModelCardError) for k in (a, b))
+        return x, y
 
-    wins = pair("episodes_to_5_wins", "coached", "uncoached")
-    average = pair("episodes_to_average", "coached", "uncoached")
-    savings = pair("savings_percent", "wins", "average")
-    target = _bound(_require(table, "win_target", (int, float), where), f"{where}.win_target")
+    wins = pair("episodes_to_5_wins", "coached", "uncoached", True)
+    average = pair("episodes_to_average", "coached", "uncoached", True)
+    savings = pair("savings_percent", "wins", "average", False)
+    target = number(_require(table, "win_target", (int, float), where), f"{where}.win_target", ModelCardError)
     return PaperNumbers(target, int(wins[0]), int(wins[1]), int(average[0]), int(average[1]), *savings)
 
 
@@ -435,17 +449,19 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
     ModelCardError
         Naming the field and what is allowed.
     """
+    as_table(data, path, ModelCardError, "a table (parsed TOML)")
     schema = data.get("schema")
     if schema != CARD_SCHEMA:
-        raise ModelCardError(f"{path}: schema is {schema!r}; expected {CARD_SCHEMA!r}")
-    env_id = _require(data, "env_id", str, path)
+        raise ModelCardError(f"{path}: schema is {shown(schema)}; expected {CARD_SCHEMA!r}")
+    env_id = check_name(_require(data, "env_id", str, path), f"{path}: env_id", ModelCardError)
     opt = _require(data, "operating_point", dict, path)
+    w = f"{path}: operating_point"
     op = CardOperatingPoint(
-        name=str(opt.get("name", "operating point")),
-        qpos=_floats(_require(opt, "qpos", list, f"{path}: operating_point"), "qpos"),
-        qvel=_floats(_require(opt, "qvel", list, f"{path}: operating_point"), "qvel"),
-        ctrl=_floats(_require(opt, "ctrl", list, f"{path}: operating_point"), "ctrl"),
-        note=str(opt.get("note", "")),
+        name=text(opt.get("name", "operating point"), f"{w}.name", ModelCardError),
+        qpos=_floats(_require(opt, "qpos", list, w), f"{w}.qpos"),
+        qvel=_floats(_require(opt, "qvel", list, w), f"{w}.qvel"),
+        ctrl=_floats(_require(opt, "ctrl", list, w), f"{w}.ctrl"),
+        note=text(opt.get("note", ""), f"{w}.note", ModelCardError),
     )
     obs = _parse_observation(data, path)
     names = [v.name for v in obs]
@@ -453,11 +469,11 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
     if dupes:
         raise ModelCardError(f"{path}: observation names must be unique; repeated: {dupes}")
     term: list[TerminationLimit] = []
-    for i, t in enumerate(data.get("termination", [])):
+    for i, t in enumerate(_tables(data.get("termination", []), f"{path}: termination")):
         where = f"{path}: termination[{i}]"
         interval = t.get("interval", "closed")
         if interval not in INTERVALS:
-            raise ModelCardError(f"{where}.interval: {interval!r}; allowed: closed, open")
+            raise ModelCardError(f"{where}.interval: {shown(interval)}; allowed: closed, open")
         low = _bound(t.get("low", "-inf"), f"{where}.low")
         high = _bound(t.get("high", "inf"), f"{where}.high")
         if not low < high:
@@ -468,7 +484,7 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
                 low=low,
                 high=high,
                 interval=interval,
-                description=str(t.get("description", "")),
+                description=text(t.get("description", ""), f"{where}.description", ModelCardError),
             )
         )
     tuning, refine = _parse_tuning(data, path)
@@ -479,11 +495,13 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
                 raise ModelCardError(f"{path}: tuning.loop {lp.name!r}: {name!r} is not an observation name")
     return ModelCard(
         env_id=env_id,
-        description=str(data.get("description", "")),
+        description=text(data.get("description", ""), f"{path}: description", ModelCardError),
         operating_point=op,
         observation=tuple(obs),
         termination=tuple(term),
-        terminate_on_nonfinite=bool(data.get("terminate_on_nonfinite", True)),
+        terminate_on_nonfinite=flag(
+            data.get("terminate_on_nonfinite", True), f"{path}: terminate_on_nonfinite", ModelCardError
+        ),
         path=path,
         tuning=tuning,
         refine_on_env=refine,
@@ -504,6 +522,12 @@ def load_card(path: str | Path) -> ModelCard:
 
 
 def find_card(env_id: str) -> ModelCard | None:
-    """The model card of ``env_id`` from :func:`models_dir`, or None when there is none."""
-    path = models_dir() / f"{env_id}.toml"
+    """The model card of ``env_id`` from :func:`models_dir`, or None when there is none.
+
+    An ``env_id`` that is no name of :data:`pidlab.checks.NAME_RULE` has no card (its file name
+    would leave ``models/``).
+    """
+    if not is_name(env_id):
+        return None
+    path = path_under(models_dir(), f"{env_id}.toml", error=ModelCardError)
     return load_card(path) if path.exists() else None

@@ -6,15 +6,37 @@ exactly the system the RL agent acts on. Names for states and inputs are derived
 
 from __future__ import annotations
 
+import contextlib
 import difflib
+import logging
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
+from pidlab.checks import exists, shown
 from pidlab.errors import ModelCardError, ModelCompileError, UnknownEnvError
 from pidlab.plant.card import ModelCard, find_card
+
+_LOG = logging.getLogger("pidlab.mujoco")
+
+
+def _log_mujoco_warning(text: str) -> None:
+    """MuJoCo's run-time warnings (an unstable simulation, a full contact buffer) go to logging.
+
+    Without a handler, MuJoCo appends them to ``MUJOCO_LOG.TXT`` in the working directory: a file
+    in the user's folder that no pidlab command asked for. pidlab detects and reports the states
+    behind them itself (non-finite observations terminate an episode), so they are logged at
+    DEBUG level on the ``pidlab.mujoco`` logger.
+    """
+    _LOG.debug("MuJoCo: %s", text)
+
+
+if mujoco.get_mju_user_warning() is None:  # keep a handler the user installed
+    mujoco.set_mju_user_warning(_log_mujoco_warning)
 
 _INTEGRATORS = {
     int(mujoco.mjtIntegrator.mjINT_EULER): "Euler",
@@ -180,7 +202,7 @@ def actuator_names(model: mujoco.MjModel) -> tuple[str, ...]:
 
 
 def _is_mjcf_path(target: str) -> bool:
-    return target.lower().endswith((".xml", ".mjcf", ".mjb")) or Path(target).exists()
+    return target.lower().endswith((".xml", ".mjcf", ".mjb")) or exists(target)
 
 
 def load_model(target: str | Path) -> LoadedModel:
@@ -209,17 +231,46 @@ def load_model(target: str | Path) -> LoadedModel:
     return _load_env(target)
 
 
-def _load_mjcf(path: Path) -> LoadedModel:
+def _check_model_file(path: Path) -> None:
+    """Refuse a path MuJoCo should not see: missing, a folder, unreadable (MuJoCo would warn)."""
     if not path.exists():
         raise ModelCompileError(f"MJCF file {str(path)!r} does not exist; give an existing path")
+    if path.is_dir():
+        raise ModelCompileError(
+            f"{str(path)!r} is a folder; give an MJCF file (.xml) or a compiled model (.mjb)"
+        )
     try:
-        if path.suffix.lower() == ".mjb":
-            model = mujoco.MjModel.from_binary_path(str(path))
-        else:
-            model = mujoco.MjModel.from_xml_path(str(path))
-    except Exception as exc:  # MuJoCo raises ValueError with its compiler message
-        msg = " ".join(str(exc).split())
-        raise ModelCompileError(f"MuJoCo could not compile {str(path)!r}: {msg}") from exc
+        with open(path, "rb") as fh:
+            fh.read(1)
+    except OSError as exc:
+        raise ModelCompileError(f"cannot read MJCF file {str(path)!r}: {exc.strerror or exc}") from None
+
+
+@contextlib.contextmanager
+def _mujoco_warnings() -> Iterator[list[str]]:
+    """Collect MuJoCo's warnings instead of letting MuJoCo print them (its handler is restored)."""
+    caught: list[str] = []
+    old = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(caught.append)
+    try:
+        yield caught
+    finally:
+        mujoco.set_mju_user_warning(old)
+
+
+def _load_mjcf(path: Path) -> LoadedModel:
+    _check_model_file(path)
+    with _mujoco_warnings() as caught:
+        try:
+            if path.suffix.lower() == ".mjb":
+                model = mujoco.MjModel.from_binary_path(str(path))
+            else:
+                model = mujoco.MjModel.from_xml_path(str(path))
+        except Exception as exc:  # MuJoCo raises ValueError with its compiler message
+            msg = " ".join(str(exc).split())
+            raise ModelCompileError(f"MuJoCo could not compile {str(path)!r}: {msg}") from exc
+    for text in caught:  # the model loaded: MuJoCo's warnings about it are worth passing on
+        warnings.warn(f"MuJoCo: {text}", UserWarning, stacklevel=3)
     return LoadedModel(model=model, source=str(path.resolve()), env_id=None, frame_skip=1, card=None)
 
 
@@ -242,7 +293,7 @@ def _load_env(env_id: str) -> LoadedModel:
         close = difflib.get_close_matches(env_id, known, n=3, cutoff=0.5)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
         raise UnknownEnvError(
-            f"unknown env id or missing file {env_id!r}: expected a Gymnasium MuJoCo env id "
+            f"unknown env id or missing file {shown(env_id, 80)}: expected a Gymnasium MuJoCo env id "
             f"(e.g. InvertedPendulum-v5) or the path of an MJCF file{hint}"
         )
     if env_id not in known:

@@ -11,6 +11,7 @@ base's height) until contact forces carry the model.
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -18,6 +19,7 @@ import mujoco
 import numpy as np
 from scipy.optimize import least_squares
 
+from pidlab.checks import number, shown
 from pidlab.errors import KeyframeError, OperatingPointError
 from pidlab.plant.model import LoadedModel, dof_names, finite_or_raise, joint_name
 
@@ -103,11 +105,31 @@ class OperatingPoint:
 
 
 def _check_len(values: Sequence[float] | np.ndarray, n: int, what: str, names: Sequence[str]) -> np.ndarray:
-    arr = np.asarray(values, dtype=float).ravel()
+    """``values`` as a vector of ``n`` finite floats (booleans and strings are not numbers).
+
+    Raises
+    ------
+    OperatingPointError
+        The wrong length, an entry that is not a number, or a non-finite entry.
+    """
+    try:
+        arr = np.asarray(values, dtype=object).ravel()
+    except (ValueError, TypeError):
+        raise OperatingPointError(
+            f"{what}={shown(values)}: expected {n} finite numbers", param=what
+        ) from None
     if arr.size != n:
         listing = f" ({', '.join(names)})" if names else ""
         raise OperatingPointError(f"{what} has {arr.size} entries; the model expects {n}{listing}")
-    return finite_or_raise(arr, what)
+    out = np.empty(n)
+    for i, v in enumerate(arr):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Real, np.floating, np.integer)):
+            raise OperatingPointError(f"{what}[{i}] = {shown(v)}: expected a finite number")
+        try:
+            out[i] = float(v)
+        except OverflowError:
+            out[i] = np.inf
+    return finite_or_raise(out, what)
 
 
 def _qpos_names(model: mujoco.MjModel) -> list[str]:
@@ -163,6 +185,8 @@ def resolve_operating_point(
     model = loaded.model
     if at is None:
         at = "card" if loaded.card is not None else "qpos0"
+    if not isinstance(at, str):
+        raise OperatingPointError(f"at={shown(at)}: expected qpos0, card or a keyframe name", param="at")
     base = _base_point(loaded, at)
     base_qpos, base_qvel, base_ctrl = base.qpos, base.qvel, base.ctrl
     source, ctrl_source = base.source, base.ctrl_source
@@ -351,6 +375,9 @@ def settle(loaded: LoadedModel, qpos: np.ndarray, free: Sequence[str], span: flo
     SettledPoint
     """
     model = loaded.model
+    number(span, "span", OperatingPointError, low=0.0, low_open=True, param="span")
+    if isinstance(free, str) or not all(isinstance(name, str) for name in free):
+        raise OperatingPointError(f"free={shown(free)}: expected a list of joint names", param="free")
     addrs = []
     for name in free:
         jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)

@@ -33,6 +33,8 @@ import scipy.linalg
 from scipy.optimize import minimize
 
 from pidlab import __version__
+from pidlab.checks import integer
+from pidlab.checks import seed as check_seed
 from pidlab.controller.analysis import analyze_coach
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
@@ -185,8 +187,11 @@ def derive_bounds(
     UnknownSignalError
         A variable is not in the observation (the message lists the valid names).
     RegionError
-        One worst-case agent step can leave the certified set from anywhere: no useful bound.
+        One worst-case agent step can leave the certified set from anywhere: no useful bound; or
+        ``check_samples`` outside [1, 1e6] or ``seed`` outside [0, 2**32 - 1].
     """
+    integer(check_samples, "check_samples", RegionError, low=1, high=10**6, param="check_samples")
+    check_seed(seed, "seed", RegionError, param="seed")
     lp0 = spec.loops[0]
     if variables is None:
         variables = list(roa.box) if roa.box else [v for v in (lp0.signal, lp0.rate_signal) if v]

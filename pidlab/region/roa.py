@@ -41,6 +41,8 @@ import mujoco
 import numpy as np
 import scipy.linalg
 
+from pidlab.checks import integer, number
+from pidlab.checks import seed as check_seed
 from pidlab.controller.analysis import CoachAnalysis, analyze_coach
 from pidlab.controller.pid import N_LOOP_STATES, Coach, law
 from pidlab.controller.spec import CoachSpec
@@ -494,6 +496,30 @@ def _termination_cap(lyap: Lyapunov, loaded: LoadedModel) -> float:
     return cap
 
 
+MAX_SAMPLES = 10**7
+"""The most simulated initial states one estimate may ask for."""
+MAX_HORIZON_S = 3600.0
+"""The longest simulated time per trajectory, s."""
+
+
+def _check_budget(
+    samples: int, seed: int, horizon_s: float, bisection_samples: int, bisection_rounds: int, keep: int
+) -> None:
+    """Check :func:`estimate_roa`'s budget arguments (each error names its Python parameter).
+
+    Raises
+    ------
+    RegionError
+    """
+    counts = {"samples": (samples, 1), "bisection_samples": (bisection_samples, 1),
+              "bisection_rounds": (bisection_rounds, 0), "keep_trajectories": (keep, 0)}  # fmt: skip
+    for name, (value, low) in counts.items():
+        integer(value, name, RegionError, low=low, high=MAX_SAMPLES if low else 10**6, param=name)
+    check_seed(seed, "seed", RegionError, param="seed")
+    number(horizon_s, "horizon_s", RegionError, low=0.0, high=MAX_HORIZON_S, low_open=True, unit="s",
+           param="horizon_s")  # fmt: skip
+
+
 def estimate_roa(
     spec: CoachSpec,
     loaded: LoadedModel,
@@ -537,8 +563,10 @@ def estimate_roa(
     Raises
     ------
     RegionError
-        Unstable closed loop, or nothing certified.
+        Unstable closed loop, or nothing certified; or an argument out of its range (``samples``
+        in [1, 1e7], ``seed`` in [0, 2**32 - 1], ``horizon_s`` in (0, 3600] s, ...).
     """
+    _check_budget(samples, seed, horizon_s, bisection_samples, bisection_rounds, keep_trajectories)
     t0 = time.perf_counter()
     report = progress if progress is not None else _no_progress
     coach = Coach(spec, loaded)

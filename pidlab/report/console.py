@@ -20,9 +20,24 @@ def _fmt(x: float) -> str:
     return f"{x:.4g}"
 
 
+MAX_TABLE_SIDE = 100
+"""The most rows or columns :func:`matrix_table` shows; a larger matrix is named, not printed."""
+
+
 def matrix_table(title: str, M: np.ndarray, rows: Sequence[str], cols: Sequence[str]) -> Table:
-    """A named matrix as a table: one row per ``rows`` name, one column per ``cols`` name."""
+    """A named matrix as a table: one row per ``rows`` name, one column per ``cols`` name.
+
+    A matrix with more than :data:`MAX_TABLE_SIDE` rows or columns is too wide to read on a
+    terminal: the table says its size and where to get it (``--json``) instead.
+    """
     table = Table(title=title, title_justify="left", min_width=len(title) + 4)
+    if max(len(rows), len(cols)) > MAX_TABLE_SIDE:
+        table.add_column("not shown")
+        table.add_row(
+            f"{len(rows)} x {len(cols)}: more than {MAX_TABLE_SIDE} rows or columns; "
+            "pidlab linearize --json prints every entry"
+        )
+        return table
     table.add_column("", style="bold", no_wrap=True)
     for c in cols:
         table.add_column(c, justify="right", no_wrap=True)

@@ -64,13 +64,28 @@ Schema ``pidlab.recipe/1``::
 
 from __future__ import annotations
 
-import inspect
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from pidlab.checks import (
+    MAX_SEEDS,
+    SEED_MAX,
+    as_table,
+    check_name,
+    fail,
+    flag,
+    integer,
+    number,
+    path_under,
+    shown,
+    text,
+)
+from pidlab.checks import seed as check_seed
 from pidlab.controller import autotune
+from pidlab.controller.rollout import MAX_EPISODES
 from pidlab.data import coach_dir
 from pidlab.errors import PidlabError, RecipeError, ScheduleError
 from pidlab.files import read_toml
@@ -81,9 +96,8 @@ RECIPE_SCHEMA = "pidlab.recipe/1"
 ALGOS = ("ppo", "sac")
 VEC_ENVS = ("dummy", "subproc")
 ACTIVATIONS = ("tanh", "relu", "elu", "leaky_relu", "gelu", "silu")
-LINEAR_SCHEDULES = ("learning_rate", "clip_range")  # may be "lin_<x>": x * remaining progress (the zoo's)
-# SB3 constructor arguments that pidlab sets itself
-_RESERVED = {"self", "policy", "env", "seed", "device", "verbose", "tensorboard_log", "_init_setup_model"}
+LINEAR_SCHEDULES = ("learning_rate", "clip_range", "clip_range_vf")
+"""SB3 arguments that may be ``"lin_<x>"``: ``x`` times the remaining progress (the zoo's notation)."""
 
 
 @dataclass(frozen=True)
@@ -192,33 +206,36 @@ class Recipe:
         return dict(self.algorithms[self.algo])
 
 
-def _int(data: dict[str, Any], key: str, where: str, default: int | None = None, minimum: int = 0) -> int:
-    value = data.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise RecipeError(f"{where}.{key}: expected an integer, got {value!r}")
-    if value < minimum:
-        raise RecipeError(f"{where}.{key} = {value}: expected >= {minimum}")
-    return value
+MAX_STEPS = 10**12
+"""The largest budget (env steps) a recipe or a command may ask for."""
+MAX_PARALLEL = 1024
+"""The most parallel envs (``n_envs``) and torch threads a recipe may ask for."""
 
 
-def _num(data: dict[str, Any], key: str, where: str, default: float | None = None) -> float:
-    value = data.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise RecipeError(f"{where}.{key}: expected a finite number, got {value!r}")
-    return float(value)
+def _int(
+    data: dict[str, Any],
+    key: str,
+    where: str,
+    default: int | None = None,
+    low: int = 0,
+    high: int | None = None,
+) -> int:
+    return integer(data.get(key, default), f"{where}.{key}", RecipeError, low=low, high=high)
+
+
+def _num(data: dict[str, Any], key: str, where: str, default: float | None = None, **kw: Any) -> float:
+    return number(data.get(key, default), f"{where}.{key}", RecipeError, **kw)
 
 
 def _choice(data: dict[str, Any], key: str, where: str, allowed: tuple[str, ...], default: str) -> str:
     value = data.get(key, default)
-    if value not in allowed:
-        raise RecipeError(f"{where}.{key} = {value!r}: expected one of {', '.join(allowed)}")
-    return str(value)
+    if not isinstance(value, str) or value not in allowed:
+        raise RecipeError(f"{where}.{key} = {shown(value)}: expected one of {', '.join(allowed)}")
+    return value
 
 
 def _table(data: dict[str, Any], key: str, where: str, allowed: set[str]) -> dict[str, Any]:
-    value = data.get(key, {})
-    if not isinstance(value, dict):
-        raise RecipeError(f"{where}.{key}: expected a table")
+    value = as_table(data.get(key, {}), f"{where}.{key}", RecipeError)
     unknown = set(value) - allowed
     if unknown:
         raise RecipeError(
@@ -227,47 +244,213 @@ def _table(data: dict[str, Any], key: str, where: str, allowed: set[str]) -> dic
     return value
 
 
-def algorithm_arguments(algo: str) -> tuple[str, ...]:
-    """Keyword arguments of the SB3 class that a recipe may set."""
-    from stable_baselines3 import PPO, SAC
+# ----------------------------------------------------------------- SB3 arguments: type and range
 
-    cls = {"ppo": PPO, "sac": SAC}[algo]
-    return tuple(p for p in inspect.signature(cls).parameters if p not in _RESERVED)
+Check = Callable[[Any, str], Any]
+"""Checks one SB3 argument's value (``where`` names it) and raises :class:`RecipeError`."""
+
+
+def _integer(low: int, high: int) -> Check:
+    return lambda v, w: integer(v, w, RecipeError, low=low, high=high)
+
+
+def _real(low: float | None = None, high: float | None = None, low_open: bool = False) -> Check:
+    return lambda v, w: number(v, w, RecipeError, low=low, high=high, low_open=low_open)
+
+
+def _bool(value: Any, where: str) -> bool:
+    return flag(value, where, RecipeError)
+
+
+def _rate(value: Any, where: str) -> Any:
+    """A positive number, or ``"lin_<x>"`` (the zoo's linear decay from ``x > 0``)."""
+    expected = "a number > 0, or 'lin_<number>' (a linear decay from a number > 0)"
+    if isinstance(value, str):
+        start = _float_or_nan(value[4:]) if value.startswith("lin_") else math.nan
+        if not (math.isfinite(start) and start > 0):
+            fail(value, where, expected, RecipeError)
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        fail(value, where, expected, RecipeError)
+    return number(value, where, RecipeError, low=0.0, low_open=True)
+
+
+def _float_or_nan(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
+def _sac_ent_coef(value: Any, where: str) -> Any:
+    """SAC's entropy coefficient: a number >= 0, ``"auto"`` or ``"auto_<x>"`` (learned from ``x > 0``)."""
+    if isinstance(value, str):
+        start = (
+            1.0 if value == "auto" else _float_or_nan(value[5:]) if value.startswith("auto_") else math.nan
+        )
+        if not (math.isfinite(start) and start > 0):
+            fail(value, where, "a number >= 0, 'auto' or 'auto_<number > 0>'", RecipeError)
+        return value
+    return number(value, where, RecipeError, low=0.0)
+
+
+def _target_entropy(value: Any, where: str) -> Any:
+    if value == "auto":
+        return value
+    if isinstance(value, str):
+        fail(value, where, "'auto' or a finite number", RecipeError)
+    return number(value, where, RecipeError)
+
+
+def _train_freq(value: Any, where: str) -> Any:
+    """SAC's ``train_freq``: an integer >= 1, or ``[n, "step" | "episode"]``."""
+    if isinstance(value, list):
+        if len(value) != 2 or value[1] not in ("step", "episode"):
+            fail(value, where, 'an integer >= 1 or [n, "step" | "episode"]', RecipeError)
+        integer(value[0], f"{where}[0]", RecipeError, low=1, high=10**9)
+        return value
+    return integer(value, where, RecipeError, low=1, high=10**9)
+
+
+_NET_UNITS = 10_000
+_NET_LAYERS = 100
+
+
+def _layers(value: Any, where: str) -> None:
+    if not isinstance(value, list) or len(value) > _NET_LAYERS:
+        fail(value, where, f"a list of at most {_NET_LAYERS} layer sizes, e.g. [64, 64]", RecipeError)
+    for i, units in enumerate(value):
+        integer(units, f"{where}[{i}]", RecipeError, low=1, high=_NET_UNITS)
+
+
+def _net_arch(algo: str) -> Check:
+    heads = {"ppo": ("pi", "vf"), "sac": ("pi", "qf")}[algo]
+
+    def check(value: Any, where: str) -> Any:
+        if isinstance(value, dict):
+            as_table(value, where, RecipeError, "a table of layer lists")
+            unknown = set(value) - set(heads)
+            missing = [] if algo == "ppo" else [h for h in heads if h not in value]
+            if unknown or missing:
+                tables = " = [...], ".join(heads)
+                fail(value, where, f"a list of layer sizes or a table {{ {tables} = [...] }}", RecipeError)
+            for head, layers in value.items():
+                _layers(layers, f"{where}.{head}")
+            return value
+        _layers(value, where)
+        return value
+
+    return check
+
+
+def _activation(value: Any, where: str) -> Any:
+    if not isinstance(value, str) or value not in ACTIVATIONS:
+        fail(value, where, f"one of {', '.join(ACTIVATIONS)}", RecipeError)
+    return value
+
+
+_POLICY: dict[str, dict[str, Check]] = {
+    "ppo": {"net_arch": _net_arch("ppo"), "activation_fn": _activation, "ortho_init": _bool,
+            "log_std_init": _real(-20.0, 20.0), "full_std": _bool, "use_expln": _bool,
+            "share_features_extractor": _bool, "normalize_images": _bool},
+    "sac": {"net_arch": _net_arch("sac"), "activation_fn": _activation, "log_std_init": _real(-20.0, 20.0),
+            "use_expln": _bool, "clip_mean": _real(0.0, low_open=True), "n_critics": _integer(1, 100),
+            "share_features_extractor": _bool, "normalize_images": _bool},
+}  # fmt: skip
+"""The ``policy_kwargs`` a recipe may set, per algorithm, and their checks."""
+
+
+def _policy_kwargs(algo: str) -> Check:
+    def check(value: Any, where: str) -> Any:
+        as_table(value, where, RecipeError, "a table of policy arguments")
+        allowed = _POLICY[algo]
+        unknown = set(value) - set(allowed)
+        if unknown:
+            raise RecipeError(
+                f"{where}: unknown {algo.upper()} policy argument(s) {sorted(unknown)}; "
+                f"allowed: {', '.join(sorted(allowed))}"
+            )
+        for key, item in value.items():
+            allowed[key](item, f"{where}.{key}")
+        return value
+
+    return check
+
+
+_SHARED: dict[str, Check] = {
+    "learning_rate": _rate, "batch_size": _integer(1, 10**7), "gamma": _real(0.0, 1.0, low_open=True),
+    "use_sde": _bool, "sde_sample_freq": _integer(-1, 10**9), "stats_window_size": _integer(1, 10**6),
+}  # fmt: skip
+ARGUMENTS: dict[str, dict[str, Check]] = {
+    "ppo": {**_SHARED, "n_steps": _integer(1, 10**7), "n_epochs": _integer(1, 10**4),
+            "gae_lambda": _real(0.0, 1.0), "clip_range": _rate, "clip_range_vf": _rate,
+            "normalize_advantage": _bool, "ent_coef": _real(0.0), "vf_coef": _real(0.0),
+            "max_grad_norm": _real(0.0, low_open=True), "target_kl": _real(0.0, low_open=True),
+            "policy_kwargs": _policy_kwargs("ppo")},
+    "sac": {**_SHARED, "buffer_size": _integer(1, 10**8), "learning_starts": _integer(0, MAX_STEPS),
+            "tau": _real(0.0, 1.0, low_open=True), "train_freq": _train_freq,
+            "gradient_steps": _integer(-1, 10**6), "n_steps": _integer(1, 10**4), "ent_coef": _sac_ent_coef,
+            "target_update_interval": _integer(1, 10**9), "target_entropy": _target_entropy,
+            "use_sde_at_warmup": _bool, "policy_kwargs": _policy_kwargs("sac")},
+}  # fmt: skip
+"""The SB3 keyword arguments a recipe may set, per algorithm, each with its check of type and range.
+
+PPO: ``learning_rate`` > 0 or ``"lin_<x>"``, ``n_steps`` in [1, 1e7] (and ``n_steps * n_envs >= 2``
+and ``batch_size >= 2`` unless ``normalize_advantage = false``), ``batch_size`` in [1, 1e7],
+``n_epochs`` in [1, 1e4], ``gamma`` in (0, 1], ``gae_lambda`` in [0, 1], ``clip_range`` and
+``clip_range_vf`` > 0 or ``"lin_<x>"``, ``ent_coef`` and ``vf_coef`` >= 0, ``max_grad_norm`` and
+``target_kl`` > 0, ``sde_sample_freq`` >= -1, ``stats_window_size`` >= 1, booleans
+``normalize_advantage`` and ``use_sde``. SAC: ``buffer_size`` in [1, 1e8], ``learning_starts`` >= 0,
+``tau`` in (0, 1], ``train_freq`` >= 1 or ``[n, "step" | "episode"]``, ``gradient_steps`` >= -1,
+``n_steps`` in [1, 1e4], ``ent_coef`` >= 0 or ``"auto"``/``"auto_<x>"``, ``target_update_interval``
+>= 1, ``target_entropy`` a number or ``"auto"``, booleans ``use_sde`` and ``use_sde_at_warmup``.
+``policy_kwargs``: ``net_arch`` (lists of 1 to 10,000 units, or ``{pi, vf}`` / ``{pi, qf}``),
+``activation_fn`` (:data:`ACTIVATIONS`), ``log_std_init`` in [-20, 20], ``ortho_init``,
+``full_std`` (PPO), ``clip_mean`` > 0, ``n_critics`` in [1, 100] (SAC), ``use_expln``,
+``share_features_extractor``, ``normalize_images``.
+"""
+
+
+def algorithm_arguments(algo: str) -> tuple[str, ...]:
+    """Keyword arguments of the SB3 class that a recipe may set (:data:`ARGUMENTS`)."""
+    return tuple(ARGUMENTS[algo])
 
 
 def _check_algorithm(algo: str, table: dict[str, Any], where: str) -> tuple[dict[str, Any], str]:
-    allowed = set(algorithm_arguments(algo))
+    checks = ARGUMENTS[algo]
     kwargs = {k: v for k, v in table.items() if k != "source"}
-    unknown = set(kwargs) - allowed
+    unknown = set(kwargs) - set(checks)
     if unknown:
         raise RecipeError(
             f"{where}: unknown {algo.upper()} argument(s) {sorted(unknown)}; "
-            f"allowed: {', '.join(sorted(allowed))}"
+            f"allowed: {', '.join(sorted(checks))}"
         )
-    for key in LINEAR_SCHEDULES:
-        value = kwargs.get(key)
-        if isinstance(value, str) and not (value.startswith("lin_") and _is_number(value[4:])):
-            raise RecipeError(f"{where}.{key} = {value!r}: expected a number or 'lin_<number>'")
-    pk = kwargs.get("policy_kwargs", {})
-    if not isinstance(pk, dict):
-        raise RecipeError(f"{where}.policy_kwargs: expected a table")
-    act = pk.get("activation_fn")
-    if act is not None and act not in ACTIVATIONS:
-        raise RecipeError(
-            f"{where}.policy_kwargs.activation_fn = {act!r}: expected one of {', '.join(ACTIVATIONS)}"
-        )
+    for key, value in kwargs.items():
+        checks[key](value, f"{where}.{key}")
     source = table.get("source", "")
     if not isinstance(source, str):
         raise RecipeError(f"{where}.source: expected a string")
     return kwargs, source
 
 
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
+def check_rollout(kwargs: dict[str, Any], n_envs: int, where: str, param: str | None = None) -> None:
+    """PPO's rollout: ``n_steps * n_envs >= 2`` and ``batch_size >= 2`` (SB3 normalizes advantages).
+
+    Raises
+    ------
+    RecipeError
+        Naming ``where`` (or ``param``, the overridden ``n_envs``).
+    """
+    if not kwargs.get("normalize_advantage", True):
+        return
+    n_steps, batch = kwargs.get("n_steps", 2048), kwargs.get("batch_size", 64)
+    if n_steps * n_envs < 2:
+        expected = "a PPO rollout (n_steps * n_envs) of at least 2 steps, or normalize_advantage = false"
+        if param is not None:
+            fail(n_envs, param, f"{expected} (n_steps = {n_steps})", RecipeError, param)
+        fail(n_steps, f"{where}.n_steps", f"{expected} (n_envs = {n_envs})", RecipeError)
+    if batch < 2:
+        fail(batch, f"{where}.batch_size", "an integer >= 2 (or normalize_advantage = false)", RecipeError)
 
 
 def _coaching(data: dict[str, Any], where: str) -> Coaching:
@@ -285,26 +468,15 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
     except ScheduleError as exc:
         raise RecipeError(str(exc)) from None
     if probability.start > 1 or probability.end > 1:
-        raise RecipeError(f"{w}.probability: a probability cannot exceed 1")
+        raise RecipeError(f"{w}.probability: a probability cannot exceed 1; expected start and end in [0, 1]")
     if width.start <= 0 or width.end <= 0:
-        raise RecipeError(f"{w}.width: the factor on the region's size must be positive")
+        raise RecipeError(
+            f"{w}.width: the factor on the region's size must be positive; expected start, end > 0"
+        )
     off_after = None
     if "off_after" in c:
-        off_after = _num(c, "off_after", w)
-        if not 0.0 <= off_after <= 1.0:
-            raise RecipeError(f"{w}.off_after = {off_after}: expected a progress in [0, 1]")
-    trigger = None
-    if "trigger" in c:
-        t = _table(c, "trigger", w, {"variable", "low", "high", "steps"})
-        if not isinstance(t.get("variable"), str):
-            raise RecipeError(f"{w}.trigger.variable: expected an observation variable name")
-        try:
-            trigger = GrowthTrigger(
-                t["variable"], _num(t, "low", f"{w}.trigger", 0.0), _num(t, "high", f"{w}.trigger"),
-                _int(t, "steps", f"{w}.trigger", minimum=1),
-            )  # fmt: skip
-        except PidlabError as exc:
-            raise RecipeError(f"{w}.trigger: {exc}") from None
+        off_after = _num(c, "off_after", w, low=0.0, high=1.0)
+    trigger = _trigger(c, w) if "trigger" in c else None
     mode = _choice(c, "mode", w, MODES, "takeover")
     if trigger is not None and mode != "nudge":
         raise RecipeError(
@@ -313,14 +485,28 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
     return Coaching(
         mode=mode,
         region=_choice(c, "region", w, REGIONS, "box"),
-        nudge_steps=_int(c, "nudge_steps", w, 1, minimum=1),
-        max_coach_steps=_int(c, "max_coach_steps", w, 1000, minimum=1),
+        nudge_steps=_int(c, "nudge_steps", w, 1, low=1, high=10**6),
+        max_coach_steps=_int(c, "max_coach_steps", w, 1000, low=1, high=10**9),
         reward=_choice(c, "reward", w, REWARDS, "agent"),
         probability=probability,
         width=width,
         off_after=off_after,
         trigger=trigger,
     )
+
+
+def _trigger(c: dict[str, Any], w: str) -> GrowthTrigger:
+    """``[coaching] trigger``: a variable, a band ``0 <= low <= high`` and ``steps`` in [1, 10000]."""
+    t = _table(c, "trigger", w, {"variable", "low", "high", "steps"})
+    if not isinstance(t.get("variable"), str) or not t["variable"]:
+        raise RecipeError(f"{w}.trigger.variable: expected an observation variable name")
+    low = _num(t, "low", f"{w}.trigger", 0.0, low=0.0)
+    high = _num(t, "high", f"{w}.trigger", low=low)
+    steps = _int(t, "steps", f"{w}.trigger", low=1, high=10_000)
+    try:
+        return GrowthTrigger(t["variable"], low, high, steps)
+    except PidlabError as exc:
+        raise RecipeError(f"{w}.trigger: {exc}") from None
 
 
 _TOP = {"schema", "env_id", "description", "algo", "steps", "n_envs", "vec_env", "seed", "threads",
@@ -360,20 +546,25 @@ _PIPELINE = {"seeds", "steps", "preset", "roa_samples", "episodes"}
 def parse_pipeline(data: dict[str, Any], where: str = "recipe") -> PipelineSettings:
     """The ``[pipeline]`` table of parsed recipe TOML, with defaults for what it leaves out.
 
+    ``seeds`` in [1, 10000], ``steps`` in [1, 1e12], ``roa_samples`` in [1, 1e7], ``episodes``
+    in [0, 10000] (:data:`pidlab.controller.rollout.MAX_EPISODES`).
+
     Raises
     ------
     RecipeError
         Naming the field and what is allowed.
     """
+    data = _top(data, where)
     table = _table(data, "pipeline", where, _PIPELINE)
     w = f"{where}.pipeline"
     return PipelineSettings(
-        seeds=_int(table, "seeds", w, 3, minimum=1),
-        steps=_int(table, "steps", w, _int(data, "steps", where, 100_000, minimum=1), minimum=1),
+        seeds=_int(table, "seeds", w, 3, low=1, high=MAX_SEEDS),
+        steps=_int(table, "steps", w, _int(data, "steps", where, 100_000, low=1, high=MAX_STEPS), low=1,
+                   high=MAX_STEPS),
         preset=_choice(table, "preset", w, PRESETS, "robust"),
-        roa_samples=_int(table, "roa_samples", w, 1000, minimum=1),
-        episodes=_int(table, "episodes", w, 10, minimum=0),
-    )
+        roa_samples=_int(table, "roa_samples", w, 1000, low=1, high=10**7),
+        episodes=_int(table, "episodes", w, 10, low=0, high=MAX_EPISODES),
+    )  # fmt: skip
 
 
 def load_pipeline_settings(path: str | Path) -> PipelineSettings:
@@ -388,67 +579,95 @@ def load_pipeline_settings(path: str | Path) -> PipelineSettings:
     return parse_pipeline(data, str(path))
 
 
-def parse_recipe(data: dict[str, Any], where: str = "recipe") -> Recipe:
-    """Build a :class:`Recipe` from parsed TOML.
-
-    Raises
-    ------
-    RecipeError
-        Naming the field and what is allowed.
-    """
+def _top(data: Any, where: str) -> dict[str, Any]:
+    """The recipe's top level: a table with the schema and known fields."""
+    data = as_table(data, where, RecipeError, "a table (parsed TOML)")
     if data.get("schema") != RECIPE_SCHEMA:
-        raise RecipeError(f"{where}: schema = {data.get('schema')!r}, expected {RECIPE_SCHEMA!r}")
+        raise RecipeError(f"{where}: schema = {shown(data.get('schema'))}, expected {RECIPE_SCHEMA!r}")
     unknown = set(data) - _TOP
     if unknown:
         raise RecipeError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {', '.join(sorted(_TOP))}")
-    env_id = data.get("env_id")
-    if not isinstance(env_id, str) or not env_id:
-        raise RecipeError(f"{where}.env_id: expected a Gymnasium env id, e.g. InvertedPendulum-v5")
+    return data
+
+
+def _algorithms(data: dict[str, Any], where: str) -> tuple[dict[str, dict[str, Any]], dict[str, str], str]:
+    """The ``[ppo]``/``[sac]`` tables (checked against :data:`ARGUMENTS`), their sources, and ``algo``."""
     algorithms: dict[str, dict[str, Any]] = {}
     sources: dict[str, str] = {}
     for algo in ALGOS:
         if algo in data:
-            if not isinstance(data[algo], dict):
-                raise RecipeError(f"{where}.{algo}: expected a table of {algo.upper()} arguments")
+            as_table(data[algo], f"{where}.{algo}", RecipeError, f"a table of {algo.upper()} arguments")
             algorithms[algo], sources[algo] = _check_algorithm(algo, data[algo], f"{where}.{algo}")
     if not algorithms:
         raise RecipeError(f"{where}: no algorithm table; add [ppo] and/or [sac]")
     algo = _choice(data, "algo", where, ALGOS, next(iter(algorithms)))
     if algo not in algorithms:
         raise RecipeError(f"{where}.algo = {algo!r}, but the recipe has no [{algo}] table")
-    norm = _table(data, "normalize", where, {"obs", "reward"})
-    for key in ("obs", "reward"):
-        if not isinstance(norm.get(key, False), bool):
-            raise RecipeError(f"{where}.normalize.{key}: expected true or false")
+    return algorithms, sources, algo
+
+
+def _win(data: dict[str, Any], where: str) -> Win:
     win = _table(data, "win", where, {"target", "consecutive", "window"})
     if "target" not in win:
         raise RecipeError(f"{where}.win.target: missing; the return that counts as a win, e.g. 800")
+    return Win(
+        target=_num(win, "target", f"{where}.win"),
+        consecutive=_int(win, "consecutive", f"{where}.win", 5, low=1, high=10**6),
+        window=_int(win, "window", f"{where}.win", 20, low=1, high=10**6),
+    )
+
+
+def _evaluation(data: dict[str, Any], where: str, steps: int) -> Evaluation:
+    """``[evaluation]``: ``every`` >= 1, ``episodes`` in [1, 10000], seeds ``seed + i`` below 2**32."""
     ev = _table(data, "evaluation", where, {"every", "episodes", "seed"})
-    steps = _int(data, "steps", where, minimum=1)
+    w = f"{where}.evaluation"
+    episodes = _int(ev, "episodes", w, 10, low=1, high=10_000)
+    return Evaluation(
+        every=_int(ev, "every", w, max(steps // 20, 1), low=1, high=MAX_STEPS),
+        episodes=episodes,
+        seed=_int(ev, "seed", w, 1_000_000, low=0, high=SEED_MAX - (episodes - 1)),
+    )
+
+
+def parse_recipe(data: dict[str, Any], where: str = "recipe") -> Recipe:
+    """Build a :class:`Recipe` from parsed TOML, checking every field's type and range.
+
+    ``env_id`` follows :data:`pidlab.checks.NAME_RULE`; ``steps`` in [1, 1e12]; ``n_envs`` and
+    ``threads`` in [1, 1024]; ``seed`` in [0, 2**32 - 1]; the ``[ppo]`` and ``[sac]`` tables as
+    :data:`ARGUMENTS` says. Nothing reaches SB3 unchecked.
+
+    Raises
+    ------
+    RecipeError
+        Naming the field and what is allowed.
+    """
+    data = _top(data, where)
+    env_id = check_name(data.get("env_id"), f"{where}.env_id", RecipeError)
+    algorithms, sources, algo = _algorithms(data, where)
+    norm = _table(data, "normalize", where, {"obs", "reward"})
+    obs, reward = (
+        flag(norm.get(key, False), f"{where}.normalize.{key}", RecipeError) for key in ("obs", "reward")
+    )
+    steps = _int(data, "steps", where, low=1, high=MAX_STEPS)
+    n_envs = _int(data, "n_envs", where, 1, low=1, high=MAX_PARALLEL)
+    if "ppo" in algorithms:
+        check_rollout(algorithms["ppo"], n_envs, f"{where}.ppo")
     ck = _table(data, "checkpoint", where, {"every"})
     parse_pipeline(data, where)  # checked here so a bad [pipeline] fails wherever the recipe loads
     return Recipe(
         env_id=env_id,
-        description=str(data.get("description", "")),
+        description=text(data.get("description", ""), f"{where}.description", RecipeError),
         algo=algo,
         steps=steps,
-        n_envs=_int(data, "n_envs", where, 1, minimum=1),
+        n_envs=n_envs,
         vec_env=_choice(data, "vec_env", where, VEC_ENVS, "dummy"),
-        seed=_int(data, "seed", where, 0),
-        threads=_int(data, "threads", where, 1, minimum=1),
-        normalize_obs=bool(norm.get("obs", False)),
-        normalize_reward=bool(norm.get("reward", False)),
-        win=Win(
-            target=_num(win, "target", f"{where}.win"),
-            consecutive=_int(win, "consecutive", f"{where}.win", 5, minimum=1),
-            window=_int(win, "window", f"{where}.win", 20, minimum=1),
-        ),
-        evaluation=Evaluation(
-            every=_int(ev, "every", f"{where}.evaluation", max(steps // 20, 1), minimum=1),
-            episodes=_int(ev, "episodes", f"{where}.evaluation", 10, minimum=1),
-            seed=_int(ev, "seed", f"{where}.evaluation", 1_000_000),
-        ),
-        checkpoint_every=_int(ck, "every", f"{where}.checkpoint", max(steps // 10, 1), minimum=1),
+        seed=check_seed(data.get("seed", 0), f"{where}.seed", RecipeError),
+        threads=_int(data, "threads", where, 1, low=1, high=MAX_PARALLEL),
+        normalize_obs=obs,
+        normalize_reward=reward,
+        win=_win(data, where),
+        evaluation=_evaluation(data, where, steps),
+        checkpoint_every=_int(ck, "every", f"{where}.checkpoint", max(steps // 10, 1), low=1, high=MAX_STEPS),
         coaching=_coaching(data, where),
         algorithms=algorithms,
         sources=sources,
@@ -473,8 +692,15 @@ def recipes_dir() -> Path:
 
 
 def default_recipe_path(env_id: str) -> Path:
-    """``coach/<env_id>.toml``."""
-    return recipes_dir() / f"{env_id}.toml"
+    """``coach/<env_id>.toml``.
+
+    Raises
+    ------
+    RecipeError
+        ``env_id`` does not follow :data:`pidlab.checks.NAME_RULE` (it would leave ``coach/``).
+    """
+    check_name(env_id, "env_id", RecipeError, param="env_id")
+    return path_under(recipes_dir(), f"{env_id}.toml", error=RecipeError, param="env_id")
 
 
 def recipe_envs() -> list[str]:
@@ -494,21 +720,24 @@ def with_overrides(
     Raises
     ------
     RecipeError
-        An algorithm the recipe has no table for, or a non-positive number.
+        An algorithm the recipe has no table for, or a number out of range: ``steps`` in
+        [1, 1e12], ``seed`` in [0, 2**32 - 1], ``n_envs`` in [1, 1024] (and PPO's rollout).
     """
     if algo is not None:
         if algo not in ALGOS:
-            raise RecipeError(f"algo={algo!r}: expected one of {', '.join(ALGOS)}", param="algo")
+            raise RecipeError(f"algo={shown(algo)}: expected one of {', '.join(ALGOS)}", param="algo")
         if algo not in recipe.algorithms:
             raise RecipeError(
                 f"algo={algo!r}: the recipe {recipe.path or ''} has no [{algo}] table", param="algo"
             )
-    if steps is not None and steps < 1:
-        raise RecipeError(f"steps={steps!r}: expected a positive number of env steps", param="steps")
-    if n_envs is not None and n_envs < 1:
-        raise RecipeError(f"n_envs={n_envs!r}: expected 1 or more", param="n_envs")
-    if seed is not None and seed < 0:
-        raise RecipeError(f"seed={seed!r}: expected a non-negative integer", param="seed")
+    if steps is not None:
+        integer(steps, "steps", RecipeError, low=1, high=MAX_STEPS, param="steps")
+    if n_envs is not None:
+        integer(n_envs, "n_envs", RecipeError, low=1, high=MAX_PARALLEL, param="n_envs")
+        if "ppo" in recipe.algorithms:
+            check_rollout(recipe.algorithms["ppo"], n_envs, "ppo", param="n_envs")
+    if seed is not None:
+        check_seed(seed, "seed", RecipeError, param="seed")
     return replace(
         recipe,
         algo=algo or recipe.algo,
@@ -562,3 +791,20 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
     for algo, kwargs in recipe.algorithms.items():
         out[algo] = {"source": recipe.sources.get(algo, ""), **kwargs}
     return out
+
+
+def check_coaching(value: Any, where: str) -> None:
+    """Check fields meant to replace a recipe's ``[coaching]`` fields (a condition's ``coaching``).
+
+    Each field is checked for its type and range as :func:`parse_recipe` checks it; a
+    ``trigger`` without a ``mode`` is checked as for ``mode = "nudge"`` (the recipe may set it).
+
+    Raises
+    ------
+    RecipeError
+        Naming ``where.coaching.FIELD``.
+    """
+    fields = as_table(value, f"{where}.coaching", RecipeError, "a table of [coaching] fields of a recipe")
+    if "trigger" in fields and "mode" not in fields:
+        fields = {**fields, "mode": "nudge"}
+    _coaching({"coaching": fields}, where)

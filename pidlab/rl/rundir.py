@@ -3,8 +3,11 @@
 A run directory holds ``config.toml`` (the resolved recipe and the coach's name, source and
 digest), ``coach.toml`` (the spec), ``run.json`` (seed, command, versions, git SHA, resumes: a
 :class:`pidlab.provenance.Record`), ``episodes.csv``, ``evaluations.csv``, ``tb/``,
-``checkpoints/<env steps>/`` and, once the budget is spent, ``final_model.zip`` and
-``summary.json``. See :mod:`pidlab.rl.train`.
+``checkpoints/<env steps>/`` (the latest two) and, once the budget is spent, ``final_model.zip``
+and ``summary.json``. See :mod:`pidlab.rl.train`.
+
+Everything read back from a run directory may have been damaged since (a disk that filled up, a
+hand edit, a copy cut short): each reader here says which file is damaged, in one line.
 """
 
 from __future__ import annotations
@@ -18,9 +21,10 @@ from typing import Any
 
 import tomli_w
 
+from pidlab.checks import path_under
 from pidlab.controller.spec import CoachSpec, dumps_spec, loads_spec
-from pidlab.errors import RunDirError
-from pidlab.files import atomic_write_text, read_toml
+from pidlab.errors import CheckpointError, RunDirError
+from pidlab.files import atomic_write_text, load_json, make_folder, read_text, read_toml
 from pidlab.provenance import (
     Refusals,
     add_resume,
@@ -73,27 +77,64 @@ def read_csv_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
-def truncate_csv(path: Path, columns: tuple[str, ...], keep: int) -> None:
-    """Keep the header and the first ``keep`` complete rows of a run's CSV file (atomically).
+def _row_problem(row: list[str], columns: tuple[str, ...], index: int) -> str | None:
+    """Why ``row`` (data row ``index``) is not one pidlab wrote, or None."""
+    if len(row) != len(columns):
+        return f"{len(row)} fields, expected {len(columns)}"
+    for name, value in zip(columns, row, strict=True):
+        try:
+            for part in value.split(";") if name == "returns" else [value]:
+                float(part)
+        except ValueError:
+            return f"{name} = {value[:40]!r} is not a number"
+    if columns[0] == "episode" and row[0] != str(index):
+        return f"episode {row[0][:40]!r}, expected {index}"
+    return None
+
+
+def check_log(path: Path, columns: tuple[str, ...], keep: int) -> list[list[str]]:
+    """The first ``keep`` rows of a run's CSV log, checked: what a checkpoint recorded is there.
+
+    Rows after the first ``keep`` are not read (a row cut by a kill is harmless there).
 
     Raises
     ------
-    RunDirError
-        The file holds fewer complete rows than ``keep``.
+    CheckpointError
+        The file is missing, not text, has another header, a damaged row among the first
+        ``keep``, or fewer rows than that; the message names it.
     """
-    rows: list[list[str]] = []
-    if path.exists():
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.reader(fh)
-            next(reader, None)
-            for row in reader:
-                if len(rows) >= keep:
-                    break
-                if len(row) == len(columns):
-                    rows.append(row)
+    if keep == 0:
+        return []  # nothing recorded, nothing to check
+    if not path.exists():
+        raise CheckpointError(f"{path}: missing; the checkpoint recorded {keep} rows")
+    lines = read_text(path, "run log", CheckpointError).splitlines()
+    try:
+        parsed = list(csv.reader(lines[: keep + 1]))
+    except csv.Error as exc:
+        raise CheckpointError(f"{path}: damaged ({exc})") from None
+    if not parsed or tuple(parsed[0]) != columns:
+        raise CheckpointError(f"{path}: damaged (its first line is not the header {','.join(columns)})")
+    rows = parsed[1:]
+    for i, row in enumerate(rows):
+        problem = _row_problem(row, columns, i)
+        if problem is not None:
+            raise CheckpointError(
+                f"{path}: row {i + 1} is damaged ({problem}); the checkpoint recorded {keep}"
+            )
     if len(rows) < keep:
-        raise RunDirError(f"{path}: holds {len(rows)} complete rows, the checkpoint recorded {keep}")
-    atomic_write_text(path, _csv_text(columns, rows))
+        raise CheckpointError(f"{path}: holds {len(rows)} complete rows, the checkpoint recorded {keep}")
+    return rows
+
+
+def truncate_csv(path: Path, columns: tuple[str, ...], keep: int) -> None:
+    """Keep the header and the first ``keep`` rows of a run's CSV file (checked; written atomically).
+
+    Raises
+    ------
+    CheckpointError
+        As :func:`check_log`; nothing is written then.
+    """
+    atomic_write_text(path, _csv_text(columns, check_log(path, columns, keep)))
 
 
 def _fmt(value: Any) -> str:
@@ -128,13 +169,62 @@ class CsvLog:
         self.fh.close()
 
 
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    """The newest complete checkpoint folder (one with ``state.json``), or None."""
+def is_checkpoint_name(name: str) -> bool:
+    """Whether ``name`` is a checkpoint folder's (its env steps, 12 digits)."""
+    return len(name) == 12 and name.isdigit()
+
+
+def checkpoint_folders(run_dir: Path) -> list[Path]:
+    """The run's complete checkpoints (folders with ``state.json``), oldest first."""
     folder = run_dir / "checkpoints"
     if not folder.is_dir():
-        return None
-    done = sorted(p for p in folder.iterdir() if p.is_dir() and (p / "state.json").exists())
+        return []
+    return sorted(
+        p
+        for p in folder.iterdir()
+        if is_checkpoint_name(p.name) and p.is_dir() and (p / "state.json").exists()
+    )
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    """The newest complete checkpoint folder (one with ``state.json``), or None."""
+    done = checkpoint_folders(run_dir)
     return done[-1] if done else None
+
+
+STATE_KEYS = ("env_steps", "agent_steps", "coach_steps", "interventions", "episodes", "evaluations",
+              "next_evaluation", "next_checkpoint", "resumes", "num_timesteps")  # fmt: skip
+"""The counters a checkpoint's ``state.json`` holds (``pidlab.rl.train.Counters`` and SB3's)."""
+
+
+def read_state(checkpoint: Path) -> dict[str, int]:
+    """A checkpoint's ``state.json``, checked: non-negative integer counters that agree.
+
+    Raises
+    ------
+    CheckpointError
+        The file is missing, damaged (cut short, not JSON), or its counters are not what a
+        checkpoint records (missing, not integers, ``env_steps`` not agent + coach steps, or not
+        the folder's name); the message names it.
+    """
+    path = checkpoint / "state.json"
+    data = load_json(path, "checkpoint state", CheckpointError)
+    if not isinstance(data, dict):
+        raise CheckpointError(f"{path}: damaged (not a JSON object)")
+    state: dict[str, int] = {}
+    for key in STATE_KEYS:
+        value = data.get(key, 0)
+        if type(value) is not int or value < 0:
+            raise CheckpointError(f"{path}: damaged ({key} = {value!r}, expected an integer >= 0)")
+        state[key] = value
+    for key in ("env_steps", "episodes", "evaluations", "num_timesteps"):
+        if key not in data:
+            raise CheckpointError(f"{path}: damaged (no {key})")
+    if "agent_steps" in data and state["env_steps"] != state["agent_steps"] + state["coach_steps"]:
+        raise CheckpointError(f"{path}: damaged (env_steps is not agent_steps + coach_steps)")
+    if is_checkpoint_name(checkpoint.name) and int(checkpoint.name) != state["env_steps"]:
+        raise CheckpointError(f"{path}: damaged (env_steps {state['env_steps']} in folder {checkpoint.name})")
+    return state
 
 
 def spec_digest(spec: CoachSpec) -> str:
@@ -162,23 +252,46 @@ def load_run_config(run_dir: str | Path) -> tuple[Recipe, CoachSpec | None, dict
     Raises
     ------
     RunDirError
-        Not a run directory.
+        Not a run directory, or its ``config.toml`` / ``coach.toml`` is damaged (the message
+        names the file).
+    RecipeError, SpecError
+        The recipe or spec in it is malformed.
     """
     run_dir = Path(run_dir)
     path = run_dir / "config.toml"
-    if not path.exists():
+    if not path.is_file():
         raise RunDirError(f"{run_dir}: not a pidlab run directory (no config.toml)")
     config = read_toml(path, "run config", RunDirError)
-    recipe = parse_recipe(config["recipe"], f"{path}:recipe")
+    table, coach = config.get("recipe"), config.get("coach", {"name": "none"})
+    if not isinstance(table, dict):
+        raise RunDirError(f"{path}: damaged (no [recipe] table; pidlab writes one in every run's config)")
+    if not isinstance(coach, dict) or not isinstance(coach.get("name", "none"), str):
+        raise RunDirError(f"{path}: damaged ([coach] is not a table with a name)")
+    recipe = parse_recipe(table, f"{path}:recipe")
     spec_path = run_dir / "coach.toml"
-    spec = loads_spec(spec_path.read_text(encoding="utf-8"), str(spec_path)) if spec_path.exists() else None
+    coached = coach.get("name", "none") != "none"
+    if coached and not spec_path.is_file():
+        raise RunDirError(f"{spec_path}: missing; the run was coached by {coach['name']!r} (see {path})")
+    if "coach" in config and not coached and spec_path.exists():
+        raise RunDirError(
+            f"{spec_path}: the run was not coached (see {path}); remove the file or start a new run"
+        )
+    spec = None
+    if spec_path.exists():
+        spec = loads_spec(read_text(spec_path, "run's coach spec", RunDirError), str(spec_path))
     return recipe, spec, config
 
 
 def default_run_dir(recipe: Recipe, spec: CoachSpec | None, root: str | Path = "runs") -> Path:
-    """``runs/<env>/<coach>-<algo>-seed<seed>``."""
+    """``runs/<env>/<coach>-<algo>-seed<seed>``, checked to stay under ``root``.
+
+    Raises
+    ------
+    RunDirError
+        The env id or the spec's name would leave ``root`` (see :func:`pidlab.checks.path_under`).
+    """
     coach = spec.name if spec is not None else "none"
-    return Path(root) / recipe.env_id / f"{coach}-{recipe.algo}-seed{recipe.seed}"
+    return path_under(root, recipe.env_id, f"{coach}-{recipe.algo}-seed{recipe.seed}", error=RunDirError)
 
 
 RUN_SCHEMA = "pidlab.run/1"
@@ -194,6 +307,21 @@ def _refusals(run_dir: Path) -> Refusals:
     )
 
 
+def check_new_run_dir(run_dir: Path) -> None:
+    """Refuse a ``run_dir`` that cannot hold a new run (nothing is written).
+
+    Raises
+    ------
+    RunDirError
+        ``run_dir`` exists and is not empty, or is a file.
+    OutputError
+        ``run_dir`` cannot be created or written.
+    """
+    refusals = _refusals(run_dir)
+    if check_folder(run_dir, "run.json", RUN_SCHEMA, None, refusals, RunDirError, "run_dir") is not None:
+        raise RunDirError(refusals.not_ours)  # a run is resumed with resume(), never started again
+
+
 def prepare_run_dir(
     run_dir: Path, recipe: Recipe, spec: CoachSpec | None, coach_source: str | None, argv: list[str] | None
 ) -> None:
@@ -204,10 +332,8 @@ def prepare_run_dir(
     RunDirError
         ``run_dir`` exists and is not empty, or is a file (nothing is overwritten).
     """
-    refusals = _refusals(run_dir)
-    if check_folder(run_dir, "run.json", RUN_SCHEMA, None, refusals, RunDirError) is not None:
-        raise RunDirError(refusals.not_ours)  # a run is resumed with resume(), never started again
-    run_dir.mkdir(parents=True, exist_ok=True)
+    check_new_run_dir(run_dir)
+    make_folder(run_dir)
     atomic_write_text(run_dir / "config.toml", tomli_w.dumps(config_dict(recipe, spec, coach_source)))
     if spec is not None:
         atomic_write_text(run_dir / "coach.toml", dumps_spec(spec))
@@ -217,8 +343,12 @@ def prepare_run_dir(
     write_record(run_dir / "run.json", record)
 
 
-def record_resume(run_dir: Path, argv: list[str] | None, from_env_steps: int, budget_env_steps: int) -> None:
+def record_resume(
+    run_dir: Path, argv: list[str] | None, from_env_steps: int, budget_env_steps: int, **extra: Any
+) -> None:
     """Add a resume (now, the command, versions, git state, where it resumed) to ``run.json``.
+
+    ``extra`` goes into the entry too (e.g. ``damaged_checkpoints``: those a resume fell back from).
 
     Raises
     ------
@@ -228,7 +358,9 @@ def record_resume(run_dir: Path, argv: list[str] | None, from_env_steps: int, bu
     path = run_dir / "run.json"
     record = read_record(path, RUN_SCHEMA, RunDirError)
     command = argv if argv is not None else sys.argv
-    resumed = add_resume(record, command, from_env_steps=from_env_steps, budget_env_steps=budget_env_steps)
+    resumed = add_resume(
+        record, command, from_env_steps=from_env_steps, budget_env_steps=budget_env_steps, **extra
+    )
     write_record(path, resumed)
 
 

@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from pidlab.checks import number, shown
 from pidlab.errors import ScheduleError
 
 SHAPES = ("constant", "linear", "cosine", "exponential", "step")
@@ -39,9 +40,15 @@ class Schedule:
     ----------
     shape : {"constant", "linear", "cosine", "exponential", "step"}
     start, end : float
-        Values before ``begin`` and after ``finish``.
+        Values before ``begin`` and after ``finish``: finite, >= 0.
     begin, finish : float
         Training progress (fraction of the budget, in [0, 1]) where the change starts and ends.
+
+    Raises
+    ------
+    ScheduleError
+        A shape not in :data:`SHAPES`, a value that is not a finite number in its range (a bool
+        is not a number), ``begin > finish``, or an exponential schedule with a zero end.
     """
 
     shape: str = "constant"
@@ -51,18 +58,20 @@ class Schedule:
     finish: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.shape not in SHAPES:
-            raise ScheduleError(f"schedule shape {self.shape!r}: expected one of {', '.join(SHAPES)}")
-        for name in ("start", "end", "begin", "finish"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ScheduleError(f"schedule {name} = {value!r}: expected a finite number")
-        if not 0.0 <= self.begin <= self.finish <= 1.0:
+        if not isinstance(self.shape, str) or self.shape not in SHAPES:
+            raise ScheduleError(f"schedule shape {shown(self.shape)}: expected one of {', '.join(SHAPES)}")
+        for name in ("start", "end"):
+            object.__setattr__(
+                self, name, number(getattr(self, name), f"schedule {name}", ScheduleError, low=0.0)
+            )
+        for name in ("begin", "finish"):
+            object.__setattr__(
+                self, name, number(getattr(self, name), f"schedule {name}", ScheduleError, low=0.0, high=1.0)
+            )
+        if not self.begin <= self.finish:
             raise ScheduleError(
                 f"schedule begin = {self.begin}, finish = {self.finish}: expected 0 <= begin <= finish <= 1"
             )
-        if self.start < 0 or self.end < 0:
-            raise ScheduleError(f"schedule start = {self.start}, end = {self.end}: expected values >= 0")
         if self.shape == "exponential" and not (self.start > 0 and self.end > 0):
             raise ScheduleError("an exponential schedule needs start > 0 and end > 0")
 
@@ -93,17 +102,18 @@ def parse_schedule(data: Any, where: str) -> Schedule:
         Naming ``where`` and what was expected.
     """
     if isinstance(data, (int, float)) and not isinstance(data, bool):
-        return Schedule("constant", float(data), float(data))
-    if not isinstance(data, dict):
-        raise ScheduleError(f"{where}: expected a number or a table with {', '.join(FIELDS)}")
+        value = number(data, where, ScheduleError, low=0.0)
+        return Schedule("constant", value, value)
+    if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
+        raise ScheduleError(
+            f"{where} = {shown(data)}: expected a number >= 0 or a table with {', '.join(FIELDS)}"
+        )
     unknown = set(data) - set(FIELDS)
     if unknown:
         raise ScheduleError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {', '.join(FIELDS)}")
     try:
         return Schedule(**data)
     except ScheduleError as exc:
-        raise ScheduleError(f"{where}: {exc}") from None
-    except TypeError as exc:  # pragma: no cover - guarded by the unknown-field check
         raise ScheduleError(f"{where}: {exc}") from None
 
 

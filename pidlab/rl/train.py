@@ -13,15 +13,21 @@ A run directory holds::
     episodes.csv         one row per finished training episode
     evaluations.csv      one row per agent-alone evaluation (coach off, fixed seeds)
     tb/                  TensorBoard: pidlab's scalars (x = env steps), tb/sb3: SB3's (x = agent steps)
-    checkpoints/<env steps>/   model.zip, vecnormalize.pkl, replay_buffer.pkl (SAC), state.json
+    checkpoints/<env steps>/   the latest two: model.zip, vecnormalize.pkl, replay_buffer.pkl (SAC),
+                               state.json (written last: a folder without it is incomplete)
     final_model.zip      (and final_vecnormalize.pkl) when the budget is spent
     summary.json         totals, final evaluation, wall time
 
 :mod:`pidlab.rl.rundir` writes and reads these files. :func:`resume` continues from the newest
-complete checkpoint: the CSV files are cut back to the rows that checkpoint had recorded (so no
-episode is lost or logged twice), the model, normalization statistics and replay buffer are
-reloaded, and the envs start fresh episodes. Episodes in progress at the checkpoint are not
-logged (their env steps stay counted). SIGINT/SIGTERM stop at the next step with a checkpoint.
+checkpoint that loads (:func:`load_checkpoint` checks every file of it): the CSV files are cut
+back to the rows that checkpoint had recorded (so no episode is lost or logged twice), the model,
+normalization statistics and replay buffer are reloaded, and the envs start fresh episodes.
+Episodes in progress at the checkpoint are not logged (their env steps stay counted). When the
+latest checkpoint is damaged, a resume says so in one warning line, falls back to the previous
+one and records that in ``run.json``; when no checkpoint loads, it refuses and changes nothing.
+Every resume reads and checks everything before it writes anything. SIGINT/SIGTERM stop at the
+next step with a checkpoint. :func:`train` and :func:`resume` hold the run directory's lock
+(:func:`pidlab.provenance.hold_lock`) from start to end: a second command on it is refused.
 """
 
 from __future__ import annotations
@@ -31,6 +37,8 @@ import signal
 import sys
 import threading
 import time
+import warnings
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -41,20 +49,26 @@ import numpy as np
 import tomli_w
 
 from pidlab.controller.spec import CoachSpec
-from pidlab.files import atomic_write_bytes, atomic_write_text, read_json, write_json
+from pidlab.errors import CheckpointError
+from pidlab.files import atomic_write_bytes, atomic_write_text, check_output_folder, load_json, write_json
+from pidlab.provenance import hold_lock, read_record
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, sb3_policy
-from pidlab.rl.recipe import LINEAR_SCHEDULES, Recipe
+from pidlab.rl.recipe import LINEAR_SCHEDULES, Recipe, recipe_to_dict
 from pidlab.rl.rundir import (
     EPISODE_COLUMNS,
     EVALUATION_COLUMNS,
+    RUN_SCHEMA,
     CsvLog,
     RunDirError,
-    config_dict,
+    check_log,
+    check_new_run_dir,
+    checkpoint_folders,
     evaluated_at,
-    latest_checkpoint,
+    is_checkpoint_name,
     load_run_config,
     prepare_run_dir,
+    read_state,
     record_resume,
     truncate_csv,
 )
@@ -197,6 +211,143 @@ def _algorithm_class(algo: str) -> Any:
     from stable_baselines3 import PPO, SAC
 
     return {"ppo": PPO, "sac": SAC}[algo]
+
+
+def _new_model(recipe: Recipe, venv: Any) -> Any:
+    """A new agent of ``recipe`` on ``venv``."""
+    cls = _algorithm_class(recipe.algo)
+    return cls("MlpPolicy", venv, seed=recipe.seed, device="cpu", verbose=0, **sb3_arguments(recipe))
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+WRITING = ".writing"
+"""The folder a checkpoint is written into before it is renamed into place."""
+REPLACED = ".replaced"
+"""Where a checkpoint of the same env step waits while its successor is renamed into place."""
+
+
+def _reason(exc: BaseException) -> str:
+    """An exception as a short reason on one line."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 160 else text[:157] + "..."
+
+
+def _load_part(path: Path, load: Callable[[Path], Any]) -> Any:
+    """``load(path)``: a missing or damaged file becomes a :class:`CheckpointError` naming it."""
+    if not path.is_file():
+        raise CheckpointError(f"{path}: missing")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # SB3 warns, then fails, on a damaged file
+            return load(path)
+    except Exception as exc:  # SB3, torch, pickle and zipfile raise many kinds on a damaged file
+        raise CheckpointError(f"{path}: damaged ({_reason(exc)})") from None
+
+
+def _check_zip(path: Path) -> None:
+    """A zip archive whose every member reads back (its CRC checks)."""
+
+    def test(p: Path) -> str | None:
+        with zipfile.ZipFile(p) as archive:
+            return archive.testzip()
+
+    bad = _load_part(path, test)
+    if bad is not None:
+        raise CheckpointError(f"{path}: damaged ({bad} in it fails its CRC check)")
+
+
+def load_checkpoint(checkpoint: Path, recipe: Recipe, venv: Any) -> tuple[Any, Any, dict[str, int]]:
+    """Load a checkpoint of a run: the one place that recognizes a damaged one.
+
+    Parameters
+    ----------
+    checkpoint : Path
+        ``RUN/checkpoints/<env steps>``.
+    recipe : Recipe
+        The run's recipe (which algorithm, whether observations are normalized).
+    venv : VecEnv
+        New training envs of the run (:func:`make_vec_env`); not changed.
+
+    Returns
+    -------
+    model, venv, state
+        The agent (its replay buffer loaded, for SAC), the envs with the checkpoint's
+        normalization statistics, and the counters of ``state.json``.
+
+    Raises
+    ------
+    CheckpointError
+        One line naming the file that is missing or damaged: ``state.json`` (cut short, not JSON,
+        counters that disagree), ``model.zip`` (not a zip, truncated, a member that fails its CRC,
+        not this run's agent or not at the state's step), ``vecnormalize.pkl`` or
+        ``replay_buffer.pkl`` (does not unpickle, or not for these envs).
+    """
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    state = read_state(checkpoint)
+    _check_zip(checkpoint / "model.zip")
+    if isinstance(venv, VecNormalize):
+        inner = venv.venv
+        venv = _load_part(checkpoint / "vecnormalize.pkl", lambda p: VecNormalize.load(str(p), inner))
+        venv.training = True
+    cls = _algorithm_class(recipe.algo)
+    model = _load_part(checkpoint / "model.zip", lambda p: cls.load(p, env=venv, device="cpu"))
+    if int(model.num_timesteps) != state["num_timesteps"]:
+        raise CheckpointError(
+            f"{checkpoint / 'model.zip'}: damaged (an agent of {model.num_timesteps} agent steps; "
+            f"state.json says {state['num_timesteps']})"
+        )
+    if isinstance(model, OffPolicyAlgorithm):
+        _load_part(checkpoint / "replay_buffer.pkl", model.load_replay_buffer)
+    return model, venv, state
+
+
+@dataclass(frozen=True)
+class _Restored:
+    """Where a resume continues: the checkpoint that loaded (None: from scratch) and those skipped."""
+
+    model: Any
+    venv: Any
+    checkpoint: Path | None
+    state: dict[str, int] | None
+    damaged: tuple[tuple[Path, str], ...]
+
+
+def _restore(run_dir: Path, recipe: Recipe, venv: Any) -> _Restored:
+    """The newest checkpoint that loads and agrees with the CSV logs; nothing is written.
+
+    Raises
+    ------
+    RunDirError
+        Checkpoints exist and none of them loads.
+    """
+    damaged: list[tuple[Path, str]] = []
+    for checkpoint in reversed(checkpoint_folders(run_dir)):
+        try:
+            state = read_state(checkpoint)
+            check_log(run_dir / "episodes.csv", EPISODE_COLUMNS, state["episodes"])
+            check_log(run_dir / "evaluations.csv", EVALUATION_COLUMNS, state["evaluations"])
+            model, loaded, state = load_checkpoint(checkpoint, recipe, venv)
+        except CheckpointError as exc:
+            damaged.append((checkpoint, str(exc)))
+            continue
+        return _Restored(model, loaded, checkpoint, state, tuple(damaged))
+    if len(damaged) == 1:
+        raise RunDirError(
+            f"{run_dir}: cannot resume: {damaged[0][1]}; there is no earlier checkpoint to fall back to. "
+            "Nothing was changed"
+        )
+    if damaged:
+        reasons = "; ".join(reason for _, reason in damaged)
+        raise RunDirError(f"{run_dir}: cannot resume: no checkpoint loads ({reasons}). Nothing was changed")
+    return _Restored(_new_model(recipe, venv), venv, None, None, ())
+
+
+def _warn(message: str) -> None:
+    """One warning line on stderr (the command goes on)."""
+    print(f"pidlab: warning: {message}", file=sys.stderr, flush=True)
 
 
 # --------------------------------------------------------------------------- the callback
@@ -403,16 +554,37 @@ class _Trainer:
         return self.checkpoint()
 
     def checkpoint(self) -> Path:
-        from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-        from stable_baselines3.common.vec_env import VecNormalize
+        """Write a checkpoint at the current env step; keep it and the one before, remove older ones.
 
+        It is written into ``checkpoints/.writing`` and renamed into place once complete, so a
+        kill leaves the checkpoints that were there (and at worst a partial folder, ignored).
+        """
         c = self.counters
         every = self.recipe.checkpoint_every
         c.next_checkpoint = (c.env_steps // every + 1) * every
-        folder = self.run_dir / "checkpoints" / f"{c.env_steps:012d}"
-        if folder.exists():
-            shutil.rmtree(folder)
-        folder.mkdir(parents=True)
+        root = self.run_dir / "checkpoints"
+        folder = root / f"{c.env_steps:012d}"
+        writing = root / WRITING
+        shutil.rmtree(writing, ignore_errors=True)
+        writing.mkdir(parents=True)
+        self._save(writing)
+        if folder.exists():  # a checkpoint of this very step (a resume that took no step): replaced
+            replaced = root / REPLACED
+            shutil.rmtree(replaced, ignore_errors=True)
+            folder.rename(replaced)
+        writing.rename(folder)
+        earlier = [p for p in checkpoint_folders(self.run_dir) if p.name < folder.name]
+        keep = {folder, *earlier[-1:]}
+        for old in root.iterdir():
+            if old not in keep and old.is_dir():
+                shutil.rmtree(old, ignore_errors=True)
+        return folder
+
+    def _save(self, folder: Path) -> None:
+        """The model, statistics, replay buffer and counters into ``folder`` (``state.json`` last)."""
+        from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+        from stable_baselines3.common.vec_env import VecNormalize
+
         self.model.save(folder / "model.zip")
         if isinstance(self.venv, VecNormalize):
             self.venv.save(str(folder / "vecnormalize.pkl"))
@@ -421,12 +593,8 @@ class _Trainer:
         self.episodes_log.sync()
         self.evaluations_log.sync()
         self.tb.flush()
-        state = {**c.to_dict(), "num_timesteps": int(self.model.num_timesteps)}
+        state = {**self.counters.to_dict(), "num_timesteps": int(self.model.num_timesteps)}
         write_json(folder / "state.json", state)  # written last: marks the checkpoint complete
-        for old in (self.run_dir / "checkpoints").iterdir():
-            if old != folder:
-                shutil.rmtree(old, ignore_errors=True)
-        return folder
 
     def _bar_update(self) -> None:
         if self.bar is None or self.bar.disable:
@@ -492,18 +660,31 @@ def train(
     Raises
     ------
     RunDirError
-        ``run_dir`` exists and is not empty.
+        ``run_dir`` exists and is not empty, or another command is working in it. Every input
+        is checked (the coach runs on the env, SB3 accepts the agent's settings) before the
+        first file is written.
     """
     run_dir = Path(run_dir)
     EnvFactory(recipe.env_id, spec, recipe)().close()  # a coach that cannot run fails here, before any file
-    prepare_run_dir(run_dir, recipe, spec, coach_source, argv)
-    return _run(recipe, spec, run_dir, None, progress_bar)
+    check_new_run_dir(run_dir)
+
+    def start(venv: Any) -> tuple[Any, Any, dict[str, int] | None]:
+        model = _new_model(recipe, venv)  # bad agent settings fail here, before any file
+        prepare_run_dir(run_dir, recipe, spec, coach_source, argv)
+        return model, venv, None
+
+    with hold_lock(run_dir, RunDirError):
+        return _run(recipe, spec, run_dir, progress_bar, start)
 
 
 def resume(
     run_dir: str | Path, *, steps: int | None = None, progress_bar: bool = True, argv: list[str] | None = None
 ) -> TrainResult:
-    """Continue the run in ``run_dir`` from its newest complete checkpoint.
+    """Continue the run in ``run_dir`` from its newest checkpoint that loads.
+
+    Everything is read and checked first (the run's config, spec and record, the checkpoint and
+    the CSV logs); only then is anything written. A damaged latest checkpoint is reported in one
+    warning line and the previous one is used (the fallback is recorded in ``run.json``).
 
     Parameters
     ----------
@@ -521,100 +702,104 @@ def resume(
     Raises
     ------
     RunDirError
-        Not a run directory, or ``steps`` below what the run has already done.
+        Not a run directory, a damaged file in it (named), no checkpoint that loads, ``steps``
+        below what the run has already done, or another command working in it. Nothing is
+        changed then.
     """
     run_dir = Path(run_dir)
+    if steps is not None and (type(steps) is not int or steps < 1):
+        raise RunDirError(f"steps={steps!r}: expected a positive number of env steps", param="steps")
+    load_run_config(run_dir)  # not a run: refused before its lock is taken
+    check_output_folder(run_dir)  # a read-only run: refused before the first write, not during
+    with hold_lock(run_dir, RunDirError):
+        return _resume(run_dir, steps, progress_bar, argv)
+
+
+def _finished(run_dir: Path, budget: int) -> TrainResult | None:
+    """The result in ``summary.json`` when it says the run spent ``budget``; a damaged one is ignored."""
+    path = run_dir / "summary.json"
+    if not path.exists():
+        return None
+    try:
+        done = load_json(path, "run summary", RunDirError)
+        if not (isinstance(done, dict) and done.get("completed") and int(done.get("env_steps", 0)) >= budget):
+            return None
+        return _result_from_summary(run_dir, done)
+    except (RunDirError, KeyError, TypeError, ValueError) as exc:
+        _warn(f"{path}: damaged ({_reason(exc)}); ignored, it is written again at the end")
+        return None
+
+
+def _resume(run_dir: Path, steps: int | None, progress_bar: bool, argv: list[str] | None) -> TrainResult:
+    """:func:`resume`, holding the lock."""
     recipe, spec, config = load_run_config(run_dir)
-    if steps is not None:
-        if steps < 1:
-            raise RunDirError(f"--steps {steps}: expected a positive number of env steps")
-        recipe = replace(recipe, steps=steps)
-    summary_path = run_dir / "summary.json"
-    if summary_path.exists():
-        done = read_json(summary_path)
-        if done.get("completed") and int(done.get("env_steps", 0)) >= recipe.steps:
-            return _result_from_summary(run_dir, done)
-    checkpoint = latest_checkpoint(run_dir)
-    if (run_dir / "checkpoints").is_dir():
-        for partial in (run_dir / "checkpoints").iterdir():
-            if partial != checkpoint:  # an unfinished checkpoint from the kill
-                shutil.rmtree(partial, ignore_errors=True)
-    state = read_json(checkpoint / "state.json") if checkpoint else None
-    if state is not None and steps is not None and steps < int(state["env_steps"]):
-        raise RunDirError(f"--steps {steps}: the run has already done {state['env_steps']} env steps")
-    truncate_csv(run_dir / "episodes.csv", EPISODE_COLUMNS, int(state["episodes"]) if state else 0)
-    truncate_csv(run_dir / "evaluations.csv", EVALUATION_COLUMNS, int(state["evaluations"]) if state else 0)
-    record_resume(run_dir, argv, int(state["env_steps"]) if state else 0, recipe.steps)
-    coach = config.get("coach", {})
-    atomic_write_text(run_dir / "config.toml", tomli_w.dumps(config_dict(recipe, spec, coach.get("source"))))
-    summary_path.unlink(missing_ok=True)
-    return _run(recipe, spec, run_dir, (checkpoint, state) if checkpoint and state else None, progress_bar)
+    read_record(run_dir / "run.json", RUN_SCHEMA, RunDirError)
+    asked = recipe if steps is None else replace(recipe, steps=steps)
+    done = _finished(run_dir, asked.steps)
+    if done is not None:
+        return done
+
+    def start(venv: Any) -> tuple[Any, Any, dict[str, int] | None]:
+        r = _restore(run_dir, recipe, venv)
+        if r.state is not None and steps is not None and steps < r.state["env_steps"]:
+            raise RunDirError(
+                f"steps={steps}: the run has already done {r.state['env_steps']} env steps", param="steps"
+            )
+        _commit_resume(run_dir, config, asked, r, argv)
+        return r.model, r.venv, r.state
+
+    return _run(asked, spec, run_dir, progress_bar, start)
+
+
+def _commit_resume(run_dir: Path, config: dict[str, Any], recipe: Recipe, r: _Restored,
+                   argv: list[str] | None) -> None:  # fmt: skip
+    """The writes of a resume, once everything was checked: cut back to ``r``'s checkpoint, record it."""
+    at = r.state["env_steps"] if r.state is not None else 0
+    for checkpoint, reason in r.damaged:
+        _warn(f"{reason}; resuming from the checkpoint at {at} env steps instead of {int(checkpoint.name)}")
+    root = run_dir / "checkpoints"
+    if root.is_dir():  # damaged checkpoints and partial ones (a kill while writing) go
+        for entry in root.iterdir():
+            kept = (
+                r.checkpoint is not None
+                and is_checkpoint_name(entry.name)
+                and entry.name <= r.checkpoint.name
+            )
+            if entry.is_dir() and not kept:
+                shutil.rmtree(entry, ignore_errors=True)
+    truncate_csv(run_dir / "episodes.csv", EPISODE_COLUMNS, r.state["episodes"] if r.state else 0)
+    truncate_csv(run_dir / "evaluations.csv", EVALUATION_COLUMNS, r.state["evaluations"] if r.state else 0)
+    if config["recipe"].get("steps") != recipe.steps:  # a new budget: the config says so
+        atomic_write_text(
+            run_dir / "config.toml", tomli_w.dumps({**config, "recipe": recipe_to_dict(recipe)})
+        )
+    (run_dir / "summary.json").unlink(missing_ok=True)
+    damaged = [{"env_steps": int(p.name), "reason": reason} for p, reason in r.damaged]
+    extra = {"damaged_checkpoints": damaged} if damaged else {}
+    record_resume(run_dir, argv, at, recipe.steps, **extra)
+
+
+Start = Callable[[Any], tuple[Any, Any, dict[str, int] | None]]
+"""Given new training envs: the agent, the envs to train on and the checkpoint's counters (None:
+a new start). Everything is checked before it writes the run's first files of this session."""
 
 
 def _run(
-    recipe: Recipe,
-    spec: CoachSpec | None,
-    run_dir: Path,
-    restart: tuple[Path, dict[str, Any]] | None,
-    progress_bar: bool,
+    recipe: Recipe, spec: CoachSpec | None, run_dir: Path, progress_bar: bool, start: Start
 ) -> TrainResult:
     import torch
-    from stable_baselines3.common.vec_env import VecNormalize
-    from tqdm.auto import tqdm
 
     started = time.perf_counter()
     torch.set_num_threads(recipe.threads)
     trainer = _Trainer(recipe, spec, run_dir, progress_bar)
-    cls = _algorithm_class(recipe.algo)
     c = trainer.counters
     try:
         trainer.venv = make_vec_env(recipe, spec)
-        if restart is not None:
-            checkpoint, state = restart
-            for key in c.to_dict():
-                setattr(c, key, int(state.get(key, 0)))
-            c.resumes += 1
-            if isinstance(trainer.venv, VecNormalize):
-                trainer.venv = VecNormalize.load(str(checkpoint / "vecnormalize.pkl"), trainer.venv.venv)
-                trainer.venv.training = True
-            model = cls.load(checkpoint / "model.zip", env=trainer.venv, device="cpu")
-            if (checkpoint / "replay_buffer.pkl").exists():
-                model.load_replay_buffer(checkpoint / "replay_buffer.pkl")
-            model._last_obs = None  # the envs are new: start fresh episodes
-            # a resumed run is reproducible too: its seed depends on where it resumed
-            model.set_random_seed(recipe.seed + 7919 * c.resumes + c.agent_steps)
-            trainer.open_logs(purge_env_step=c.env_steps, purge_agent_step=int(state["num_timesteps"]))
-        else:
-            model = cls(
-                "MlpPolicy", trainer.venv, seed=recipe.seed, device="cpu", verbose=0, **sb3_arguments(recipe)
-            )
-            c.next_checkpoint = recipe.checkpoint_every
-            trainer.open_logs(purge_env_step=None, purge_agent_step=None)
-        model.set_logger(trainer.sb3_logger)
+        model, trainer.venv, state = start(trainer.venv)
         trainer.model = model
-        stopped = False
-        if c.env_steps < recipe.steps:
-            coach = spec.name if spec is not None else "uncoached"
-            with (
-                _Stop() as stop,
-                tqdm(
-                    total=recipe.steps,
-                    initial=c.env_steps,
-                    desc=f"{recipe.env_id} {coach} {recipe.algo} seed {recipe.seed}",
-                    unit="step",
-                    disable=not progress_bar,
-                    dynamic_ncols=True,
-                ) as bar,
-            ):
-                trainer.stop = stop
-                trainer.bar = bar
-                model.learn(
-                    total_timesteps=max(recipe.steps - int(model.num_timesteps), 1),
-                    callback=_make_callback(trainer),
-                    reset_num_timesteps=restart is None,
-                    progress_bar=False,
-                )
-                stopped = stop.requested
+        _set_counters(trainer, state)
+        model.set_logger(trainer.sb3_logger)
+        stopped = _learn(trainer, resumed=state is not None) if c.env_steps < recipe.steps else False
         completed = not stopped and c.env_steps >= recipe.steps
         if completed:
             if not evaluated_at(run_dir, c.env_steps):
@@ -629,6 +814,50 @@ def _run(
         )  # fmt: skip
     finally:
         trainer.close()
+
+
+def _set_counters(trainer: _Trainer, state: dict[str, int] | None) -> None:
+    """Counters, seed and logs of a new start (``state`` None) or of a resume from a checkpoint."""
+    c, recipe = trainer.counters, trainer.recipe
+    if state is None:
+        c.next_checkpoint = recipe.checkpoint_every
+        trainer.open_logs(purge_env_step=None, purge_agent_step=None)
+        return
+    for key in c.to_dict():
+        setattr(c, key, int(state.get(key, 0)))
+    c.resumes += 1
+    trainer.model._last_obs = None  # the envs are new: start fresh episodes
+    # a resumed run is reproducible too: its seed depends on where it resumed
+    trainer.model.set_random_seed(recipe.seed + 7919 * c.resumes + c.agent_steps)
+    trainer.open_logs(purge_env_step=c.env_steps, purge_agent_step=int(state["num_timesteps"]))
+
+
+def _learn(trainer: _Trainer, resumed: bool) -> bool:
+    """Train until the budget is spent or a signal stops it; True when stopped by a signal."""
+    from tqdm.auto import tqdm
+
+    recipe, spec, c, model = trainer.recipe, trainer.spec, trainer.counters, trainer.model
+    coach = spec.name if spec is not None else "uncoached"
+    with (
+        _Stop() as stop,
+        tqdm(
+            total=recipe.steps,
+            initial=c.env_steps,
+            desc=f"{recipe.env_id} {coach} {recipe.algo} seed {recipe.seed}",
+            unit="step",
+            disable=not trainer.progress_bar,
+            dynamic_ncols=True,
+        ) as bar,
+    ):
+        trainer.stop = stop
+        trainer.bar = bar
+        model.learn(
+            total_timesteps=max(recipe.steps - int(model.num_timesteps), 1),
+            callback=_make_callback(trainer),
+            reset_num_timesteps=not resumed,
+            progress_bar=False,
+        )
+        return stop.requested
 
 
 def _save_final(trainer: _Trainer) -> None:
