@@ -44,6 +44,9 @@ SEED_MAX = 2**32 - 1
 MAX_SEEDS = 10_000
 """The most seeds one experiment or pipeline may ask for."""
 
+MAX_SAMPLES = 10**7
+"""The most simulated initial states one region estimate may ask for (``roa_samples``, ``--samples``)."""
+
 NAME_MAX_BYTES = 255
 """The longest file name most file systems accept, in bytes."""
 

@@ -42,7 +42,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pidlab.checks import MAX_SEEDS, integer
+from pidlab.checks import MAX_SAMPLES, MAX_SEEDS, integer
 from pidlab.controller.rollout import MAX_EPISODES
 from pidlab.data import source_root
 from pidlab.errors import PidlabError, PipelineError
@@ -137,7 +137,8 @@ def settings_for(
         )
     base = load_pipeline_settings(path)
     checks = {"seeds": (seeds, 1, MAX_SEEDS), "steps": (steps, 1, MAX_STEPS),
-              "roa_samples": (roa_samples, 1, 10**7), "episodes": (episodes, 0, MAX_EPISODES)}  # fmt: skip
+              "roa_samples": (roa_samples, 1, MAX_SAMPLES),
+              "episodes": (episodes, 0, MAX_EPISODES)}  # fmt: skip
     for name, (value, low, high) in checks.items():
         if value is not None:
             integer(value, name, PipelineError, low=low, high=high, param=name)

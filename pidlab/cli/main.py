@@ -269,16 +269,14 @@ def linearize(
 
     Models of up to 1000 states (2 nv + na) are analyzed (one SVD per mode: minutes for hundreds).
     """
+    from pidlab.linear.linearize import check_arguments
     from pidlab.linear.linearize import linearize as run_linearize
     from pidlab.linear.lti import analyze_lti
     from pidlab.linear.serialize import linearization_to_dict
     from pidlab.plant.model import load_model
     from pidlab.report.console import linearization_view, wide_console
 
-    if discretization not in ("step", "zoh"):
-        _fail(f"--discretization {discretization!r}: expected 'step' or 'zoh'")
-    if not eps > 0:
-        _fail(f"--eps {eps}: expected a positive step, e.g. 1e-6")
+    check_arguments(eps, discretization)  # before the model loads
     loaded = load_model(target)
     _check_linearize_size(loaded, discretization, progress)
     vectors = {"qpos": _vector(qpos, "qpos"), "qvel": _vector(qvel, "qvel"), "ctrl": _vector(ctrl, "ctrl")}
@@ -458,10 +456,10 @@ def _tune_ui(
     from pathlib import Path
 
     from pidlab.app.serve import check_hosts, serve_tuner
+    from pidlab.checks import MAX_SAMPLES
     from pidlab.controller.spec import load_spec, validate_against
     from pidlab.experiment.conditions import spec_path
     from pidlab.plant.model import load_model
-    from pidlab.region.roa import MAX_SAMPLES
 
     animation, bounds_samples, allow_host = options
     check_hosts(allow_host)

@@ -336,7 +336,7 @@ def linearize(
         ``eps`` is not positive and finite, ``discretization`` is unknown, or the model has no
         state (no degrees of freedom, no activations).
     """
-    _check_arguments(eps, discretization)
+    check_arguments(eps, discretization)
     check_has_state(loaded)
     if op is None:
         op = resolve_operating_point(loaded)
@@ -370,11 +370,17 @@ def linearize(
     )
 
 
-def _check_arguments(eps: object, discretization: object) -> None:
-    """:func:`linearize`'s ``eps`` and ``discretization``, or a :class:`LinearizationError`."""
+def check_arguments(eps: object, discretization: object) -> None:
+    """Check :func:`linearize`'s ``eps`` and ``discretization`` (the CLI checks them before loading).
+
+    Raises
+    ------
+    LinearizationError
+        ``eps`` is not a positive finite number, or ``discretization`` is not "step" or "zoh".
+    """
     if not (isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0 < eps < math.inf):
         raise LinearizationError(
-            f"eps={eps!r}: expected a positive finite-difference step, e.g. 1e-6", param="eps"
+            f"eps={eps!r}: expected a positive step (finite differences), e.g. 1e-6", param="eps"
         )
     if discretization not in ("step", "zoh"):
         raise LinearizationError(

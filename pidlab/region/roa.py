@@ -41,7 +41,7 @@ import mujoco
 import numpy as np
 import scipy.linalg
 
-from pidlab.checks import integer, number
+from pidlab.checks import MAX_SAMPLES, integer, number
 from pidlab.checks import seed as check_seed
 from pidlab.controller.analysis import CoachAnalysis, analyze_coach
 from pidlab.controller.pid import N_LOOP_STATES, Coach, law
@@ -496,8 +496,6 @@ def _termination_cap(lyap: Lyapunov, loaded: LoadedModel) -> float:
     return cap
 
 
-MAX_SAMPLES = 10**7
-"""The most simulated initial states one estimate may ask for."""
 MAX_HORIZON_S = 3600.0
 """The longest simulated time per trajectory, s."""
 

@@ -71,6 +71,7 @@ from pathlib import Path
 from typing import Any
 
 from pidlab.checks import (
+    MAX_SAMPLES,
     MAX_SEEDS,
     SEED_MAX,
     as_table,
@@ -562,7 +563,7 @@ def parse_pipeline(data: dict[str, Any], where: str = "recipe") -> PipelineSetti
         steps=_int(table, "steps", w, _int(data, "steps", where, 100_000, low=1, high=MAX_STEPS), low=1,
                    high=MAX_STEPS),
         preset=_choice(table, "preset", w, PRESETS, "robust"),
-        roa_samples=_int(table, "roa_samples", w, 1000, low=1, high=10**7),
+        roa_samples=_int(table, "roa_samples", w, 1000, low=1, high=MAX_SAMPLES),
         episodes=_int(table, "episodes", w, 10, low=0, high=MAX_EPISODES),
     )  # fmt: skip
 
