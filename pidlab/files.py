@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pidlab.checks import clip
+from pidlab.checks import NAME_MAX_BYTES, clip
 from pidlab.errors import OutputError, PidlabError
 
 if TYPE_CHECKING:
@@ -40,14 +40,40 @@ def _writable(path: Path) -> bool:
     return os.access(path, os.W_OK) and bool(mode & 0o222)
 
 
+PATH_MAX_BYTES = 4096
+"""Linux's limit on a whole path, in bytes (with its final NUL)."""
+
+
 def _refusal(path: Path, reason: str, param: str | None) -> OutputError:
     """An :class:`OutputError` about ``path``: ``param=PATH: reason`` when a parameter named it."""
     head = f"{param}={clip(str(path), 200)!r}" if param else clip(str(path), 200)
     return OutputError(f"{head}: {reason}", param=param)
 
 
+def _name_problem(path: Path) -> str | None:
+    """Why the file system would refuse ``path``'s name (a NUL, a part over 255 bytes), or None."""
+    text = str(path)
+    if "\x00" in text:
+        return "the path contains a NUL character"
+    if any(len(part.encode("utf-8", "surrogateescape")) > NAME_MAX_BYTES for part in path.parts):
+        return f"a part of the path is longer than {NAME_MAX_BYTES} bytes (file name too long)"
+    if len(os.fsencode(text)) >= PATH_MAX_BYTES:
+        return f"the path is longer than {PATH_MAX_BYTES - 1} bytes"
+    return None
+
+
 def _folder_problem(folder: Path) -> str | None:
     """Why no file can be written in ``folder`` (created with its parents if need be), or None."""
+    problem = _name_problem(folder)
+    if problem is not None:
+        return problem
+    try:
+        return _existing_folder_problem(folder)
+    except OSError as exc:  # the file system refused to even look (a loop of links, EACCES, ...)
+        return exc.strerror or str(exc)
+
+
+def _existing_folder_problem(folder: Path) -> str | None:
     if folder.exists() and not folder.is_dir():
         return f"{folder} is a file, not a folder"
     base = folder
@@ -101,6 +127,9 @@ def check_output_file(path: str | Path, param: str | None = None) -> Path:
         ``path`` is a folder, a read-only file, or lies where no file can be created.
     """
     path = Path(path)
+    problem = _name_problem(path)
+    if problem is not None:
+        raise _refusal(path, f"cannot write there: {problem}", param)
     if path.is_dir():
         raise _refusal(path, "is a folder; give a file name", param)
     if path.exists() and not _writable(path):

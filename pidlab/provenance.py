@@ -39,6 +39,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from pidlab.checks import exists
 from pidlab.errors import PidlabError
 from pidlab.files import check_output_folder, make_folder, write_json
 
@@ -368,9 +369,9 @@ def check_folder(
         The folder cannot be created or written (a file in its path, a read-only folder).
     """
     folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
+    if exists(folder) and not folder.is_dir():
         raise error(refusals.not_a_folder, param=param)
-    check_output_folder(folder, param)  # a folder that cannot be made or written: refused now
+    check_output_folder(folder, param)  # a folder that cannot be made or written (or named): refused now
     path = folder / filename
     if path.exists():
         record = _load(path, schema)

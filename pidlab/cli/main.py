@@ -456,7 +456,7 @@ def _tune_ui(
     from pathlib import Path
 
     from pidlab.app.serve import check_hosts, serve_tuner
-    from pidlab.checks import MAX_SAMPLES
+    from pidlab.checks import MAX_SAMPLES, clip, is_file
     from pidlab.controller.spec import load_spec, validate_against
     from pidlab.experiment.conditions import spec_path
     from pidlab.plant.model import load_model
@@ -471,8 +471,11 @@ def _tune_ui(
     if loaded.card is None:
         _fail(f"{env}: the tuner needs a model card (one of the paper envs)")
     path = Path(spec_file) if spec_file else spec_path(env, "pidlab-robust")
-    if not path.is_file():
-        _fail(f"--spec {path}: no such file; give a coach spec, or make one with pidlab tune {env} --auto")
+    if not is_file(path):
+        _fail(
+            f"--spec {clip(str(path))}: no such file; give a coach spec, "
+            f"or make one with pidlab tune {env} --auto"
+        )
     coach = load_spec(path)
     if coach.env_id != env:
         _fail(f"--spec {path}: a coach for {coach.env_id}, not {env}")

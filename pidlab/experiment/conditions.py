@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from pidlab.checks import as_table, check_name, number, path_under, shown, text
+from pidlab.checks import as_table, check_name, clip, exists, number, path_under, shown, text
 from pidlab.controller.spec import CoachSpec, load_spec, parse_spec, spec_to_dict
 from pidlab.data import tuning_dir
 from pidlab.errors import ConditionError, RecipeError, SpecError
@@ -239,9 +239,9 @@ def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | N
     if c.coach == "none":
         return resolved, None, None
     path = spec_path(env_id, c.coach)
-    if not path.exists():
+    if not exists(path):
         raise ConditionError(
-            f"{where}: coach {c.coach!r} not found ({path}); "
+            f"{where}: coach {shown(c.coach)} not found ({clip(str(path))}); "
             "expected none, a spec file or a spec name in tuning/"
         )
     spec = load_spec(path)
