@@ -459,3 +459,20 @@ def test_a_killed_sweep_leaves_no_worker_and_starts_no_run(tmp_path):
         time.sleep(0.2)
     assert not [pid for pid in children if _alive(pid)], "processes of the killed sweep are still alive"
     assert sorted(str(p.relative_to(runs)) for p in runs.glob("*/seed-*")) == started  # no queued run started
+
+
+def test_a_damaged_finished_run_is_one_line_in_the_report(tmp_path):
+    """experiment --report-only over a run whose summary or logs were damaged: an ExperimentError naming it."""
+    from pidlab.errors import ExperimentError
+    from pidlab.experiment.analysis import load_run
+
+    run = tmp_path / "seed-0"
+    run.mkdir()
+    summary = {"env_steps": 10, "agent_steps": 10, "coach_steps": 0, "completed": True}
+    (run / "summary.json").write_text(json.dumps(summary))
+    (run / "episodes.csv").write_text("episode,agent_return\n0,not-a-number\n")
+    with pytest.raises(ExperimentError, match="seed-0: the run's logs are damaged"):
+        load_run(run, "InvertedPendulum-v5", "none", 0, 800.0, 5, 20)
+    (run / "summary.json").write_text('{"env_steps": 1')
+    with pytest.raises(ExperimentError, match="summary.json: the run summary is damaged"):
+        load_run(run, "InvertedPendulum-v5", "none", 0, 800.0, 5, 20)

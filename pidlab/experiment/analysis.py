@@ -21,9 +21,10 @@ from typing import Any
 
 import numpy as np
 
+from pidlab.errors import ExperimentError
 from pidlab.experiment.metrics import RunMetrics, moving_average, run_metrics
 from pidlab.experiment.stats import Estimate, bootstrap_ci, iqm, probability_of_improvement
-from pidlab.files import read_json
+from pidlab.files import load_json
 from pidlab.rl.rundir import read_csv_rows
 
 BASELINE = "none"
@@ -122,11 +123,36 @@ IMPROVEMENT_METRICS = ("episodes_to_wins", "episodes_to_average", "env_steps_to_
 def load_run(
     run_dir: Path, env_id: str, condition: str, seed: int, target: float, consecutive: int, window: int
 ) -> RunData | None:
-    """A run's logs and metrics; None when it has no ``summary.json`` yet."""
+    """A run's logs and metrics; None when it has no ``summary.json`` yet.
+
+    Raises
+    ------
+    ExperimentError
+        The run's ``summary.json`` or CSV logs are damaged (one line naming the run).
+    """
     summary_path = run_dir / "summary.json"
     if not summary_path.exists():
         return None
-    s = read_json(summary_path)
+    s = load_json(summary_path, "run summary", ExperimentError)
+    try:
+        return _run_data(run_dir, s, env_id, condition, seed, target, consecutive, window)
+    except (KeyError, ValueError, TypeError, AttributeError) as exc:
+        raise ExperimentError(
+            f"{run_dir}: the run's logs are damaged ({type(exc).__name__}: {exc}); "
+            "resume the run (pidlab experiment with the same command) or delete its folder"
+        ) from None
+
+
+def _run_data(
+    run_dir: Path,
+    s: Any,
+    env_id: str,
+    condition: str,
+    seed: int,
+    target: float,
+    consecutive: int,
+    window: int,
+) -> RunData:
     episodes = read_csv_rows(run_dir / "episodes.csv")
     evals = read_csv_rows(run_dir / "evaluations.csv")
     returns = np.array([float(r["agent_return"]) for r in episodes])
