@@ -43,7 +43,6 @@ from pidlab.checks import seed as check_seed
 from pidlab.controller.spec import CoachSpec, parse_spec, spec_to_dict
 from pidlab.errors import ExperimentError, RunDirError
 from pidlab.experiment.conditions import Condition, load_conditions, resolve, select
-from pidlab.files import load_json
 from pidlab.orphans import orphaned, stop_with_parent
 from pidlab.provenance import (
     LOCK_NAME,
@@ -66,7 +65,7 @@ from pidlab.rl.recipe import (
     recipe_to_dict,
     with_overrides,
 )
-from pidlab.rl.rundir import config_dict, latest_checkpoint
+from pidlab.rl.rundir import config_dict, finished_summary, latest_checkpoint
 
 EXPERIMENT_SCHEMA = "pidlab.experiment/1"
 BACKENDS = ("process", "ray")
@@ -340,13 +339,9 @@ def write_experiment_record(p: Plan, argv: Sequence[str], backend: str) -> Recor
 
 def finished(run_dir: Path, budget: int) -> bool:
     """A run whose ``summary.json`` says it completed its budget (a damaged one says nothing)."""
-    path = run_dir / "summary.json"
-    if not path.exists():
-        return False
     try:
-        s = load_json(path, "run summary", ExperimentError)
-        return isinstance(s, dict) and bool(s.get("completed")) and int(s.get("env_steps", 0)) >= budget
-    except (ExperimentError, TypeError, ValueError):
+        return finished_summary(run_dir, budget) is not None
+    except RunDirError:
         return False  # its resume says what is wrong, and writes it again
 
 

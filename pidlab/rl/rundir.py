@@ -368,3 +368,26 @@ def evaluated_at(run_dir: Path, env_steps: int) -> bool:
     """Whether the run's last agent-alone evaluation was at ``env_steps``."""
     rows = read_csv_rows(run_dir / "evaluations.csv")
     return bool(rows) and int(rows[-1]["env_steps_so_far"]) == env_steps
+
+
+def finished_summary(run_dir: Path, budget: int) -> dict[str, Any] | None:
+    """``summary.json`` when it says the run completed ``budget`` env steps, else None.
+
+    The one reading of "is this run finished?" (the sweep skips such runs, ``resume`` returns them).
+
+    Raises
+    ------
+    RunDirError
+        ``summary.json`` exists but is damaged (not JSON, not an object, a count that is not a number).
+    """
+    path = run_dir / "summary.json"
+    if not path.exists():
+        return None
+    summary = load_json(path, "run summary", RunDirError)
+    if not isinstance(summary, dict):
+        raise RunDirError(f"{path}: the run summary is damaged (not a JSON object)")
+    try:
+        done = bool(summary.get("completed")) and int(summary.get("env_steps", 0)) >= budget
+    except (TypeError, ValueError) as exc:
+        raise RunDirError(f"{path}: the run summary is damaged ({exc})") from None
+    return summary if done else None

@@ -50,7 +50,7 @@ import tomli_w
 
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CheckpointError
-from pidlab.files import atomic_write_bytes, atomic_write_text, check_output_folder, load_json, write_json
+from pidlab.files import atomic_write_bytes, atomic_write_text, check_output_folder, write_json
 from pidlab.provenance import hold_lock, read_record
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, sb3_policy
@@ -65,6 +65,7 @@ from pidlab.rl.rundir import (
     check_new_run_dir,
     checkpoint_folders,
     evaluated_at,
+    finished_summary,
     is_checkpoint_name,
     load_run_config,
     prepare_run_dir,
@@ -717,15 +718,14 @@ def resume(
 
 def _finished(run_dir: Path, budget: int) -> TrainResult | None:
     """The result in ``summary.json`` when it says the run spent ``budget``; a damaged one is ignored."""
-    path = run_dir / "summary.json"
-    if not path.exists():
-        return None
     try:
-        done = load_json(path, "run summary", RunDirError)
-        if not (isinstance(done, dict) and done.get("completed") and int(done.get("env_steps", 0)) >= budget):
-            return None
-        return _result_from_summary(run_dir, done)
-    except (RunDirError, KeyError, TypeError, ValueError) as exc:
+        done = finished_summary(run_dir, budget)
+        return None if done is None else _result_from_summary(run_dir, done)
+    except RunDirError as exc:  # its message names the file
+        _warn(f"{_reason(exc)}; ignored, it is written again at the end")
+        return None
+    except (KeyError, TypeError, ValueError) as exc:
+        path = run_dir / "summary.json"
         _warn(f"{path}: damaged ({_reason(exc)}); ignored, it is written again at the end")
         return None
 
