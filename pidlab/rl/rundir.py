@@ -193,7 +193,7 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 
 
 STATE_KEYS = ("env_steps", "agent_steps", "coach_steps", "interventions", "episodes", "evaluations",
-              "next_evaluation", "next_checkpoint", "resumes", "num_timesteps")  # fmt: skip
+              "next_evaluation", "next_checkpoint", "resumes", "num_timesteps", "policy_updates")  # fmt: skip
 """The counters a checkpoint's ``state.json`` holds (``pidlab.rl.train.Counters`` and SB3's)."""
 
 

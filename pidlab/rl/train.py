@@ -97,6 +97,7 @@ class Counters:
     next_evaluation: int = 0
     next_checkpoint: int = 0
     resumes: int = 0
+    policy_updates: int = 0
 
     def to_dict(self) -> dict[str, int]:
         """Plain dict for JSON."""
@@ -798,6 +799,7 @@ def _run(
         model, trainer.venv, state = start(trainer.venv)
         trainer.model = model
         _set_counters(trainer, state)
+        _count_policy_updates(model, c)
         model.set_logger(trainer.sb3_logger)
         stopped = _learn(trainer, resumed=state is not None) if c.env_steps < recipe.steps else False
         completed = not stopped and c.env_steps >= recipe.steps
@@ -814,6 +816,22 @@ def _run(
         )  # fmt: skip
     finally:
         trainer.close()
+
+
+def _count_policy_updates(model: Any, counters: Counters) -> None:
+    """Count the gradient steps of the policy's optimizer into ``counters.policy_updates``.
+
+    PPO's one optimizer updates actor and critic together; SAC's actor has its own. A post-step
+    hook counts each step exactly (PPO's ``target_kl`` early stop included), which SB3's own
+    ``_n_updates`` does not (it counts PPO epochs).
+    """
+    policy = model.policy
+    optimizer = policy.actor.optimizer if hasattr(policy, "actor") else policy.optimizer
+
+    def count(*_: Any) -> None:
+        counters.policy_updates += 1
+
+    optimizer.register_step_post_hook(count)
 
 
 def _set_counters(trainer: _Trainer, state: dict[str, int] | None) -> None:
