@@ -19,6 +19,7 @@ run() {  # run ENV SEEDS [--steps N]: the experiment, then its report copied to 
         cp -r "$out/report.md" "$out/report.html" "$out/metrics.csv" "$out/summary.csv" "$out/figures" \
             "$out/experiment.json" \
             "docs/results/$env/"
+        bash benchmarks/copy_runs.sh "$out" "docs/results/$env"
     fi
 }
 
@@ -29,4 +30,6 @@ else
     run InvertedDoublePendulum-v5 5 --steps 50000     # budget cut from 1,000,000 env steps
     run Hopper-v5 5 --steps 25000                     # budget cut from 1,000,000 env steps
     run Walker2d-v5 5 --steps 25000                   # budget cut from 1,000,000 env steps
+    .venv/bin/python benchmarks/results_table.py      # the tables of docs/results/README.md
+    .venv/bin/python benchmarks/recompute.py          # every published table, recomputed from the runs' logs
 fi

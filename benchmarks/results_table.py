@@ -13,7 +13,14 @@ import math
 from pathlib import Path
 
 from pidlab.files import atomic_write_text, read_json
-from pidlab.report.experiment import format_value, paper_numbers
+from pidlab.report.experiment import (
+    PAPER_ROWS,
+    format_value,
+    p_text,
+    paper_numbers,
+    published_numbers,
+    recipe_budget,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"
@@ -51,14 +58,63 @@ def _load(env: str) -> tuple[dict[tuple[str, str], dict[str, str]], dict] | None
     return rows, read_json(folder / "experiment.json")
 
 
+def _verdict(row: dict[str, str]) -> str:
+    """P(improvement) [CI], exact p, Holm p and the verdict of one summary row."""
+    if not row["p_improvement"]:
+        return "-"
+    p = f"{float(row['p_improvement']):.2f} [{float(row['p_low']):.2f}, {float(row['p_high']):.2f}]"
+    tests = f"p = {p_text(float(row['p_value']))}"
+    if row["p_holm"]:
+        tests += f", Holm {p_text(float(row['p_holm']))}"
+    return f"{p}; {tests}; {row['verdict']}"
+
+
+def _table2(env: str, rows: dict[tuple[str, str], dict[str, str]]) -> list[str]:
+    paper = paper_numbers(env)
+    if paper is None:
+        raise SystemExit(f"models/{env}.toml has no [paper] table: the paper's numbers come from there")
+    published = published_numbers(env)
+    out = []
+    for metric, label in PAPER_ROWS:
+        cells = [*published.get(metric, ("", "", "")), *(_cell(rows.get((c, metric))) for c in CONDITIONS)]
+        out.append(f"| {env} ({paper.win_target:g}) | {label} | " + " | ".join(cells) + " |")
+    return out
+
+
+def _honest(env: str, rows: dict[tuple[str, str], dict[str, str]], share: str) -> list[str]:
+    out = []
+    for c in CONDITIONS:
+        if (c, "final_score") not in rows:
+            continue
+        dep, never = rows[(c, "coach_dependent")], rows[(c, "never_trained")]
+        cells = [env, share, c, _cell(rows[(c, "env_steps_to_target")]),
+                 _cell(rows[(c, "final_score")], False), f"{dep['iqm']}/{dep['runs']}",
+                 f"{never['iqm']}/{never['runs']}",
+                 _cell(rows[(c, "intervention_rate")], False), _verdict(rows[(c, "env_steps_to_target")]),
+                 _verdict(rows[(c, "final_score")])]  # fmt: skip
+        out.append("| " + " | ".join(cells) + " |")
+    return out
+
+
+def _share(env: str, rows: dict[tuple[str, str], dict[str, str]]) -> str:
+    """The run budget and its share of the shipped recipe's budget."""
+    steps = int(float(rows[("none", "env_steps")]["iqm"])) if ("none", "env_steps") in rows else None
+    full = recipe_budget(env)
+    if steps is None or not full:
+        return "?"
+    return f"{steps:,} ({100 * steps / full:.3g} % of {full:,})"
+
+
 def tables() -> str:
     """The Markdown tables."""
-    head = ["env (target)", "measure", "paper: with coach", "paper: without", "paper: saving",
+    head = ["env (target)", "measure", "paper: with coach", "paper: without", "paper: saving (as printed)",
             *(f"ours: {c}" for c in CONDITIONS)]  # fmt: skip
     t2 = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    honest_head = ["env", "condition", "env steps to target, agent alone", "final agent-alone score",
-                   "coach-dependent", "intervention rate",
-                   "P(fewer env steps to target than none)"]  # fmt: skip
+    honest_head = ["env", "budget, env steps (share of the recipe's)", "condition",
+                   "env steps to target, reached and kept (agent alone)", "final agent-alone score",
+                   "coach-dependent", "never trained", "intervention rate",
+                   "fewer env steps to target than none: P [CI]; exact p; verdict",
+                   "higher final score than none: P [CI]; exact p; verdict"]  # fmt: skip
     t3 = ["| " + " | ".join(honest_head) + " |", "|" + "---|" * len(honest_head)]
     budgets = []
     for env in ENVS:
@@ -67,34 +123,11 @@ def tables() -> str:
             continue
         rows, record = loaded
         ident = record["identity"]
-        paper = paper_numbers(env)
-        if paper is None:
-            raise SystemExit(f"models/{env}.toml has no [paper] table: the paper's numbers come from there")
-        target = paper.win_target
-        w, wo = paper.wins_coached, paper.wins_uncoached
-        aw, awo = paper.average_coached, paper.average_uncoached
-        command = " ".join(record["command"])
-        budgets.append(f"- **{env}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} conditions; "
-                       f"`{command}`")  # fmt: skip
-        for metric, label, with_, without in (("episodes_to_wins", "5 wins", w, wo),
-                                              ("episodes_to_average", "average", aw, awo)):  # fmt: skip
-            saving = f"{100 * (without - with_) / without:+.1f} %"
-            cells = [_cell(rows.get((c, metric))) for c in CONDITIONS]
-            paper = f"| {env} ({target:g}) | {label} | {with_} | {without} | {saving} | "
-            t2.append(paper + " | ".join(cells) + " |")
-        for c in CONDITIONS:
-            if (c, "final_score") not in rows:
-                continue
-            dep = rows[(c, "coach_dependent")]
-            p = rows[(c, "env_steps_to_target")]
-            prob = "-" if not p["p_improvement"] else (
-                f"{float(p['p_improvement']):.2f} [{float(p['p_low']):.2f}, {float(p['p_high']):.2f}]"
-            )  # fmt: skip
-            t3.append(
-                f"| {env} | {c} | {_cell(rows[(c, 'env_steps_to_target')])} | "
-                f"{_cell(rows[(c, 'final_score')], False)} | {dep['iqm']}/{dep['runs']} | "
-                f"{_cell(rows[(c, 'intervention_rate')], False)} | {prob} |"
-            )
+        share = _share(env, rows)
+        budgets.append(f"- **{env}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} conditions, "
+                       f"{share} env steps per run; `{' '.join(record['command'])}`")  # fmt: skip
+        t2 += _table2(env, rows)
+        t3 += _honest(env, rows, share)
     return "\n".join([
         "### The paper's Table II beside ours (training episodes; IQM [95 % CI] (runs that reached it))", "",
         *t2, "", "### The honest measures", "", *t3, "", "### How each was run", "", *budgets,

@@ -287,9 +287,12 @@ def test_report_tables_and_figures(tmp_path):
     for needle in (
         "## InvertedPendulum-v5",
         "paper: with coach",
-        "| 5 wins | 100 | 160 | +37.5 % |",
+        "| 5 wins, training returns | 100 | 160 | +37.5 % |",
+        "| average, returns with the coach's rewards |",
         "Honest measures",
-        "Probability of improvement",
+        "Accounts per run",
+        "Against no coach",
+        "the recipe's",
         "stable-baselines3",
         "coach-dependent",
     ):
@@ -302,6 +305,9 @@ def test_report_tables_and_figures(tmp_path):
     metrics = read_csv_rows(p.out / "metrics.csv")
     assert len(metrics) == 6
     for row in metrics:
+        # 600 env steps with a 32-step rollout and 5 epochs: PPO updated every run, and it was recorded
+        assert int(row["policy_updates"]) > 0 and row["never_trained"] == "False"
+        assert int(row["evaluation_env_steps"]) > 0
         env_steps, coach = int(row["env_steps"]), int(row["coach_steps"])
         assert float(row["intervention_rate"]) == pytest.approx(coach / env_steps)
         assert (coach == 0) == (row["condition"] == "none")

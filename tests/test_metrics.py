@@ -8,11 +8,16 @@ import numpy as np
 import pytest
 
 from pidlab.experiment.metrics import (
+    Rule,
+    RunLogs,
     episodes_to_average,
     episodes_to_consecutive_wins,
+    first_hit,
     first_reaching,
+    grid_points,
     moving_average,
     run_metrics,
+    sustained_hit,
 )
 from pidlab.experiment.stats import bootstrap_ci, iqm, probability_of_improvement
 
@@ -47,29 +52,103 @@ def test_linear_ramp_crosses_the_average_where_arithmetic_says():
     assert episodes_to_consecutive_wins(returns, 800, 5) == 84  # 80..84
 
 
+def logs(returns, ev_env, ev_agent, means, env_steps, agent_steps, coach_steps, coached=None, updates=100):
+    """RunLogs from plain lists (evaluations of 10 episodes of 1000 steps)."""
+    returns = np.asarray(returns, dtype=float)
+    n = len(returns)
+    return RunLogs(
+        returns=returns,
+        coached_returns=returns if coached is None else np.asarray(coached, dtype=float),
+        episode_env_steps=np.linspace(env_steps / max(n, 1), env_steps, n),
+        episode_coach_steps=np.full(n, coach_steps / max(n, 1)),
+        eval_env_steps=np.asarray(ev_env, dtype=np.int64),
+        eval_agent_steps=np.asarray(ev_agent, dtype=float),
+        eval_means=np.asarray(means, dtype=float),
+        eval_steps=np.full(len(means), 10000),
+        env_steps=env_steps,
+        agent_steps=agent_steps,
+        coach_steps=coach_steps,
+        policy_updates=updates,
+    )
+
+
+RULE = Rule(target=800, consecutive=5, window=20, every=5000)
+
+
 def test_first_reaching_and_run_metrics_agent_alone():
     ev_env = [0, 5000, 10000, 15000]
     ev_agent = [0, 1000, 2500, 6000]
     means = [20.0, 300.0, 850.0, 1000.0]
     assert first_reaching(ev_env, means, 800) == 10000
-    m = run_metrics([900.0] * 30, ev_env, ev_agent, means, 15000, 6000, 9000, 800, 5, 20)
+    m = run_metrics(logs([900.0] * 30, ev_env, ev_agent, means, 15000, 6000, 9000), RULE)
     assert m.env_steps_to_target == 10000 and m.agent_steps_to_target == 2500
     assert m.episodes_to_wins == 5 and m.episodes_to_average == 20
     assert m.final_score == 1000.0 and m.intervention_rate == pytest.approx(0.6)
-    assert not m.coach_dependent
+    assert not m.coach_dependent and not m.never_trained
+    assert m.evaluation_env_steps == 40000 and m.env_steps_per_episode == pytest.approx(500)
 
 
 def test_coach_dependence_is_good_with_the_coach_and_bad_alone():
-    m = run_metrics([950.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200, 800, 5, 20)
+    m = run_metrics(logs([950.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200), RULE)
     assert m.coach_dependent and m.env_steps_to_target is None
     # the agent earns little on its own steps, but with the coach's steps the episodes score 1000
-    m = run_metrics(
-        [100.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200, 800, 5, 20, [1000.0] * 40
-    )
+    m = run_metrics(logs([100.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200, [1000.0] * 40), RULE)
     assert m.final_training_score == 100.0 and m.final_coached_score == 1000.0 and m.coach_dependent
     # the same curves without a coach in the loop are not "coach dependence"
-    m0 = run_metrics([950.0] * 40, [0, 5000], [0, 5000], [10.0, 40.0], 5000, 5000, 0, 800, 5, 20)
+    m0 = run_metrics(logs([950.0] * 40, [0, 5000], [0, 5000], [10.0, 40.0], 5000, 5000, 0), RULE)
     assert not m0.coach_dependent
+
+
+def test_a_run_without_a_policy_update_is_never_trained_not_coach_dependent():
+    # Walker2d, pidlab: 40 agent steps in 25,000 env steps, less than one PPO rollout of 512
+    m = run_metrics(
+        logs([1.3] * 30, [0, 25000], [0, 40], [10.0, 12.0], 25000, 40, 24960, [935.0] * 30, updates=0), RULE
+    )
+    assert m.never_trained and not m.coach_dependent and m.policy_updates == 0
+    unknown = run_metrics(
+        logs([1.3] * 30, [0, 25000], [0, 40], [10.0, 12.0], 25000, 40, 24960, [935.0] * 30, updates=None), RULE
+    )
+    assert not unknown.never_trained and unknown.coach_dependent and unknown.policy_updates is None
+
+
+def test_a_transient_hit_does_not_count_as_reaching_the_target():
+    # IP pidlab seed 6: a hit at the first evaluation after 5,000 steps, a final score of 3.9
+    means = [5.0, 820.0, 30.0, 900.0, 3.9]
+    m = run_metrics(logs([10.0] * 30, [0, 5001, 10000, 15002, 20000], [0, 900, 1800, 2700, 3600], means,
+                         20000, 3600, 16400), RULE)  # fmt: skip
+    assert m.env_steps_to_target is None and m.agent_steps_to_target is None
+    assert m.first_hit_env_steps == 5000 and m.final_score == 3.9
+    kept = run_metrics(logs([10.0] * 30, [0, 5001, 10000, 15002, 20000], [0, 900, 1800, 2700, 3600],
+                            [5.0, 820.0, 30.0, 900.0, 950.0], 20000, 3600, 16400), RULE)  # fmt: skip
+    assert kept.env_steps_to_target == 15000 and kept.agent_steps_to_target == 2700
+    assert kept.evaluation_delay == 2
+
+
+def test_sustained_hit_and_final_score_agree():
+    assert sustained_hit([0, 900, 100, 900, 950], 800) == 3
+    assert sustained_hit([0, 900, 100], 800) is None
+    assert sustained_hit([900, 900], 800) == 0
+    assert sustained_hit([], 800) is None
+    assert sustained_hit([0, float("nan"), 900], 800) == 2
+    assert first_hit([0, 900, 100], 800) == 1 and first_hit([0, 1], 800) is None
+
+
+def test_evaluations_a_few_steps_late_sit_at_their_grid_point():
+    assert grid_points([0, 5000, 10003, 14999, 15000], 5000).tolist() == [0, 5000, 10000, 10000, 15000]
+    # a coached run evaluated at 10,003 ties with an uncoached one evaluated at 10,000
+    late = run_metrics(logs([10.0] * 5, [0, 5002, 10003], [0, 4000, 8000], [5.0, 100.0, 900.0], 10003, 8000, 2003),
+                       RULE)  # fmt: skip
+    on_time = run_metrics(logs([10.0] * 5, [0, 5000, 10000], [0, 5000, 10000], [5.0, 100.0, 900.0], 10000, 10000, 0),
+                          RULE)  # fmt: skip
+    assert late.env_steps_to_target == on_time.env_steps_to_target == 10000
+
+
+def test_the_return_cap_is_measured_on_both_kinds_of_return():
+    # a heavy coach: 900 coach steps per 1000-step episode, so the agent can earn at most 100
+    agent, both = [100.0] * 40, [1000.0] * 40
+    m = run_metrics(logs(agent, [0, 5000], [0, 500], [10.0, 1000.0], 5000, 500, 4500, both), RULE)
+    assert m.episodes_to_wins is None and m.episodes_to_average is None
+    assert m.episodes_to_wins_with_coach == 5 and m.episodes_to_average_with_coach == 20
 
 
 def test_iqm_trims_a_quarter_each_side():

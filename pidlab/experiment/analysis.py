@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 
 from pidlab.errors import ExperimentError
-from pidlab.experiment.metrics import RunMetrics, moving_average, run_metrics
-from pidlab.experiment.stats import Estimate, bootstrap_ci, iqm, probability_of_improvement
+from pidlab.experiment.comparison import MEASURES, Comparison, decide, raw_comparison
+from pidlab.experiment.metrics import Rule, RunLogs, RunMetrics, grid_points, moving_average, run_metrics
+from pidlab.experiment.stats import Estimate, bootstrap_ci, iqm
 from pidlab.files import load_json
 from pidlab.rl.rundir import read_csv_rows
 
@@ -43,6 +44,7 @@ class RunData:
     eval_env_steps: np.ndarray
     eval_agent_steps: np.ndarray
     eval_means: np.ndarray
+    eval_grid: np.ndarray
     budget: int
     completed: bool
     metrics: RunMetrics
@@ -89,7 +91,11 @@ class CellResult:
     training_curve_episodes: Curve
     training_curve_steps: Curve
     intervention_curve: Curve
-    improvement: dict[str, Estimate]
+
+    @property
+    def never_trained(self) -> int:
+        """Runs that made no policy update."""
+        return sum(r.metrics.never_trained for r in self.runs)
 
 
 @dataclass(frozen=True)
@@ -103,26 +109,36 @@ class Analysis:
     windows: dict[str, int]
     budgets: dict[str, int]
     missing: tuple[str, ...]
+    comparisons: dict[tuple[str, str], dict[str, Comparison]]
+
+    def improvement(self, env: str, condition: str, measure: str) -> Estimate | None:
+        """P(improvement over no coach) of one measure, or None (no such comparison)."""
+        c = self.comparisons.get((env, condition), {}).get(measure)
+        return None if c is None else c.improvement
 
 
 # metric name -> (lower is better, "to target": may be never reached)
 METRICS: dict[str, tuple[bool, bool]] = {
     "episodes_to_wins": (True, True),
     "episodes_to_average": (True, True),
+    "episodes_to_wins_with_coach": (True, True),
+    "episodes_to_average_with_coach": (True, True),
     "env_steps_to_target": (True, True),
     "agent_steps_to_target": (True, True),
+    "first_hit_env_steps": (True, True),
     "final_score": (False, False),
     "final_training_score": (False, False),
     "final_coached_score": (False, False),
     "intervention_rate": (True, False),
+    "episodes": (False, False),
+    "env_steps_per_episode": (False, False),
+    "policy_updates": (False, False),
+    "evaluation_env_steps": (False, False),
+    "evaluation_delay": (False, False),
 }
 
-IMPROVEMENT_METRICS = ("episodes_to_wins", "episodes_to_average", "env_steps_to_target", "final_score")
 
-
-def load_run(
-    run_dir: Path, env_id: str, condition: str, seed: int, target: float, consecutive: int, window: int
-) -> RunData | None:
+def load_run(run_dir: Path, env_id: str, condition: str, seed: int, rule: Rule) -> RunData | None:
     """A run's logs and metrics; None when it has no ``summary.json`` yet.
 
     Raises
@@ -135,7 +151,7 @@ def load_run(
         return None
     s = load_json(summary_path, "run summary", ExperimentError)
     try:
-        return _run_data(run_dir, s, env_id, condition, seed, target, consecutive, window)
+        return _run_data(run_dir, s, env_id, condition, seed, rule)
     except (KeyError, ValueError, TypeError, AttributeError) as exc:
         raise ExperimentError(
             f"{run_dir}: the run's logs are damaged ({type(exc).__name__}: {exc}); "
@@ -143,46 +159,59 @@ def load_run(
         ) from None
 
 
-def _run_data(
-    run_dir: Path,
-    s: Any,
-    env_id: str,
-    condition: str,
-    seed: int,
-    target: float,
-    consecutive: int,
-    window: int,
-) -> RunData:
-    episodes = read_csv_rows(run_dir / "episodes.csv")
-    evals = read_csv_rows(run_dir / "evaluations.csv")
-    returns = np.array([float(r["agent_return"]) for r in episodes])
-    ev_env = np.array([float(r["env_steps_so_far"]) for r in evals])
-    ev_agent = np.array([float(r["agent_steps_so_far"]) for r in evals])
-    ev_mean = np.array([float(r["mean_return"]) for r in evals])
-    coached = np.array([float(r["total_return"]) for r in episodes])
-    m = run_metrics(
-        returns, ev_env, ev_agent, ev_mean, int(s["env_steps"]), int(s["agent_steps"]), int(s["coach_steps"]),
-        target, consecutive, window, coached,
-    )  # fmt: skip
+def _run_data(run_dir: Path, s: Any, env_id: str, condition: str, seed: int, rule: Rule) -> RunData:
+    logs = read_logs(run_dir, s)
     return RunData(
         env_id=env_id,
         condition=condition,
         seed=seed,
-        returns=returns,
-        episode_env_steps=np.array([float(r["env_steps_so_far"]) for r in episodes]),
-        episode_coach_steps=np.array([float(r["coach_steps"]) for r in episodes]),
-        eval_env_steps=ev_env,
-        eval_agent_steps=ev_agent,
-        eval_means=ev_mean,
+        returns=logs.returns,
+        episode_env_steps=logs.episode_env_steps,
+        episode_coach_steps=logs.episode_coach_steps,
+        eval_env_steps=logs.eval_env_steps,
+        eval_agent_steps=logs.eval_agent_steps,
+        eval_means=logs.eval_means,
+        eval_grid=grid_points(logs.eval_env_steps, rule.every).astype(float),
         budget=int(s.get("budget_env_steps", s["env_steps"])),
         completed=bool(s["completed"]),
-        metrics=m,
+        metrics=run_metrics(logs, rule),
+    )
+
+
+def _updates(summary: Any) -> int | None:
+    value = summary.get("policy_updates")
+    if value is None:
+        return None
+    if type(value) is not int or value < 0:
+        raise ValueError(f"policy_updates = {value!r}, expected an integer >= 0")
+    return value
+
+
+def read_logs(run_dir: Path, summary: Any) -> RunLogs:
+    """A run's ``episodes.csv``, ``evaluations.csv`` and totals of ``summary.json`` (``summary``)."""
+    episodes = read_csv_rows(run_dir / "episodes.csv")
+    evals = read_csv_rows(run_dir / "evaluations.csv")
+    return RunLogs(
+        returns=np.array([float(r["agent_return"]) for r in episodes]),
+        coached_returns=np.array([float(r["total_return"]) for r in episodes]),
+        episode_env_steps=np.array([float(r["env_steps_so_far"]) for r in episodes]),
+        episode_coach_steps=np.array([float(r["coach_steps"]) for r in episodes]),
+        eval_env_steps=np.array([int(r["env_steps_so_far"]) for r in evals]),
+        eval_agent_steps=np.array([float(r["agent_steps_so_far"]) for r in evals]),
+        eval_means=np.array([float(r["mean_return"]) for r in evals]),
+        eval_steps=np.array([round(float(r["mean_length"]) * len(r["returns"].split(";"))) for r in evals]),
+        env_steps=int(summary["env_steps"]),
+        agent_steps=int(summary["agent_steps"]),
+        coach_steps=int(summary["coach_steps"]),
+        policy_updates=_updates(summary),
     )
 
 
 def censored_values(runs: Sequence[RunData], name: str) -> tuple[np.ndarray, int]:
     """The metric per run (``+inf``: never reached) and how many runs reached the target."""
     values = [getattr(r.metrics, name) for r in runs]
+    if not METRICS[name][1]:  # not a "to target" metric: None is "not recorded"
+        return np.array([np.nan if v is None else float(v) for v in values]), len(values)
     out = np.array([np.inf if v is None else float(v) for v in values])
     return out, sum(v is not None for v in values)
 
@@ -220,31 +249,27 @@ def _intervention_rows(runs: Sequence[RunData], edges: np.ndarray) -> np.ndarray
     return np.asarray(rows)
 
 
-def analyze_cell(
-    runs: Sequence[RunData], env_id: str, condition: str, window: int, budget: int, every: int,
-    baseline: Sequence[RunData] | None, reps: int = 2000,
-) -> CellResult:  # fmt: skip
-    """Aggregates and curves of one (env, condition) over its runs."""
+def _summaries(runs: Sequence[RunData], reps: int) -> dict[str, MetricSummary]:
     metrics = {}
     for name in METRICS:
         values, reached = censored_values(runs, name)
-        metrics[name] = MetricSummary(bootstrap_ci([values.tolist()], iqm, reps=reps), reached, len(runs))
-    improvement = {}
-    if baseline:
-        for name in IMPROVEMENT_METRICS:
-            lower_better, _ = METRICS[name]
-            a, _ = censored_values(runs, name)
-            b, _ = censored_values(baseline, name)
-            sign = -1.0 if lower_better else 1.0
-            improvement[name] = probability_of_improvement(
-                [(sign * a).tolist()], [(sign * b).tolist()], reps=reps
-            )
+        values = values[~np.isnan(values)]
+        nan = float("nan")
+        est = bootstrap_ci([values.tolist()], iqm, reps=reps) if values.size else Estimate(nan, nan, nan)
+        metrics[name] = MetricSummary(est, reached, len(runs))
+    return metrics
+
+
+def analyze_cell(
+    runs: Sequence[RunData], env_id: str, condition: str, window: int, budget: int, every: int,
+    reps: int = 2000,
+) -> CellResult:  # fmt: skip
+    """Aggregates and curves of one (env, condition) over its runs."""
     grid = np.arange(0, budget + 1, every, dtype=float)
     if grid[-1] < budget:
         grid = np.append(grid, float(budget))
-    # an evaluation due at k * every runs at the first rollout boundary after it (a few steps late)
-    late = every / 2
-    evals = np.asarray([_step_curve(r.eval_env_steps - late, r.eval_means, grid) for r in runs])
+    # each evaluation at the grid point it was due at (it runs a few steps late when a coach step crosses it)
+    evals = np.asarray([_step_curve(r.eval_grid, r.eval_means, grid) for r in runs])
     smooth = [moving_average(r.returns, window) for r in runs]
     n_ep = min(len(s) for s in smooth) if smooth else 0
     episodes_x = np.arange(1, n_ep + 1, dtype=float)
@@ -258,13 +283,12 @@ def analyze_cell(
         env_id=env_id,
         condition=condition,
         runs=tuple(runs),
-        metrics=metrics,
+        metrics=_summaries(runs, reps),
         coach_dependent=sum(r.metrics.coach_dependent for r in runs),
         eval_curve=band(evals, grid, 500, 1),
         training_curve_episodes=_thin_band(by_episode, episodes_x),
         training_curve_steps=band(by_steps, step_grid, 300, 2),
         intervention_curve=band(_intervention_rows(runs, edges), (edges[1:] + edges[:-1]) / 2, 300, 3),
-        improvement=improvement,
     )
 
 
@@ -274,6 +298,52 @@ def _thin_band(rows: np.ndarray, x: np.ndarray, points: int = 150) -> Curve:
         return Curve(x, x, x, x)
     keep = np.unique(np.linspace(0, x.size - 1, min(points, x.size)).round().astype(int))
     return band(rows[:, keep], x[keep], 300, 4)
+
+
+def rule_of(recipe: Any) -> Rule:
+    """The :class:`pidlab.experiment.metrics.Rule` of a recipe (its win target and evaluation grid)."""
+    return Rule(recipe.win.target, recipe.win.consecutive, recipe.win.window, recipe.evaluation.every)
+
+
+def _load_cells(
+    envs: Sequence[str], conditions: Sequence[str], seeds: Sequence[int], root: Path, recipes: dict[str, Any]
+) -> tuple[dict[tuple[str, str], list[RunData]], list[str]]:
+    loaded: dict[tuple[str, str], list[RunData]] = {}
+    missing = []
+    for env in envs:
+        rule = rule_of(recipes[env])
+        for cond in conditions:
+            runs = []
+            for seed in seeds:
+                run = load_run(root / "runs" / env / cond / f"seed-{seed}", env, cond, seed, rule)
+                if run is None or not run.completed:
+                    missing.append(f"{env}/{cond}/seed-{seed}")
+                else:
+                    runs.append(run)
+            loaded[(env, cond)] = runs
+    return loaded, missing
+
+
+def compare_env(
+    loaded: dict[tuple[str, str], list[RunData]], env: str, conditions: Sequence[str], reps: int
+) -> dict[tuple[str, str], dict[str, Comparison]]:
+    """Every coached condition of ``env`` against no coach, on every measure, with verdicts."""
+    base = loaded.get((env, BASELINE), [])
+    raw, values, never = {}, {}, {}
+    for cond in conditions:
+        runs = loaded.get((env, cond), [])
+        if cond == BASELINE or not runs or not base:
+            continue
+        never[cond] = all(r.metrics.never_trained for r in runs)
+        for m in MEASURES:
+            x, _ = censored_values(runs, m.name)
+            y, _ = censored_values(base, m.name)
+            raw[(cond, m.name)] = raw_comparison(x, y, m, reps)
+            values[(cond, m.name)] = (x, y)
+    out: dict[tuple[str, str], dict[str, Comparison]] = {}
+    for (cond, name), c in decide(raw, values, never).items():
+        out.setdefault((env, cond), {})[name] = c
+    return out
 
 
 def analyze(experiment: dict[str, Any], root: Path, recipes: dict[str, Any], reps: int = 2000) -> Analysis:
@@ -292,33 +362,17 @@ def analyze(experiment: dict[str, Any], root: Path, recipes: dict[str, Any], rep
     """
     envs = tuple(experiment["envs"])
     conditions = tuple(experiment["conditions"])
-    seeds = tuple(experiment["seeds"])
+    loaded, missing = _load_cells(envs, conditions, tuple(experiment["seeds"]), root, recipes)
     cells: dict[tuple[str, str], CellResult] = {}
-    missing = []
-    loaded: dict[tuple[str, str], list[RunData]] = {}
+    comparisons: dict[tuple[str, str], dict[str, Comparison]] = {}
     for env in envs:
         r = recipes[env]
         for cond in conditions:
-            runs = []
-            for seed in seeds:
-                d = root / "runs" / env / cond / f"seed-{seed}"
-                run = load_run(d, env, cond, seed, r.win.target, r.win.consecutive, r.win.window)
-                if run is None or not run.completed:
-                    missing.append(f"{env}/{cond}/seed-{seed}")
-                else:
-                    runs.append(run)
-            loaded[(env, cond)] = runs
-    for env in envs:
-        r = recipes[env]
-        base = loaded.get((env, BASELINE)) if BASELINE in conditions else None
-        for cond in conditions:
-            runs = loaded[(env, cond)]
-            if not runs:
-                continue
-            cells[(env, cond)] = analyze_cell(
-                runs, env, cond, r.win.window, r.steps, r.evaluation.every,
-                base if cond != BASELINE else None, reps,
-            )  # fmt: skip
+            if loaded[(env, cond)]:
+                cells[(env, cond)] = analyze_cell(
+                    loaded[(env, cond)], env, cond, r.win.window, r.steps, r.evaluation.every, reps
+                )
+        comparisons.update(compare_env(loaded, env, conditions, reps))
     return Analysis(
         envs=envs,
         conditions=conditions,
@@ -327,4 +381,27 @@ def analyze(experiment: dict[str, Any], root: Path, recipes: dict[str, Any], rep
         windows={e: recipes[e].win.window for e in envs},
         budgets={e: recipes[e].steps for e in envs},
         missing=tuple(missing),
+        comparisons=comparisons,
     )
+
+
+def recipes_of_runs(root: Path, experiment: dict[str, Any]) -> dict[str, Any]:
+    """Env id -> the recipe its runs recorded (``config.toml`` of the first run found).
+
+    This analyzes a copied or published experiment folder without the recipe files it was run
+    from: every run directory records the recipe it ran (its budget included).
+
+    Raises
+    ------
+    ExperimentError
+        No run of an env records its recipe.
+    """
+    from pidlab.rl.rundir import load_run_config
+
+    recipes = {}
+    for env in experiment["envs"]:
+        configs = sorted((root / "runs" / env).glob("*/seed-*/config.toml"))
+        if not configs:
+            raise ExperimentError(f"{root / 'runs' / env}: no run records its recipe (config.toml)")
+        recipes[env], _, _ = load_run_config(configs[0].parent)
+    return recipes

@@ -1,11 +1,18 @@
 """Learning-speed metrics of one training run: the paper's and the honest ones.
 
 The paper's metrics read the *training* returns, episode by episode, as the paper did: with a
-coach in the loop those episodes are coach-assisted (the coach keeps them alive). The honest
-metrics read the agent-alone evaluations (coach off, deterministic policy) and count the
-environment steps the coach spent too.
+coach in the loop those episodes are coach-assisted (the coach keeps them alive). A coach's steps
+count toward the env's time limit but pay the agent nothing, so a coached episode's training return
+is capped at the time limit minus its coach steps (InvertedPendulum: 1000 - coach steps): a light
+coach makes wins easier (episodes stay alive), a heavy one makes them impossible. The same measures
+are therefore also read from the returns *with* the coach's rewards, which have no such cap.
 
-All functions are pure; :func:`run_metrics` bundles them for one run's logs.
+The honest metrics read the agent-alone evaluations (coach off, deterministic policy) and count the
+environment steps the coach spent too. "Reached the target" means reached and kept to the end of
+the run (:func:`sustained_hit`), and runs are compared at the evaluation grid point
+(:func:`grid_points`), so that two runs reaching it at the same evaluation tie.
+
+All functions are pure; :func:`run_metrics` bundles them for one run's logs (:class:`RunLogs`).
 """
 
 from __future__ import annotations
@@ -77,11 +84,122 @@ def episodes_to_average(returns: Values, target: float, window: int) -> int | No
 
 
 def first_reaching(xs: Values, ys: Values, target: float) -> float | None:
-    """The first ``x`` whose ``y`` is ``>= target`` (e.g. env steps at which an evaluation reached it)."""
+    """The first ``x`` whose ``y`` is ``>= target`` (a first hit, transient or not)."""
     for x, y in zip(xs, ys, strict=True):
         if y >= target:
             return float(x)
     return None
+
+
+def first_hit(means: Values, target: float) -> int | None:
+    """Index of the first evaluation whose mean return is ``>= target`` (it may not last).
+
+    Examples
+    --------
+    >>> first_hit([10, 900, 20, 950], 800)
+    1
+    """
+    hits = np.flatnonzero(np.asarray(means, dtype=float) >= target)
+    return int(hits[0]) if hits.size else None
+
+
+def sustained_hit(means: Values, target: float) -> int | None:
+    """Index of the first evaluation from which every evaluation, to the last, is ``>= target``.
+
+    This is what "reached the target" means in pidlab: the agent alone reached it and kept it
+    until the end of the run. A transient hit, lost again at a later evaluation, does not count.
+    A run counted as reached therefore ends with a final score ``>= target``, and a run whose
+    final score is ``>= target`` has reached it (at its last evaluation at the latest).
+
+    Examples
+    --------
+    >>> sustained_hit([10, 900, 20, 950, 1000], 800)
+    3
+    >>> sustained_hit([10, 900, 20], 800) is None
+    True
+    """
+    below = np.flatnonzero(~(np.asarray(means, dtype=float) >= target))
+    n = len(means)
+    start = int(below[-1]) + 1 if below.size else 0
+    return start if start < n else None
+
+
+def grid_points(env_steps: Values, every: int) -> np.ndarray:
+    """The evaluation grid point each evaluation was due at: ``floor(env_steps / every) * every``.
+
+    An evaluation due at ``k * every`` env steps runs at the first step at or after it; when a coach
+    step crosses the point it runs a few steps late (10,003 for 10,000). Two runs evaluated at the
+    same grid point were evaluated at the same point of their budgets, and tie.
+
+    Examples
+    --------
+    >>> grid_points([0, 5000, 10003], 5000).tolist()
+    [0, 5000, 10000]
+    """
+    x = np.asarray(env_steps, dtype=np.int64)
+    return (x // int(every)) * int(every)
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What counts as reaching the target.
+
+    Attributes
+    ----------
+    target : float
+        The return that counts (the paper's win target).
+    consecutive : int
+        The paper's streak of wins.
+    window : int
+        The paper's moving-average window, episodes.
+    every : int
+        Env steps between agent-alone evaluations (the evaluation grid).
+    """
+
+    target: float
+    consecutive: int
+    window: int
+    every: int
+
+
+@dataclass(frozen=True)
+class RunLogs:
+    """One run's logs, as :mod:`pidlab.rl.train` writes them.
+
+    Attributes
+    ----------
+    returns : ndarray
+        Training return per episode: what the agent was paid on its own steps.
+    coached_returns : ndarray
+        The same episodes' returns with the coach's steps' rewards included.
+    episode_env_steps : ndarray
+        Env steps so far at the end of each episode.
+    episode_coach_steps : ndarray
+        The coach's steps in each episode.
+    eval_env_steps, eval_agent_steps : ndarray
+        Env and agent steps so far at each agent-alone evaluation.
+    eval_means : ndarray
+        Mean return of each evaluation.
+    eval_steps : ndarray
+        Env steps each evaluation spent (its episodes' lengths summed); not charged to the budget.
+    env_steps, agent_steps, coach_steps : int
+        The run's totals.
+    policy_updates : int or None
+        Gradient steps of the policy's optimizer (None: not recorded by the run).
+    """
+
+    returns: np.ndarray
+    coached_returns: np.ndarray
+    episode_env_steps: np.ndarray
+    episode_coach_steps: np.ndarray
+    eval_env_steps: np.ndarray
+    eval_agent_steps: np.ndarray
+    eval_means: np.ndarray
+    eval_steps: np.ndarray
+    env_steps: int
+    agent_steps: int
+    coach_steps: int
+    policy_updates: int | None
 
 
 @dataclass(frozen=True)
@@ -91,90 +209,116 @@ class RunMetrics:
     Attributes
     ----------
     episodes_to_wins : int or None
-        The paper's: training episodes until ``consecutive`` wins in a row (coach-assisted returns).
+        The paper's: training episodes until ``consecutive`` wins in a row, on training returns
+        (the agent's reward only; with a coach, capped at the time limit minus the coach's steps).
     episodes_to_average : int or None
-        The paper's: training episodes until the moving average over ``window`` reaches the target.
-    env_steps_to_target, agent_steps_to_target : float or None
-        Honest: env steps (agent + coach) and agent steps until the agent-alone evaluation reached
-        the target.
+        The paper's: training episodes until the moving average over ``window`` reaches the target,
+        on training returns.
+    episodes_to_wins_with_coach, episodes_to_average_with_coach : int or None
+        The same two measures on the returns with the coach's rewards included (no cap).
+    env_steps_to_target : float or None
+        Honest: the grid point (env steps, agent + coach) of the evaluation from which the agent
+        alone scores ``>= target`` to the end of the run (:func:`sustained_hit`).
+    agent_steps_to_target : float or None
+        Agent steps at that same evaluation.
+    first_hit_env_steps : float or None
+        The grid point of the first evaluation at the target, even if the hit did not last.
     final_score : float
         Honest: mean return of the last agent-alone evaluation.
     final_training_score : float
-        Mean training return (agent reward, coach-assisted episodes) over the last ``window`` episodes.
+        Mean training return over the last ``window`` episodes.
     final_coached_score : float
-        Mean return *with the coach* (every step's reward, the coach's included) over the last
-        ``window`` training episodes: how the agent and its coach score together.
+        Mean return *with the coach* over the last ``window`` training episodes.
     coach_dependent : bool
-        The agent scores well with its coach (``final_coached_score >= target``) but not alone
-        (final agent-alone score ``< target``).
+        A trained agent (at least one policy update) that scores well with its coach
+        (``final_coached_score >= target``) but not alone (final score ``< target``).
+    never_trained : bool
+        The run made no policy update (``policy_updates == 0``): its agent is the initial policy.
     intervention_rate : float
         Coach steps / env steps over the whole run.
     episodes, env_steps, agent_steps, coach_steps : int
         Totals of the run.
+    policy_updates : int or None
+        Gradient steps of the policy (None: not recorded).
+    evaluation_env_steps : int
+        Env steps spent by agent-alone evaluations, not charged to the budget.
+    evaluation_delay : int
+        The largest distance, env steps, between an evaluation and its grid point.
+    env_steps_per_episode : float
+        Mean training episode length, env steps (agent + coach).
     """
 
     episodes_to_wins: int | None
     episodes_to_average: int | None
+    episodes_to_wins_with_coach: int | None
+    episodes_to_average_with_coach: int | None
     env_steps_to_target: float | None
     agent_steps_to_target: float | None
+    first_hit_env_steps: float | None
     final_score: float
     final_training_score: float
     final_coached_score: float
     coach_dependent: bool
+    never_trained: bool
     intervention_rate: float
     episodes: int
     env_steps: int
     agent_steps: int
     coach_steps: int
+    policy_updates: int | None
+    evaluation_env_steps: int
+    evaluation_delay: int
+    env_steps_per_episode: float
 
 
-def run_metrics(
-    returns: Values,
-    eval_env_steps: Values,
-    eval_agent_steps: Values,
-    eval_means: Values,
-    env_steps: int,
-    agent_steps: int,
-    coach_steps: int,
-    target: float,
-    consecutive: int,
-    window: int,
-    coached_returns: Values | None = None,
-) -> RunMetrics:
-    """All metrics of one run from its training returns and its agent-alone evaluations.
+def _tail_mean(values: np.ndarray, window: int) -> float:
+    tail = np.asarray(values[-window:], dtype=float)
+    return float(tail.mean()) if tail.size else float("nan")
+
+
+def _at(values: np.ndarray, index: int | None) -> float | None:
+    return None if index is None else float(values[index])
+
+
+def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
+    """All metrics of one run from its logs.
 
     Parameters
     ----------
-    returns : sequence of float
-        Training returns per episode (what the agent was paid; the paper's score).
-    eval_env_steps, eval_agent_steps, eval_means : sequence of float
-        Per agent-alone evaluation: env steps and agent steps so far, mean return.
-    env_steps, agent_steps, coach_steps : int
-        The run's totals.
-    target : float
-        The win target.
-    consecutive, window : int
-        The paper's streak length and moving-average window.
-    coached_returns : sequence of float, optional
-        Per episode, the return with the coach's steps included (default: ``returns``).
+    logs : RunLogs
+    rule : Rule
+
+    Returns
+    -------
+    RunMetrics
     """
-    final = float(eval_means[-1]) if len(eval_means) else float("nan")
-    tail = np.asarray(returns[-window:], dtype=float)
-    training = float(tail.mean()) if tail.size else float("nan")
-    both = np.asarray((returns if coached_returns is None else coached_returns)[-window:], dtype=float)
-    coached = float(both.mean()) if both.size else float("nan")
+    final = float(logs.eval_means[-1]) if len(logs.eval_means) else float("nan")
+    coached = _tail_mean(logs.coached_returns, rule.window)
+    grid = grid_points(logs.eval_env_steps, rule.every)
+    reached = sustained_hit(logs.eval_means, rule.target)
+    trained = logs.policy_updates is None or logs.policy_updates > 0
+    target, with_coach = rule.target, logs.coached_returns
+    dependent = trained and logs.coach_steps > 0 and coached >= target and not final >= target
     return RunMetrics(
-        episodes_to_wins=episodes_to_consecutive_wins(returns, target, consecutive),
-        episodes_to_average=episodes_to_average(returns, target, window),
-        env_steps_to_target=first_reaching(eval_env_steps, eval_means, target),
-        agent_steps_to_target=first_reaching(eval_agent_steps, eval_means, target),
+        episodes_to_wins=episodes_to_consecutive_wins(logs.returns, rule.target, rule.consecutive),
+        episodes_to_average=episodes_to_average(logs.returns, rule.target, rule.window),
+        episodes_to_wins_with_coach=episodes_to_consecutive_wins(with_coach, target, rule.consecutive),
+        episodes_to_average_with_coach=episodes_to_average(with_coach, target, rule.window),
+        env_steps_to_target=_at(grid, reached),
+        agent_steps_to_target=_at(logs.eval_agent_steps, reached),
+        first_hit_env_steps=_at(grid, first_hit(logs.eval_means, rule.target)),
         final_score=final,
-        final_training_score=training,
+        final_training_score=_tail_mean(logs.returns, rule.window),
         final_coached_score=coached,
-        coach_dependent=bool(coach_steps > 0 and coached >= target and not final >= target),
-        intervention_rate=coach_steps / env_steps if env_steps else 0.0,
-        episodes=len(returns),
-        env_steps=int(env_steps),
-        agent_steps=int(agent_steps),
-        coach_steps=int(coach_steps),
+        coach_dependent=bool(dependent),
+        never_trained=not trained,
+        intervention_rate=logs.coach_steps / logs.env_steps if logs.env_steps else 0.0,
+        episodes=len(logs.returns),
+        env_steps=int(logs.env_steps),
+        agent_steps=int(logs.agent_steps),
+        coach_steps=int(logs.coach_steps),
+        policy_updates=logs.policy_updates,
+        evaluation_env_steps=int(np.sum(logs.eval_steps)),
+        evaluation_delay=int(np.max(logs.eval_env_steps - grid)) if grid.size else 0,
+        env_steps_per_episode=logs.env_steps / len(logs.returns) if len(logs.returns) else float("nan"),
     )

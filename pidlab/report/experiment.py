@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from pidlab.experiment.analysis import BASELINE, METRICS, Analysis, CellResult, analyze
+from pidlab.experiment.comparison import ALPHA, MEASURE, MEASURES, MISSED, POWER, Comparison, detectable
 from pidlab.experiment.stats import Estimate
 from pidlab.experiment.sweep import Plan, check_out_folder
 from pidlab.files import atomic_write_text, read_json, save_figure
@@ -26,12 +27,20 @@ from pidlab.plant.card import PaperNumbers, find_card
 UNITS = {
     "episodes_to_wins": "episodes",
     "episodes_to_average": "episodes",
+    "episodes_to_wins_with_coach": "episodes",
+    "episodes_to_average_with_coach": "episodes",
     "env_steps_to_target": "env steps",
     "agent_steps_to_target": "agent steps",
+    "first_hit_env_steps": "env steps",
     "final_score": "return",
     "final_training_score": "return",
     "final_coached_score": "return",
     "intervention_rate": "coach steps / env steps",
+    "episodes": "episodes",
+    "env_steps_per_episode": "env steps",
+    "policy_updates": "gradient steps",
+    "evaluation_env_steps": "env steps",
+    "evaluation_delay": "env steps",
 }
 
 VERSIONS = (
@@ -51,9 +60,11 @@ def format_value(v: float, name: str) -> str:
     """A metric's value as the report shows it (``name``: a metric of :data:`METRICS`)."""
     if v == float("inf"):
         return "not reached"
+    if v != v:
+        return "n/a"
     if name == "intervention_rate":
         return f"{100 * v:.1f} %"
-    if "steps" in name:
+    if "steps" in name or name in ("episodes", "policy_updates", "evaluation_delay"):
         return f"{v:,.0f}"
     return f"{v:.0f}" if abs(v) >= 100 else f"{v:.1f}"
 
@@ -128,14 +139,6 @@ def report_header(
     return lines
 
 
-def _verdict(p: Estimate) -> str:
-    if p.low > 0.5:
-        return "better than no coach"
-    if p.high < 0.5:
-        return "worse than no coach"
-    return "no clear difference"
-
-
 def _saving(with_: float, without: float) -> str:
     finite = abs(with_) < float("inf") and abs(without) < float("inf")
     return f"{100 * (without - with_) / without:+.1f} %" if without and finite else "n/a"
@@ -153,74 +156,152 @@ def paper_numbers(env: str) -> PaperNumbers | None:
     return card.paper if card is not None else None
 
 
+def recipe_budget(env: str) -> int | None:
+    """The budget, env steps, of the recipe pidlab ships for ``env`` (None: it ships none)."""
+    from pidlab.errors import PidlabError
+    from pidlab.rl.recipe import default_recipe_path, load_recipe
+
+    try:
+        return load_recipe(default_recipe_path(env)).steps
+    except PidlabError:
+        return None
+
+
+PAPER_ROWS = (
+    ("episodes_to_wins", "5 wins, training returns"),
+    ("episodes_to_average", "average, training returns"),
+    ("episodes_to_wins_with_coach", "5 wins, returns with the coach's rewards"),
+    ("episodes_to_average_with_coach", "average, returns with the coach's rewards"),
+)
+
+
+def published_numbers(env: str) -> dict[str, tuple[str, str, str]]:
+    """Measure -> the paper's (with coach, without, saving as printed)."""
+    paper = paper_numbers(env)
+    if paper is None:
+        return {}
+    wins = (str(paper.wins_coached), str(paper.wins_uncoached), f"+{paper.savings_wins:g} %")
+    average = (str(paper.average_coached), str(paper.average_uncoached), f"+{paper.savings_average:g} %")
+    return {"episodes_to_wins": wins, "episodes_to_average": average}
+
+
 def _paper_rows(a: Analysis, env: str) -> list[list[str]]:
     rows = []
-    paper = paper_numbers(env)
-    published: dict[str, tuple[int, int]] = {}
-    if paper is not None:
-        published["episodes_to_wins"] = (paper.wins_coached, paper.wins_uncoached)
-        published["episodes_to_average"] = (paper.average_coached, paper.average_uncoached)
+    published = published_numbers(env)
     conds = [c for c in a.conditions if (env, c) in a.cells]
-    for name, label in (("episodes_to_wins", "5 wins"), ("episodes_to_average", "average")):
-        row = [label]
-        pair = published.get(name)
-        if pair:
-            row += [str(pair[0]), str(pair[1]), _saving(pair[0], pair[1])]
-        else:
-            row += ["", "", ""]
-        base = a.cells.get((env, BASELINE))
+    base = a.cells.get((env, BASELINE))
+    for name, label in PAPER_ROWS:
+        row = [label, *published.get(name, ("", "", ""))]
         for c in conds:
             cell = a.cells[(env, c)]
             text = cell_metric(cell, name)
             if base is not None and c != BASELINE:
                 saving = _saving(cell.metrics[name].estimate.value, base.metrics[name].estimate.value)
-                text += f"; saving {saving}"
+                text += f"; saving {saving} (recomputed)"
             row.append(text)
         rows.append(row)
     return rows
 
 
-def reading(a: Analysis, env: str) -> list[str]:
-    """Plain sentences from the numbers (the human reading goes in docs/)."""
-    out = []
-    base = a.cells.get((env, BASELINE))
-    if base is None:
-        return ["No uncoached condition in this experiment: no comparison is drawn."]
-    labels = {
-        "episodes_to_wins": "episodes to 5 wins (training returns)",
-        "episodes_to_average": "episodes to the moving-average target (training returns)",
-        "env_steps_to_target": "env steps until the agent alone reaches the target",
-        "final_score": "final agent-alone score",
-    }
-    for cond in a.conditions:
-        cell = a.cells.get((env, cond))
-        if cell is None or cond == BASELINE:
-            continue
-        parts = []
-        for name, label in labels.items():
-            p = cell.improvement[name]
-            parts.append(f"{label}: {_verdict(p)} (P = {p.value:.2f} [{p.low:.2f}, {p.high:.2f}])")
-        dep = f"{cell.coach_dependent}/{len(cell.runs)} agents coach-dependent"
-        rate = format_value(cell.metrics["intervention_rate"].estimate.value, "intervention_rate")
-        out.append(
-            f"**{cond}** vs no coach: " + "; ".join(parts) + f". {dep}; the coach ran {rate} of env steps."
+def p_text(p: float) -> str:
+    """A p-value as reports print it."""
+    return f"{p:.2g}" if p >= 0.001 else f"{p:.1e}"
+
+
+def verdict_text(c: Comparison) -> str:
+    """The verdict of a comparison with the numbers it rests on."""
+    e = c.improvement
+    effect = f"P = {e.value:.2f} [{e.low:.2f}, {e.high:.2f}]"
+    if c.verdict == "not testable":
+        return f"not testable{' at this budget' if c.reason == MISSED else ''} ({c.reason})"
+    if c.verdict == "never trained":
+        return f"never trained ({c.reason})"
+    test = f"exact p = {p_text(c.test.p_value)}"
+    if c.p_holm is not None:
+        test += f", Holm {p_text(c.p_holm)}"
+    if c.verdict == "withdrawn":
+        return f"verdict withdrawn, it {c.reason} ({effect}, {test})"
+    word = {"better": "better than no coach", "worse": "worse than no coach"}.get(c.verdict, c.verdict)
+    return f"{word}{' (indicative)' if c.indicative else ''} ({effect}, {test})"
+
+
+def design_note(a: Analysis, env: str) -> str:
+    """What the seeds can show: run counts, Holm family, smallest detectable effect, smallest p."""
+    comps = [c for (e, _), cs in a.comparisons.items() if e == env for c in cs.values()]
+    if not comps:
+        return ""
+    n, m = comps[0].test.n, comps[0].test.m
+    family = max(c.family for c in comps)
+    d = detectable(n, m)
+    power = (
+        f"with {n} against {m} seeds, an exact two-sided test at {ALPHA:g} detects with "
+        f"{100 * POWER:.0f} % power only effects of P >= {d:.2f} (normal location-shift model)"
+        if d is not None
+        else f"with {n} against {m} seeds no exact test can reach p < {ALPHA:g}"
+    )
+    text = (
+        f"Design: {power}; the smallest possible p is {p_text(comps[0].smallest_p)}. "
+        f"{len(comps)} comparisons; the {family} testable ones form one Holm family, and a verdict "
+        f"says better or worse only when its Holm-adjusted p is below {ALPHA:g}."
+    )
+    if comps[0].smallest_p > ALPHA:
+        text += (
+            f" **These verdicts are indicative only:** {n} and {m} seeds cannot reach p < "
+            f"{comps[0].smallest_p:.2g} with an exact test, so they are read from the bootstrap "
+            "interval of P (better or worse when it excludes 0.5)."
         )
+    return text
+
+
+def reading(a: Analysis, env: str, measures: Sequence[str] | None = None) -> list[str]:
+    """Plain sentences from the numbers (the human reading goes in docs/)."""
+    if (env, BASELINE) not in a.cells:
+        return ["No uncoached condition in this experiment: no comparison is drawn."]
+    names = [m.name for m in MEASURES] if measures is None else list(measures)
+    out = []
+    for cond in a.conditions:
+        cell, comps = a.cells.get((env, cond)), a.comparisons.get((env, cond))
+        if cell is None or cond == BASELINE or not comps:
+            continue
+        parts = [f"{MEASURE[n].label}: {verdict_text(comps[n])}" for n in names]
+        facts = [f"{cell.coach_dependent}/{len(cell.runs)} agents coach-dependent"]
+        if cell.never_trained:
+            facts.append(f"{cell.never_trained}/{len(cell.runs)} never trained (0 policy updates)")
+        rate = format_value(cell.metrics["intervention_rate"].estimate.value, "intervention_rate")
+        facts.append(f"the coach ran {rate} of env steps")
+        out.append(f"**{cond}** vs no coach: " + "; ".join(parts) + ". " + "; ".join(facts) + ".")
     return out
 
 
 HOW_TO_READ = (
     "- Every number is the interquartile mean (IQM) over seeds with its 95 % stratified bootstrap "
     "confidence interval in brackets (rliable's method, 2000 resamples).",
-    "- The paper's metrics read the *training* returns (the reward the agent was paid on its own "
-    "steps, in episodes the coach kept alive), as the paper did. (n/N): runs that reached the target; "
-    "a run that never did ranks below all that did, and the IQM reads 'not reached' when more than a "
-    "quarter of the runs never did. Saving: (without - with) / without, as the paper computes it.",
-    "- The honest metrics read the agent alone: deterministic policy, coach off, fixed evaluation "
-    "seeds, every `evaluation.every` env steps. Env steps count the coach's steps too.",
+    "- The paper's measures read the *training* returns, episode by episode, as the paper did. A coach's "
+    "steps count toward the env's time limit but pay the agent nothing, so a coached episode's training "
+    "return is capped at the time limit minus its coach steps (InvertedPendulum: 1000 - coach steps): a "
+    "light coach makes wins easier because episodes stay alive, a heavy one makes them impossible. The "
+    "same measures are therefore also given on the returns *with* the coach's rewards, which have no "
+    "cap. (n/N): runs that reached the target; a run that never did ranks below all that did, and the "
+    "IQM reads 'not reached' when more than a quarter of the runs never did. The paper's savings are "
+    "printed as the paper printed them; ours are recomputed from the IQMs.",
+    "- The honest measures read the agent alone: deterministic policy, coach off, fixed evaluation "
+    "seeds, every `evaluation.every` env steps. Env steps count the coach's steps too. The agent "
+    "*reaches* the target at the first evaluation from which it scores at least the target at every "
+    "evaluation to the end of the run (a transient hit does not count; the first hit is shown apart). "
+    "Runs are compared at the evaluation's grid point (a multiple of `evaluation.every`): an evaluation "
+    "runs at the first env step at or after its point, a few steps late when a coach step crosses it.",
+    "- Agent-alone evaluations are not charged to the budget (for every condition alike); the env steps "
+    "they spent are listed per run in `metrics.csv` (`evaluation_env_steps`) and below.",
     "- Training return: what the agent was paid on its own steps. Return with the coach: the same "
-    "episodes with the coach's steps' rewards included. Coach-dependent: the return with the coach "
-    "over the last window reached the target, the agent alone did not. "
-    "P = probability of improvement over no coach (0.5: no difference).",
+    "episodes with the coach's steps' rewards included. Coach-dependent: a trained agent whose return "
+    "with the coach over the last window reached the target while it did not alone. Never trained: "
+    "the run made no policy update (PPO updates once per full rollout), so it measures the initial "
+    "policy, not coaching; such a run is never called coach-dependent.",
+    "- P = probability of improvement over no coach (0.5: no difference), with the exact two-sided "
+    "Wilcoxon-Mann-Whitney p-value and its Holm adjustment over the env's comparisons. "
+    "'Not testable at this budget': every run of both conditions has the same value (for example, none "
+    "reached the target). 'Withdrawn': a verdict on training returns that the returns with the "
+    "coach's rewards do not share, so it rests only on the return cap.",
 )
 
 FIGURE_TITLES = ("Learning curves", "Table II as bars", "Coach dependence and interventions")
@@ -244,44 +325,66 @@ def _front_matter(a: Analysis, record: Mapping[str, Any]) -> list[str]:
 def _honest_table(a: Analysis, env: str, cells: Sequence[CellResult]) -> str:
     header = [
         "condition",
-        "env steps to target (agent alone)",
+        "env steps to target, reached and kept (agent alone)",
         "agent steps to target",
+        "env steps to a first hit",
         "final agent-alone score",
         f"training return, last {a.windows[env]} episodes",
         "return with the coach, same episodes",
         "coach-dependent",
+        "never trained",
         "intervention rate",
     ]
+    names = ("env_steps_to_target", "agent_steps_to_target", "first_hit_env_steps", "final_score",
+             "final_training_score", "final_coached_score")  # fmt: skip
     rows = [
-        [
-            c.condition,
-            *(cell_metric(c, name) for name in ("env_steps_to_target", "agent_steps_to_target", "final_score",
-                                                "final_training_score", "final_coached_score")),
-            f"{c.coach_dependent}/{len(c.runs)}",
-            cell_metric(c, "intervention_rate"),
-        ]
+        [c.condition, *(cell_metric(c, n) for n in names), f"{c.coach_dependent}/{len(c.runs)}",
+         f"{c.never_trained}/{len(c.runs)}", cell_metric(c, "intervention_rate")]
         for c in cells
     ]  # fmt: skip
     return markdown_table(header, rows)
 
 
+def _range(cell: CellResult, name: str) -> str:
+    values = [getattr(r.metrics, name) for r in cell.runs]
+    known = [float(v) for v in values if v is not None]
+    if not known:
+        return "not recorded"
+    iqm_text = format_value(cell.metrics[name].estimate.value, name)
+    return f"{iqm_text} ({format_value(min(known), name)} to {format_value(max(known), name)})"
+
+
+def _accounts_table(cells: Sequence[CellResult]) -> str:
+    header = ["condition", "training episodes", "env steps per training episode",
+              "policy updates (gradient steps)", "agent-alone evaluation env steps (not charged)",
+              "largest evaluation delay (env steps)"]  # fmt: skip
+    names = ("episodes", "env_steps_per_episode", "policy_updates", "evaluation_env_steps",
+             "evaluation_delay")  # fmt: skip
+    rows = [[c.condition, *(_range(c, n) for n in names)] for c in cells]
+    return markdown_table(header, rows)
+
+
+def _comparison_rows(a: Analysis, env: str, cells: Sequence[CellResult]) -> list[list[str]]:
+    rows = []
+    for cell in cells:
+        for name, c in a.comparisons.get((env, cell.condition), {}).items():
+            e = c.improvement
+            holm_p = "-" if c.p_holm is None else p_text(c.p_holm)
+            verdict = c.verdict + (" at this budget" if c.reason == MISSED else "")
+            verdict += " (indicative)" if c.indicative else ""
+            rows.append([cell.condition, MEASURE[name].label, f"{e.value:.2f} [{e.low:.2f}, {e.high:.2f}]",
+                         p_text(c.test.p_value), holm_p, verdict])  # fmt: skip
+    return rows
+
+
 def _improvement_section(a: Analysis, env: str, cells: Sequence[CellResult]) -> list[str]:
-    header = [
-        "condition",
-        "P(fewer episodes to 5 wins)",
-        "P(fewer episodes to average)",
-        "P(fewer env steps to target, alone)",
-        "P(higher final score, alone)",
-    ]
-    rows = [
-        [c.condition, *(f"{p.value:.2f} [{p.low:.2f}, {p.high:.2f}]" for p in c.improvement.values())]
-        for c in cells
-        if c.improvement
-    ]
+    header = ["condition", "measure", "P(better than no coach) [95 % CI]", "exact p", "Holm p", "verdict"]
     return [
-        "### Probability of improvement over no coach",
+        "### Against no coach",
         "",
-        markdown_table(header, rows),
+        design_note(a, env),
+        "",
+        markdown_table(header, _comparison_rows(a, env, cells)),
         "",
         "### In words (generated from the numbers above)",
         "",
@@ -290,18 +393,27 @@ def _improvement_section(a: Analysis, env: str, cells: Sequence[CellResult]) -> 
     ]
 
 
+def budget_text(a: Analysis, env: str) -> str:
+    """The run budget and its share of the shipped recipe's budget."""
+    budget, full = a.budgets[env], recipe_budget(env)
+    text = f"budget {budget:,} env steps per run"
+    if full:
+        text += f", {100 * budget / full:.3g} % of the recipe's {full:,} (coach/{env}.toml)"
+    return text
+
+
 def _env_section(a: Analysis, env: str, figures: Sequence[str]) -> list[str]:
     """One env's tables, reading and figures (nothing when no condition of it has a run)."""
     cells = [a.cells[(env, c)] for c in a.conditions if (env, c) in a.cells]
     if not cells:
         return []
-    paper_header = ["measure", "paper: with coach", "paper: without", "paper: saving",
+    paper_header = ["measure", "paper: with coach", "paper: without", "paper: saving (as printed)",
                     *(f"ours: {c.condition}" for c in cells)]  # fmt: skip
     lines = [
         f"## {env}",
         "",
-        f"Target {a.targets[env]:g}, moving-average window {a.windows[env]} episodes, budget "
-        f"{a.budgets[env]:,} env steps per run.",
+        f"Target {a.targets[env]:g}, moving-average window {a.windows[env]} episodes, {budget_text(a, env)}. "
+        "Every conclusion below holds at this budget only.",
         "",
         "### The paper's measures, beside its Table II",
         "",
@@ -311,8 +423,12 @@ def _env_section(a: Analysis, env: str, figures: Sequence[str]) -> list[str]:
         "",
         _honest_table(a, env, cells),
         "",
+        "### Accounts per run (IQM, and the range over seeds)",
+        "",
+        _accounts_table(cells),
+        "",
     ]
-    if any(c.improvement for c in cells):
+    if any(a.comparisons.get((env, c.condition)) for c in cells):
         lines += _improvement_section(a, env, cells)
     for title, path in zip(FIGURE_TITLES, figures, strict=False):
         lines += [f"![{env}: {title}]({path})", ""]
@@ -380,25 +496,57 @@ def metrics_rows(a: Analysis) -> list[dict[str, Any]]:
     return rows
 
 
+def _comparison_fields(c: Comparison | None) -> dict[str, Any]:
+    if c is None:
+        return dict.fromkeys(("p_improvement", "p_low", "p_high", "p_value", "p_holm", "verdict"), "")
+    e = c.improvement
+    return {"p_improvement": e.value, "p_low": e.low, "p_high": e.high, "p_value": c.test.p_value,
+            "p_holm": "" if c.p_holm is None else c.p_holm,
+            "verdict": c.verdict + (" (indicative)" if c.indicative else "")}  # fmt: skip
+
+
 def summary_rows(a: Analysis) -> list[dict[str, Any]]:
     """One row per (env, condition, metric)."""
     rows = []
     for cell in a.cells.values():
+        comps = a.comparisons.get((cell.env_id, cell.condition), {})
         for name, m in cell.metrics.items():
-            p = cell.improvement.get(name)
             rows.append({
                 "env": cell.env_id, "condition": cell.condition, "metric": name, "unit": UNITS[name],
                 "iqm": m.estimate.value, "ci_low": m.estimate.low, "ci_high": m.estimate.high,
-                "reached": m.reached, "runs": m.runs,
-                "p_improvement": "" if p is None else p.value,
-                "p_low": "" if p is None else p.low, "p_high": "" if p is None else p.high,
+                "reached": m.reached, "runs": m.runs, **_comparison_fields(comps.get(name)),
             })  # fmt: skip
-        rows.append({
-            "env": cell.env_id, "condition": cell.condition, "metric": "coach_dependent", "unit": "runs",
-            "iqm": cell.coach_dependent, "ci_low": "", "ci_high": "", "reached": "", "runs": len(cell.runs),
-            "p_improvement": "", "p_low": "", "p_high": "",
-        })  # fmt: skip
+        for name, count in (("coach_dependent", cell.coach_dependent), ("never_trained", cell.never_trained)):
+            rows.append({
+                "env": cell.env_id, "condition": cell.condition, "metric": name, "unit": "runs",
+                "iqm": count, "ci_low": "", "ci_high": "", "reached": "", "runs": len(cell.runs),
+                **_comparison_fields(None),
+            })  # fmt: skip
     return rows
+
+
+def figure_names(a: Analysis, env: str) -> list[str]:
+    """The report's figures of ``env``, relative to the report (none when no condition of it has a run)."""
+    if not any((env, c) in a.cells for c in a.conditions):
+        return []
+    return [f"figures/{env}-{suffix}.png" for suffix in ("curves", "table2", "dependence")]
+
+
+def report_texts(
+    a: Analysis, record: Mapping[str, Any], figures: Mapping[str, Sequence[str]]
+) -> dict[str, str]:
+    """The text files of a report, by name: ``metrics.csv``, ``summary.csv``, ``report.md``, ``report.html``.
+
+    A pure function of the analysis and the record, so that anyone can recompute a published report
+    from its runs' logs (``benchmarks/recompute.py``) and compare it byte for byte.
+    """
+    text = render_markdown(a, record, figures)
+    return {
+        "metrics.csv": _csv(metrics_rows(a)),
+        "summary.csv": _csv(summary_rows(a)),
+        "report.md": text,
+        "report.html": render_html(text, f"pidlab experiment: {', '.join(a.envs)}"),
+    }
 
 
 def write_report(p: Plan, progress_bar: bool = True, analysis: Analysis | None = None) -> Path:
@@ -423,21 +571,14 @@ def write_report(p: Plan, progress_bar: bool = True, analysis: Analysis | None =
         bar.update(1)
         figures: dict[str, list[str]] = {}
         for env in p.envs:
-            if not any((env, c) in a.cells for c in a.conditions):
-                bar.update(1)
-                continue
-            names = []
-            for suffix, draw in (("curves", plot_learning_curves), ("table2", plot_table2_bars),
-                                 ("dependence", plot_coach_dependence)):  # fmt: skip
-                rel = f"figures/{env}-{suffix}.png"
+            names = figure_names(a, env)
+            for rel, draw in zip(names, (plot_learning_curves, plot_table2_bars, plot_coach_dependence),
+                                 strict=False):  # fmt: skip
                 save_figure(draw(a, env), p.out / rel)
-                names.append(rel)
-            figures[env] = names
+            if names:
+                figures[env] = names
             bar.update(1)
-        text = render_markdown(a, record, figures)
-        atomic_write_text(p.out / "metrics.csv", _csv(metrics_rows(a)))
-        atomic_write_text(p.out / "summary.csv", _csv(summary_rows(a)))
-        atomic_write_text(p.out / "report.md", text)
-        atomic_write_text(p.out / "report.html", render_html(text, f"pidlab experiment: {', '.join(a.envs)}"))
+        for name, text in report_texts(a, record, figures).items():
+            atomic_write_text(p.out / name, text)
         bar.update(1)
     return p.out / "report.md"

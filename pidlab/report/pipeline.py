@@ -18,7 +18,7 @@ from pidlab.controller.rollout import CoachScore
 from pidlab.controller.spec import CoachSpec
 from pidlab.experiment.analysis import BASELINE, Analysis
 from pidlab.linear.lti import LtiReport
-from pidlab.report.experiment import cell_metric, markdown_table, reading, report_header
+from pidlab.report.experiment import cell_metric, design_note, markdown_table, reading, report_header
 from pidlab.rl.recipe import PipelineSettings
 
 
@@ -311,7 +311,7 @@ def _training(f: PipelineFacts) -> list[str]:
         if cell is None:
             continue
         per_seed = ", ".join(f"{r.metrics.final_score:.0f}" for r in cell.runs)
-        p = cell.improvement.get("final_score")
+        p = a.improvement(env, cond, "final_score")
         rows.append(
             [cond, cell_metric(cell, "final_score"), per_seed, cell_metric(cell, "env_steps_to_target"),
              cell_metric(cell, "intervention_rate"), f"{cell.coach_dependent}/{len(cell.runs)}",
@@ -323,7 +323,7 @@ def _training(f: PipelineFacts) -> list[str]:
                 "condition",
                 "final agent-alone score",
                 "per seed",
-                "env steps to target (agent alone)",
+                "env steps to target, reached and kept (agent alone)",
                 "coach's share of env steps",
                 "coach-dependent",
                 "P(higher final score)",
@@ -331,7 +331,9 @@ def _training(f: PipelineFacts) -> list[str]:
             rows,
         ),
         "",
-        *(f"- {s}" for s in reading(a, env)),
+        design_note(a, env),
+        "",
+        *(f"- {s}" for s in reading(a, env, ("env_steps_to_target", "final_score"))),
         "",
         "The full experiment report, with the paper's measures beside its Table II: "
         "[experiment/report.html](experiment/report.html) ([Markdown](experiment/report.md)).",

@@ -1,0 +1,233 @@
+"""Exact rank-sum test, Holm adjustment and power analysis of :mod:`pidlab.experiment.stats`."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from functools import cache
+
+import numpy as np
+import pytest
+from scipy.stats import mannwhitneyu
+
+from pidlab.experiment.stats import (
+    RankSumTest,
+    detectable_improvement,
+    holm,
+    rank_sum_test,
+    smallest_p_value,
+)
+
+INF = math.inf
+
+
+def _u(x: list[float], y: list[float]) -> float:
+    """Mann-Whitney U of x by pair comparisons (ties count half; infinities tie)."""
+    return sum(1.0 if a > b else 0.5 if a == b else 0.0 for a in x for b in y)
+
+
+def _brute_force_p(x: list[float], y: list[float]) -> float:
+    """Exact two-sided p-value by enumerating every split of the pooled values."""
+    pooled = [*x, *y]
+    n, m = len(x), len(y)
+    center = n * m / 2.0
+    observed = abs(_u(x, y) - center)
+    hits = total = 0
+    for chosen in itertools.combinations(range(n + m), n):
+        rest = [pooled[i] for i in range(n + m) if i not in chosen]
+        total += 1
+        hits += abs(_u([pooled[i] for i in chosen], rest) - center) >= observed - 1e-9
+    return hits / total
+
+
+# --- rank_sum_test -------------------------------------------------------------------------------
+
+
+def test_separated_samples_hand_computed() -> None:
+    low = rank_sum_test([1, 2, 3], [4, 5, 6])
+    assert low == RankSumTest(u=0.0, p_value=pytest.approx(0.1, abs=1e-15), n=3, m=3, testable=True)
+    high = rank_sum_test([4, 5, 6], [1, 2, 3])
+    assert high.u == 9.0
+    assert high.p_value == pytest.approx(0.1, abs=1e-15)
+
+
+def test_five_vs_five_separated() -> None:
+    result = rank_sum_test([0, 1, 2, 3, 4], [5, 6, 7, 8, 9])
+    assert result.u == 0.0
+    assert result.p_value == pytest.approx(2 / 252, rel=1e-12)
+    assert (result.n, result.m, result.testable) == (5, 5, True)
+
+
+def test_identical_samples_give_p_one() -> None:
+    assert rank_sum_test([1, 2, 3], [1, 2, 3]).p_value == pytest.approx(1.0)
+
+
+def test_ties_against_brute_force() -> None:
+    x, y = [1.0, 2.0, 2.0], [2.0, 3.0, 4.0]
+    result = rank_sum_test(x, y)
+    assert result.u == 1.0  # 1 loses to 2, 3, 4; each 2 ties the 2 of y (half) and loses to 3, 4
+    assert result.p_value == pytest.approx(_brute_force_p(x, y), rel=1e-12)
+    assert result.testable
+
+
+def test_infinities_tie_with_each_other() -> None:
+    x, y = [1.0, INF, INF], [INF, INF, 5.0, -INF]
+    result = rank_sum_test(x, y)
+    assert result.u == pytest.approx(_u(x, y))
+    assert result.p_value == pytest.approx(_brute_force_p(x, y), rel=1e-12)
+
+
+def test_randomized_against_brute_force() -> None:
+    rng = np.random.default_rng(2024)
+    values = [0.0, 1.0, 2.0, 3.0, INF, -INF]
+    for _ in range(25):
+        n, m = rng.integers(1, 7, size=2)
+        x = [float(v) for v in rng.choice(values, size=n)]
+        y = [float(v) for v in rng.choice(values, size=m)]
+        result = rank_sum_test(x, y)
+        assert result.u == pytest.approx(_u(x, y))
+        if result.testable:
+            assert result.p_value == pytest.approx(_brute_force_p(x, y), rel=1e-12)
+        else:
+            assert result.p_value == 1.0
+
+
+def test_larger_first_sample_matches_brute_force() -> None:
+    x, y = [3.0, 1.0, 4.0, 1.0, 5.0, 9.0], [2.0, 6.0, 5.0]
+    assert rank_sum_test(x, y).p_value == pytest.approx(_brute_force_p(x, y), rel=1e-12)
+    assert rank_sum_test(x, y).p_value == pytest.approx(rank_sum_test(y, x).p_value, rel=1e-12)
+
+
+@pytest.mark.parametrize(("n", "m", "shift"), [(4, 7, 0.5), (8, 8, 1.0), (12, 9, 0.0), (20, 25, 0.7)])
+def test_agrees_with_scipy_without_ties(n: int, m: int, shift: float) -> None:
+    rng = np.random.default_rng(n * 100 + m)
+    x, y = rng.normal(shift, 1.0, n), rng.normal(0.0, 1.0, m)
+    result = rank_sum_test(x, y)
+    reference = mannwhitneyu(x, y, method="exact", alternative="two-sided")
+    assert result.u == pytest.approx(reference.statistic)
+    assert result.p_value == pytest.approx(reference.pvalue, rel=1e-9)
+
+
+def test_all_tied_is_not_testable() -> None:
+    result = rank_sum_test([INF, INF, INF], [INF, INF])
+    assert not result.testable
+    assert result.p_value == 1.0
+    assert result.u == 3.0  # all 6 pairs tie
+    assert not rank_sum_test([2.0], [2.0, 2.0]).testable
+
+
+def test_single_runs() -> None:
+    result = rank_sum_test([1.0], [2.0])
+    assert (result.u, result.p_value, result.testable) == (0.0, 1.0, True)
+
+
+def test_fast_for_a_hundred_runs_each() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.integers(0, 20, 100).astype(float)
+    y = rng.integers(2, 22, 100).astype(float)
+    x[:7] = INF
+    result = rank_sum_test(x, y)
+    assert 0.0 <= result.p_value <= 1.0
+    assert result.u == pytest.approx(float((x[:, None] > y).sum() + 0.5 * (x[:, None] == y).sum()))
+
+
+@pytest.mark.parametrize(
+    ("x", "y"), [([], [1.0]), ([1.0], []), ([1.0, math.nan], [2.0]), ([1.0], [math.nan])]
+)
+def test_bad_samples_raise(x: list[float], y: list[float]) -> None:
+    with pytest.raises(ValueError):
+        rank_sum_test(x, y)
+
+
+def test_result_is_frozen() -> None:
+    result = rank_sum_test([1, 2], [3, 4])
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        result.p_value = 0.0  # type: ignore[misc]
+
+
+# --- smallest_p_value ----------------------------------------------------------------------------
+
+
+def test_smallest_p_value_hand_computed() -> None:
+    assert smallest_p_value(3, 3) == pytest.approx(0.1)
+    assert smallest_p_value(5, 5) == pytest.approx(2 / 252)
+    assert smallest_p_value(10, 10) == pytest.approx(2 / 184756)
+    assert smallest_p_value(1, 1) == 1.0
+    assert smallest_p_value(1, 2) == pytest.approx(2 / 3)
+
+
+def test_smallest_p_value_is_reached_by_the_test() -> None:
+    for n, m in [(2, 5), (4, 4), (6, 3)]:
+        x = list(range(n))
+        y = list(range(n, n + m))
+        assert rank_sum_test(x, y).p_value == pytest.approx(smallest_p_value(n, m), rel=1e-12)
+
+
+def test_smallest_p_value_rejects_empty_designs() -> None:
+    with pytest.raises(ValueError):
+        smallest_p_value(0, 3)
+
+
+# --- holm ----------------------------------------------------------------------------------------
+
+
+def test_holm_hand_computed() -> None:
+    assert holm([0.01, 0.04, 0.03, 0.005]) == pytest.approx((0.03, 0.06, 0.06, 0.02))
+
+
+def test_holm_edge_cases() -> None:
+    assert holm([]) == ()
+    assert holm([0.2]) == (0.2,)
+    assert holm([0.5, 0.6]) == (1.0, 1.0)  # capped at 1
+    assert holm(np.array([0.04, 0.01])) == pytest.approx((0.04, 0.02))
+    assert isinstance(holm([0.1, 0.2]), tuple)
+
+
+def test_holm_never_below_raw_and_preserves_order() -> None:
+    p = np.random.default_rng(3).uniform(0.0, 0.2, 12)
+    adjusted = np.array(holm(p))
+    assert (adjusted >= p).all()
+    order = np.argsort(p)
+    assert (np.diff(adjusted[order]) >= 0).all()
+
+
+# --- detectable_improvement ----------------------------------------------------------------------
+
+
+@cache
+def _detectable(n: int, m: int) -> float | None:
+    return detectable_improvement(n, m)
+
+
+@pytest.mark.parametrize(("n", "expected"), [(5, 0.95), (10, 0.84), (20, 0.75)])
+def test_detectable_improvement_sanity_values(n: int, expected: float) -> None:
+    value = _detectable(n, n)
+    assert value is not None
+    assert value == pytest.approx(expected, abs=0.01)
+
+
+def test_detectable_improvement_none_when_significance_unreachable() -> None:
+    assert smallest_p_value(3, 3) > 0.05
+    assert _detectable(3, 3) is None
+
+
+def test_detectable_improvement_decreases_with_runs() -> None:
+    values = [_detectable(n, n) for n in (5, 10, 20)]
+    assert all(v is not None for v in values)
+    assert values[0] > values[1] > values[2] > 0.5  # type: ignore[operator]
+
+
+def test_detectable_improvement_is_deterministic() -> None:
+    first = detectable_improvement(6, 5, draws=2000, seed=7)
+    assert first is not None
+    assert detectable_improvement(6, 5, draws=2000, seed=7) == first
+
+
+def test_detectable_improvement_rejects_bad_arguments() -> None:
+    with pytest.raises(ValueError):
+        detectable_improvement(0, 5)
+    with pytest.raises(ValueError):
+        detectable_improvement(5, 5, alpha=0.0)
+    with pytest.raises(ValueError):
+        detectable_improvement(5, 5, power=1.5)
