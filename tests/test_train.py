@@ -17,6 +17,7 @@ import pytest
 import tomli_w
 
 from pidlab.controller.spec import load_spec
+from pidlab.files import read_json
 from pidlab.rl.recipe import load_recipe, parse_recipe
 from pidlab.rl.rundir import latest_checkpoint, read_csv_rows
 from pidlab.rl.train import resume, train
@@ -144,6 +145,9 @@ def test_uncoached_run_has_no_coach_steps(tmp_path):
     assert result.coach_steps == 0 and result.env_steps == result.agent_steps == 3000
     assert all(r["coach_steps"] == "0" and r["agent_return"] == r["total_return"] for r in rows(tmp_path / "run"))
     assert not (tmp_path / "run" / "coach.toml").exists()
+    # PPO trains on every full rollout of 32 steps: 93 of them, 5 epochs of one 32-step batch each
+    summary = read_json(tmp_path / "run" / "summary.json")
+    assert summary["policy_updates"] == 5 * (3000 // 32)
 
 
 def _kill_after_checkpoint(cmd: list[str], run: Path, sig: int) -> tuple[int, int]:
@@ -249,10 +253,13 @@ def test_sac_resume_keeps_the_replay_buffer(tmp_path, ip_spec):
     run = tmp_path / "sac"
     result = train(load_recipe(path), None, run, progress_bar=False)  # uncoached: 600 agent steps, 400 trained
     assert result.completed and result.agent_steps == 600
+    before = read_json(run / "summary.json")["policy_updates"]
     checkpoint = latest_checkpoint(run)
     assert checkpoint is not None and (checkpoint / "replay_buffer.pkl").exists()
     extended = resume(run, steps=900, progress_bar=False)  # a longer budget continues the run
     assert extended.completed and extended.env_steps >= 900 and extended.agent_steps > result.agent_steps
+    after = read_json(run / "summary.json")["policy_updates"]
+    assert 0 < before < after <= before + 300 + 8  # the count goes on across the resume: 8 per 8 steps at most
     from stable_baselines3 import SAC
 
     model = SAC.load(run / "final_model.zip", device="cpu")
