@@ -80,3 +80,16 @@ def test_a_worse_verdict_that_rests_on_the_return_cap_is_withdrawn():
         ("pidlab", "episodes_to_wins_with_coach"): ([INF] * 10, ten),
     })  # fmt: skip
     assert both[("pidlab", "episodes_to_wins")].verdict == "worse"
+
+
+def test_five_seeds_in_a_family_of_many_comparisons_give_indicative_verdicts():
+    # 2/252 is below 0.05, but Holm over 7 comparisons makes even the most extreme result 0.056
+    five = [1.0, 2.0, 3.0, 4.0, 5.0]
+    values = {(f"c{i}", "final_score"): ([v + 100 for v in five], five) for i in range(7)}
+    verdicts = _decide(values)
+    c = verdicts[("c0", "final_score")]
+    assert c.family == 7 and c.p_holm == pytest.approx(7 * 2 / 252)
+    assert c.verdict == "better" and c.indicative
+    # with 6 comparisons the same result is significant after Holm
+    six = _decide({k: v for k, v in values.items() if k[0] != "c6"})[("c0", "final_score")]
+    assert six.family == 6 and six.verdict == "better" and not six.indicative

@@ -217,7 +217,12 @@ def test_a_run_written_before_the_provenance_module_resumes(tmp_path):
             "resumes": [{"time": "2026-11-22T22:00:00+0000", "from_env_steps": 200, "budget_env_steps": 400,
                          "command": ["pidlab", "train"], "git": info["git"]}]}  # fmt: skip
     (run / "run.json").write_text(json.dumps(old))
+    state_file = latest_checkpoint(run) / "state.json"  # nor did its checkpoints count policy updates
+    state_file.write_text(json.dumps({k: v for k, v in json.loads(state_file.read_text()).items()
+                                      if k != "policy_updates"}))  # fmt: skip
     assert resume(run, steps=600, progress_bar=False).completed
+    # SB3's own count before the resume (12 rollouts of 32 steps, 5 epochs each), pidlab's after it
+    assert read_json(run / "summary.json")["policy_updates"] == 5 * (400 // 32) + 5 * (200 // 32)
     new = json.loads((run / "run.json").read_text())
     assert new["created"] == info["created"] and "started" not in new and new["schema"] == "pidlab.run/1"
     assert new["resumes"][0]["at"] == "2026-11-22T22:00:00+0000" and len(new["resumes"]) == 2

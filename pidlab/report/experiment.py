@@ -18,7 +18,16 @@ from pathlib import Path
 from typing import Any
 
 from pidlab.experiment.analysis import BASELINE, METRICS, Analysis, CellResult, analyze
-from pidlab.experiment.comparison import ALPHA, MEASURE, MEASURES, MISSED, POWER, Comparison, detectable
+from pidlab.experiment.comparison import (
+    ALPHA,
+    MEASURE,
+    MEASURES,
+    MISSED,
+    POWER,
+    Comparison,
+    detectable,
+    reachable,
+)
 from pidlab.experiment.stats import Estimate
 from pidlab.experiment.sweep import Plan, check_out_folder
 from pidlab.files import atomic_write_text, read_json, save_figure
@@ -244,11 +253,13 @@ def design_note(a: Analysis, env: str) -> str:
         f"{len(comps)} comparisons; the {family} testable ones form one Holm family, and a verdict "
         f"says better or worse only when its Holm-adjusted p is below {ALPHA:g}."
     )
-    if comps[0].smallest_p > ALPHA:
+    if not reachable(comps[0].smallest_p, family):
+        low = comps[0].smallest_p
+        held = f", times the Holm family of {family} {p_text(min(1.0, family * low))}" if family > 1 else ""
         text += (
-            f" **These verdicts are indicative only:** {n} and {m} seeds cannot reach p < "
-            f"{comps[0].smallest_p:.2g} with an exact test, so they are read from the bootstrap "
-            "interval of P (better or worse when it excludes 0.5)."
+            f" **These verdicts are indicative only:** with {n} and {m} seeds the smallest exact p is "
+            f"{p_text(low)}{held}, not below {ALPHA:g}; so they are read from the bootstrap interval of P "
+            "(better or worse when it excludes 0.5)."
         )
     return text
 
@@ -393,13 +404,18 @@ def _improvement_section(a: Analysis, env: str, cells: Sequence[CellResult]) -> 
     ]
 
 
+def budget_share(a: Analysis, env: str) -> str:
+    """The run budget's share of the shipped recipe's full budget, in words (empty: no shipped recipe)."""
+    budget, full = a.budgets[env], recipe_budget(env)
+    if not full:
+        return ""
+    return f"{100 * budget / full:.3g} % of the recipe's full budget of {full:,} (coach/{env}.toml)"
+
+
 def budget_text(a: Analysis, env: str) -> str:
     """The run budget and its share of the shipped recipe's budget."""
-    budget, full = a.budgets[env], recipe_budget(env)
-    text = f"budget {budget:,} env steps per run"
-    if full:
-        text += f", {100 * budget / full:.3g} % of the recipe's {full:,} (coach/{env}.toml)"
-    return text
+    share = budget_share(a, env)
+    return f"budget {a.budgets[env]:,} env steps per run" + (f", {share}" if share else "")
 
 
 def _env_section(a: Analysis, env: str, figures: Sequence[str]) -> list[str]:

@@ -18,7 +18,14 @@ from pidlab.controller.rollout import CoachScore
 from pidlab.controller.spec import CoachSpec
 from pidlab.experiment.analysis import BASELINE, Analysis
 from pidlab.linear.lti import LtiReport
-from pidlab.report.experiment import cell_metric, design_note, markdown_table, reading, report_header
+from pidlab.report.experiment import (
+    budget_share,
+    cell_metric,
+    design_note,
+    markdown_table,
+    reading,
+    report_header,
+)
 from pidlab.rl.recipe import PipelineSettings
 
 
@@ -288,7 +295,8 @@ def _training(f: PipelineFacts) -> list[str]:
         "## 4. Training with and without the coach",
         "",
         f"The recipe's agent ({recipe}), {_count(f.settings.seeds, 'seed')} per condition, "
-        f"{budget:,} env steps per run (agent and coach steps both count). "
+        f"{budget:,} env steps per run (agent and coach steps both count; "
+        f"{budget_share(a, env) or 'no shipped recipe'}). "
         "`coached`: the coach above takes over as the recipe's coaching rule says "
         f"({rule}); its steps are hidden from the agent. "
         f"Target {a.targets.get(env, 0):g}.",

@@ -213,6 +213,8 @@ def read_state(checkpoint: Path) -> dict[str, int]:
         raise CheckpointError(f"{path}: damaged (not a JSON object)")
     state: dict[str, int] = {}
     for key in STATE_KEYS:
+        if key == "policy_updates" and key not in data:
+            continue  # a checkpoint from before pidlab counted them: the trainer falls back on SB3's count
         value = data.get(key, 0)
         if type(value) is not int or value < 0:
             raise CheckpointError(f"{path}: damaged ({key} = {value!r}, expected an integer >= 0)")

@@ -818,6 +818,18 @@ def _run(
         trainer.close()
 
 
+def sb3_update_count(model: Any) -> int:
+    """Gradient steps of the policy by SB3's own count (for checkpoints written before pidlab counted them).
+
+    SAC's ``_n_updates`` counts gradient steps; PPO's counts epochs, each of
+    ``ceil(n_steps * n_envs / batch_size)`` gradient steps (exact unless ``target_kl`` cut an epoch short).
+    """
+    n = int(model._n_updates)
+    if hasattr(model, "n_epochs"):
+        return n * -(-int(model.n_steps) * int(model.n_envs) // int(model.batch_size))
+    return n
+
+
 def _count_policy_updates(model: Any, counters: Counters) -> None:
     """Count the gradient steps of the policy's optimizer into ``counters.policy_updates``.
 
@@ -843,6 +855,8 @@ def _set_counters(trainer: _Trainer, state: dict[str, int] | None) -> None:
         return
     for key in c.to_dict():
         setattr(c, key, int(state.get(key, 0)))
+    if "policy_updates" not in state:
+        c.policy_updates = sb3_update_count(trainer.model)
     c.resumes += 1
     trainer.model._last_obs = None  # the envs are new: start fresh episodes
     # a resumed run is reproducible too: its seed depends on where it resumed

@@ -1,0 +1,36 @@
+"""The published results are what pidlab's code computes from the published runs' logs.
+
+Every experiment folder under docs/results/ ships its runs' episodes.csv, evaluations.csv,
+summary.json and config.toml; benchmarks/recompute.py re-analyzes them. Here the same recompute
+must give the committed metrics.csv, summary.csv and report.md byte for byte, so a change to the
+measures that is not followed by regenerating the published reports fails.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from tests.helpers import ROOT
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import recompute  # noqa: E402
+
+FOLDERS = recompute.published_folders()
+
+
+def test_every_published_experiment_ships_its_runs():
+    with_record = [p.parent for p in (ROOT / "docs" / "results").rglob("experiment.json")]
+    assert with_record and sorted(with_record) == sorted(FOLDERS)
+
+
+@pytest.mark.parametrize("folder", FOLDERS, ids=[str(f.relative_to(ROOT / "docs" / "results")) for f in FOLDERS])
+def test_a_published_report_is_recomputed_from_its_runs_logs(folder):
+    _, texts = recompute.recompute(folder)
+    for name in ("metrics.csv", "summary.csv", "report.md"):
+        assert (folder / name).read_text() == texts[name], f"{folder / name}: run benchmarks/recompute.py"
+
+
+def test_the_results_pages_tables_come_from_the_summaries():
+    assert recompute.check_readme() == []
