@@ -95,7 +95,7 @@ def main(argv: list[str]) -> int:
     for folder in folders:
         try:
             a, texts = recompute(folder)
-        except (PidlabError, OSError, KeyError, ValueError) as exc:
+        except (PidlabError, OSError, KeyError, ValueError, TypeError) as exc:
             print(f"recompute: {folder}: cannot be read ({exc})", file=sys.stderr)
             return 2
         diffs = differences(folder, texts)

@@ -409,13 +409,13 @@ def budget_share(a: Analysis, env: str) -> str:
     budget, full = a.budgets[env], recipe_budget(env)
     if not full:
         return ""
-    return f"{100 * budget / full:.3g} % of the recipe's full budget of {full:,} (coach/{env}.toml)"
+    return f"{100 * budget / full:.3g} % of the recipe's full budget of {full:,}"
 
 
 def budget_text(a: Analysis, env: str) -> str:
     """The run budget and its share of the shipped recipe's budget."""
     share = budget_share(a, env)
-    return f"budget {a.budgets[env]:,} env steps per run" + (f", {share}" if share else "")
+    return f"budget {a.budgets[env]:,} env steps per run" + (f", {share} (coach/{env}.toml)" if share else "")
 
 
 def _env_section(a: Analysis, env: str, figures: Sequence[str]) -> list[str]:
