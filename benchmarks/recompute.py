@@ -43,7 +43,11 @@ def published_folders() -> list[Path]:
 def recompute(folder: Path) -> tuple[Analysis, dict[str, str]]:
     """The analysis of a published folder and the report files it gives."""
     record = read_json(folder / "experiment.json")
-    identity = record["identity"]
+    identity = record.get("identity") if isinstance(record, dict) else None
+    keys = ("envs", "conditions", "seeds")
+    if not isinstance(identity, dict) or not all(isinstance(identity.get(k), list) for k in keys):
+        raise ValueError("experiment.json is not an experiment record (expected lists identity.envs, "
+                         ".conditions and .seeds)")  # fmt: skip
     a = analyze(identity, folder, recipes_of_runs(folder, identity))
     return a, report_texts(a, record, {env: figure_names(a, env) for env in a.envs})
 
