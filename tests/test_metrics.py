@@ -72,7 +72,7 @@ def logs(returns, ev_env, ev_agent, means, env_steps, agent_steps, coach_steps, 
     )
 
 
-RULE = Rule(target=800, consecutive=5, window=20, every=5000)
+RULE = Rule(target=800, consecutive=5, window=20, every=5000, budget=100000)
 
 
 def test_first_reaching_and_run_metrics_agent_alone():
@@ -134,7 +134,13 @@ def test_sustained_hit_and_final_score_agree():
 
 
 def test_evaluations_a_few_steps_late_sit_at_their_grid_point():
-    assert grid_points([0, 5000, 10003, 14999, 15000], 5000).tolist() == [0, 5000, 10000, 10000, 15000]
+    assert grid_points([0, 5000, 10003, 14999, 15000], 5000, 100000).tolist() == [0, 5000, 10000, 10000, 15000]
+    # the final evaluation is due at the budget, also when the budget is off the grid (IDP: 50,000, every 20,000)
+    assert grid_points([0, 20000, 40000, 50000, 50004], 20000, 50000).tolist() == [0, 20000, 40000, 50000, 50000]
+    idp = Rule(target=5500, consecutive=5, window=150, every=20000, budget=50000)
+    m = run_metrics(logs([10.0] * 5, [0, 20000, 40000, 50000], [0] * 4, [5.0, 100.0, 200.0, 9000.0], 50000, 50000, 0),
+                    idp)  # fmt: skip
+    assert m.env_steps_to_target == 50000 and m.evaluation_delay == 0
     # a coached run evaluated at 10,003 ties with an uncoached one evaluated at 10,000
     late = run_metrics(logs([10.0] * 5, [0, 5002, 10003], [0, 4000, 8000], [5.0, 100.0, 900.0], 10003, 8000, 2003),
                        RULE)  # fmt: skip

@@ -15,7 +15,7 @@ import pytest
 from tests.helpers import ROOT
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
-import recompute  # noqa: E402
+import recompute
 
 FOLDERS = recompute.published_folders()
 

@@ -171,7 +171,7 @@ def _run_data(run_dir: Path, s: Any, env_id: str, condition: str, seed: int, rul
         eval_env_steps=logs.eval_env_steps,
         eval_agent_steps=logs.eval_agent_steps,
         eval_means=logs.eval_means,
-        eval_grid=grid_points(logs.eval_env_steps, rule.every).astype(float),
+        eval_grid=grid_points(logs.eval_env_steps, rule.every, rule.budget).astype(float),
         budget=int(s.get("budget_env_steps", s["env_steps"])),
         completed=bool(s["completed"]),
         metrics=run_metrics(logs, rule),
@@ -302,7 +302,8 @@ def _thin_band(rows: np.ndarray, x: np.ndarray, points: int = 150) -> Curve:
 
 def rule_of(recipe: Any) -> Rule:
     """The :class:`pidlab.experiment.metrics.Rule` of a recipe (its win target and evaluation grid)."""
-    return Rule(recipe.win.target, recipe.win.consecutive, recipe.win.window, recipe.evaluation.every)
+    win = recipe.win
+    return Rule(win.target, win.consecutive, win.window, recipe.evaluation.every, recipe.steps)
 
 
 def _load_cells(

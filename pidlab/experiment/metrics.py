@@ -124,20 +124,23 @@ def sustained_hit(means: Values, target: float) -> int | None:
     return start if start < n else None
 
 
-def grid_points(env_steps: Values, every: int) -> np.ndarray:
-    """The evaluation grid point each evaluation was due at: ``floor(env_steps / every) * every``.
+def grid_points(env_steps: Values, every: int, budget: int) -> np.ndarray:
+    """The point each evaluation was due at: ``floor(env_steps / every) * every``, or the budget.
 
     An evaluation due at ``k * every`` env steps runs at the first step at or after it; when a coach
     step crosses the point it runs a few steps late (10,003 for 10,000). Two runs evaluated at the
-    same grid point were evaluated at the same point of their budgets, and tie.
+    same grid point were evaluated at the same point of their budgets, and tie. The final
+    evaluation, at the end of the budget, is due at the budget (50,000 with ``every`` 20,000).
 
     Examples
     --------
-    >>> grid_points([0, 5000, 10003], 5000).tolist()
+    >>> grid_points([0, 5000, 10003], 5000, 100000).tolist()
     [0, 5000, 10000]
+    >>> grid_points([0, 20000, 40000, 50000], 20000, 50000).tolist()
+    [0, 20000, 40000, 50000]
     """
     x = np.asarray(env_steps, dtype=np.int64)
-    return (x // int(every)) * int(every)
+    return np.where(x >= int(budget), int(budget), (x // int(every)) * int(every))
 
 
 @dataclass(frozen=True)
@@ -154,12 +157,15 @@ class Rule:
         The paper's moving-average window, episodes.
     every : int
         Env steps between agent-alone evaluations (the evaluation grid).
+    budget : int
+        The run's budget, env steps (its final evaluation is due there).
     """
 
     target: float
     consecutive: int
     window: int
     every: int
+    budget: int
 
 
 @dataclass(frozen=True)
@@ -294,7 +300,7 @@ def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
     """
     final = float(logs.eval_means[-1]) if len(logs.eval_means) else float("nan")
     coached = _tail_mean(logs.coached_returns, rule.window)
-    grid = grid_points(logs.eval_env_steps, rule.every)
+    grid = grid_points(logs.eval_env_steps, rule.every, rule.budget)
     reached = sustained_hit(logs.eval_means, rule.target)
     trained = logs.policy_updates is None or logs.policy_updates > 0
     target, with_coach = rule.target, logs.coached_returns
