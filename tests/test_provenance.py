@@ -172,8 +172,8 @@ def test_old_run_json_migrates_once_and_resumes(tmp_path):
 
 
 def test_published_experiment_record_migrates_and_resumes(tmp_path):
-    """A copy of docs/results/InvertedPendulum-v5/experiment.json (resumes keyed ``time``)."""
-    published = ROOT / "docs" / "results" / IP / "experiment.json"
+    """A copy of docs/results/InvertedPendulum-v5/experiment.json as published before (resumes keyed ``time``)."""
+    published = ROOT / "tests" / "data" / "legacy" / "experiment.json"
     old = read_json(published)
     assert all("time" in r for r in old["resumes"])
     ident = old["identity"]
