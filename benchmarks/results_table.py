@@ -12,6 +12,7 @@ import csv
 import math
 from pathlib import Path
 
+from pidlab.experiment.analysis import recipes_of_runs
 from pidlab.files import atomic_write_text, read_json
 from pidlab.report.experiment import (
     PAPER_ROWS,
@@ -96,13 +97,11 @@ def _honest(env: str, rows: dict[tuple[str, str], dict[str, str]], share: str) -
     return out
 
 
-def _share(env: str, rows: dict[tuple[str, str], dict[str, str]]) -> str:
-    """The run budget and its share of the shipped recipe's budget."""
-    steps = int(float(rows[("none", "env_steps")]["iqm"])) if ("none", "env_steps") in rows else None
+def _share(env: str, record: dict) -> str:
+    """The run budget (the recipe its runs recorded) and its share of the shipped recipe's budget."""
+    steps = recipes_of_runs(RESULTS / env, record["identity"])[env].steps
     full = recipe_budget(env)
-    if steps is None or not full:
-        return "?"
-    return f"{steps:,} ({100 * steps / full:.3g} % of {full:,})"
+    return f"{steps:,} ({100 * steps / full:.3g} % of {full:,})" if full else f"{steps:,}"
 
 
 def tables() -> str:
@@ -123,7 +122,7 @@ def tables() -> str:
             continue
         rows, record = loaded
         ident = record["identity"]
-        share = _share(env, rows)
+        share = _share(env, record)
         budgets.append(f"- **{env}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} conditions, "
                        f"{share} env steps per run; `{' '.join(record['command'])}`")  # fmt: skip
         t2 += _table2(env, rows)
