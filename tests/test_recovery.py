@@ -465,14 +465,29 @@ def test_a_damaged_finished_run_is_one_line_in_the_report(tmp_path):
     """experiment --report-only over a run whose summary or logs were damaged: an ExperimentError naming it."""
     from pidlab.errors import ExperimentError
     from pidlab.experiment.analysis import load_run
+    from pidlab.experiment.metrics import Rule
 
+    rule = Rule(800.0, 5, 20, 5000, 10)
     run = tmp_path / "seed-0"
     run.mkdir()
     summary = {"env_steps": 10, "agent_steps": 10, "coach_steps": 0, "completed": True}
     (run / "summary.json").write_text(json.dumps(summary))
     (run / "episodes.csv").write_text("episode,agent_return\n0,not-a-number\n")
     with pytest.raises(ExperimentError, match="seed-0: the run's logs are damaged"):
-        load_run(run, "InvertedPendulum-v5", "none", 0, 800.0, 5, 20)
+        load_run(run, "InvertedPendulum-v5", "none", 0, rule)
+    (run / "episodes.csv").unlink()  # a log file gone
+    with pytest.raises(ExperimentError, match="seed-0: the run's logs are damaged"):
+        load_run(run, "InvertedPendulum-v5", "none", 0, rule)
+    (run / "summary.json").write_text(json.dumps({**summary, "policy_updates": -3}))  # a count that cannot be
+    (run / "episodes.csv").write_text("episode,env_steps_so_far,agent_return,total_return,coach_steps\n")
+    (run / "evaluations.csv").write_text("env_steps_so_far,agent_steps_so_far,mean_return,mean_length,returns\n")
+    with pytest.raises(ExperimentError, match="policy_updates = -3"):
+        load_run(run, "InvertedPendulum-v5", "none", 0, rule)
+    (run / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(ExperimentError, match="no evaluation of the finished run"):
+        load_run(run, "InvertedPendulum-v5", "none", 0, rule)
+    (run / "summary.json").write_text(json.dumps({**summary, "completed": False}))  # stopped early: not counted
+    assert not load_run(run, "InvertedPendulum-v5", "none", 0, rule).completed
     (run / "summary.json").write_text('{"env_steps": 1')
     with pytest.raises(ExperimentError, match="summary.json: the run summary is damaged"):
-        load_run(run, "InvertedPendulum-v5", "none", 0, 800.0, 5, 20)
+        load_run(run, "InvertedPendulum-v5", "none", 0, rule)

@@ -152,7 +152,7 @@ def load_run(run_dir: Path, env_id: str, condition: str, seed: int, rule: Rule) 
     s = load_json(summary_path, "run summary", ExperimentError)
     try:
         return _run_data(run_dir, s, env_id, condition, seed, rule)
-    except (KeyError, ValueError, TypeError, AttributeError) as exc:
+    except (KeyError, ValueError, TypeError, AttributeError, OSError) as exc:
         raise ExperimentError(
             f"{run_dir}: the run's logs are damaged ({type(exc).__name__}: {exc}); "
             "resume the run (pidlab experiment with the same command) or delete its folder"
@@ -189,8 +189,14 @@ def _updates(summary: Any) -> int | None:
 
 def read_logs(run_dir: Path, summary: Any) -> RunLogs:
     """A run's ``episodes.csv``, ``evaluations.csv`` and totals of ``summary.json`` (``summary``)."""
+    updates = _updates(summary)
+    for name in ("episodes.csv", "evaluations.csv"):
+        if not (run_dir / name).is_file():
+            raise ValueError(f"{name} is missing")
     episodes = read_csv_rows(run_dir / "episodes.csv")
     evals = read_csv_rows(run_dir / "evaluations.csv")
+    if not evals and summary.get("completed"):
+        raise ValueError("evaluations.csv holds no evaluation of the finished run")
     return RunLogs(
         returns=np.array([float(r["agent_return"]) for r in episodes]),
         coached_returns=np.array([float(r["total_return"]) for r in episodes]),
@@ -203,7 +209,7 @@ def read_logs(run_dir: Path, summary: Any) -> RunLogs:
         env_steps=int(summary["env_steps"]),
         agent_steps=int(summary["agent_steps"]),
         coach_steps=int(summary["coach_steps"]),
-        policy_updates=_updates(summary),
+        policy_updates=updates,
     )
 
 
