@@ -26,7 +26,7 @@ For every measure of :data:`MEASURES` a :class:`Comparison` holds
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -114,6 +114,12 @@ class Comparison:
     verdict: str
     indicative: bool
     reason: str
+
+    @property
+    def label(self) -> str:
+        """The verdict as tables print it ("not testable at this budget" when every run missed)."""
+        text = self.verdict + (" at this budget" if self.reason == MISSED else "")
+        return text + (" (indicative)" if self.indicative else "")
 
     @property
     def smallest_p(self) -> float:
@@ -212,8 +218,3 @@ def _withdraw_capped(key: tuple[str, str], out: Mapping[tuple[str, str], Compari
         c, verdict="withdrawn",
         reason=f"rests on the return cap: with the coach's rewards counted, {other.verdict}",
     )  # fmt: skip
-
-
-def family_size(comparisons: Sequence[Comparison]) -> int:
-    """The size of the Holm family these comparisons belong to (0 when none was testable)."""
-    return max((c.family for c in comparisons), default=0)

@@ -22,7 +22,6 @@ from pidlab.experiment.comparison import (
     ALPHA,
     MEASURE,
     MEASURES,
-    MISSED,
     POWER,
     Comparison,
     detectable,
@@ -221,10 +220,8 @@ def verdict_text(c: Comparison) -> str:
     """The verdict of a comparison with the numbers it rests on."""
     e = c.improvement
     effect = f"P = {e.value:.2f} [{e.low:.2f}, {e.high:.2f}]"
-    if c.verdict == "not testable":
-        return f"not testable{' at this budget' if c.reason == MISSED else ''} ({c.reason})"
-    if c.verdict == "never trained":
-        return f"never trained ({c.reason})"
+    if c.verdict in ("not testable", "never trained"):
+        return f"{c.label} ({c.reason})"
     test = f"exact p = {p_text(c.test.p_value)}"
     if c.p_holm is not None:
         test += f", Holm {p_text(c.p_holm)}"
@@ -381,10 +378,8 @@ def _comparison_rows(a: Analysis, env: str, cells: Sequence[CellResult]) -> list
         for name, c in a.comparisons.get((env, cell.condition), {}).items():
             e = c.improvement
             holm_p = "-" if c.p_holm is None else p_text(c.p_holm)
-            verdict = c.verdict + (" at this budget" if c.reason == MISSED else "")
-            verdict += " (indicative)" if c.indicative else ""
             rows.append([cell.condition, MEASURE[name].label, f"{e.value:.2f} [{e.low:.2f}, {e.high:.2f}]",
-                         p_text(c.test.p_value), holm_p, verdict])  # fmt: skip
+                         p_text(c.test.p_value), holm_p, c.label])  # fmt: skip
     return rows
 
 
@@ -518,7 +513,7 @@ def _comparison_fields(c: Comparison | None) -> dict[str, Any]:
     e = c.improvement
     return {"p_improvement": e.value, "p_low": e.low, "p_high": e.high, "p_value": c.test.p_value,
             "p_holm": "" if c.p_holm is None else c.p_holm,
-            "verdict": c.verdict + (" (indicative)" if c.indicative else "")}  # fmt: skip
+            "verdict": c.label}  # fmt: skip
 
 
 def summary_rows(a: Analysis) -> list[dict[str, Any]]:
