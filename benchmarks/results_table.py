@@ -13,10 +13,11 @@ import math
 from pathlib import Path
 
 from pidlab.experiment.analysis import recipes_of_runs
+from pidlab.experiment.stats import Estimate
 from pidlab.files import atomic_write_text, read_json
 from pidlab.report.experiment import (
     PAPER_ROWS,
-    format_value,
+    estimate_text,
     p_text,
     paper_numbers,
     published_numbers,
@@ -38,13 +39,7 @@ def _num(text: str) -> float:
 def _cell(row: dict[str, str] | None, to_target: bool = True) -> str:
     if row is None:
         return "-"
-    v, lo, hi = _num(row["iqm"]), _num(row["ci_low"]), _num(row["ci_high"])
-    name = row["metric"]
-    text = (
-        "not reached"
-        if math.isinf(v)
-        else f"{format_value(v, name)} [{format_value(lo, name)}, {format_value(hi, name)}]"
-    )
+    text = estimate_text(Estimate(_num(row["iqm"]), _num(row["ci_low"]), _num(row["ci_high"])), row["metric"])
     if to_target:
         text += f" ({row['reached']}/{row['runs']})"
     return text
