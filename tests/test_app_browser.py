@@ -225,7 +225,11 @@ def test_bad_input_shows_a_message_and_writes_nothing(page, server):
     # a valid value clears the message and the page still answers
     _type(pg, "kp", "5")
     pg.wait_for_function("() => !(window.__text('.pidlab-msg-kp') || '').trim()", timeout=5000)
-    assert "stable" in _text(pg, "#closed-loop-summary")
+    # the summary is recomputed by the server after the message clears: wait for it, then check it
+    pg.wait_for_function(
+        "() => !(window.__text('#closed-loop-summary') || '').includes('UNSTABLE')", timeout=15000
+    )
+    assert ": stable" in _text(pg, "#closed-loop-summary")
 
 
 def test_autotune_and_derive_bounds_buttons(page):
