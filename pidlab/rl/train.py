@@ -53,7 +53,7 @@ from pidlab.errors import CheckpointError
 from pidlab.files import atomic_write_bytes, atomic_write_text, check_output_folder, write_json
 from pidlab.provenance import hold_lock, read_record
 from pidlab.rl.coaching import CoachingWrapper
-from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, sb3_policy
+from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, evaluation_envs, sb3_policy
 from pidlab.rl.recipe import LINEAR_SCHEDULES, Recipe, recipe_to_dict
 from pidlab.rl.rundir import (
     EPISODE_COLUMNS,
@@ -432,7 +432,7 @@ class _Trainer:
     evaluations_log: Any = None
     tb: Any = None
     sb3_logger: Any = None
-    eval_env: Any = None
+    eval_envs: list[Any] = field(default_factory=list)
     moving: bool = False
     _progress_tick: int = -1
 
@@ -454,11 +454,11 @@ class _Trainer:
 
         fmt = PurgingTensorBoard(str(self.run_dir / "tb" / "sb3"), purge_agent_step)
         self.sb3_logger = Logger(folder=str(self.run_dir / "tb" / "sb3"), output_formats=[fmt])
-        self.eval_env = gym.make(self.recipe.env_id)
+        self.eval_envs = evaluation_envs(self.recipe.env_id, self.recipe.evaluation.episodes)
         self.moving = _schedules_move(self.recipe, self.spec)
 
     def close(self) -> None:
-        for closable in (self.episodes_log, self.evaluations_log, self.tb, self.sb3_logger, self.eval_env,
+        for closable in (self.episodes_log, self.evaluations_log, self.tb, self.sb3_logger, *self.eval_envs,
                          self.venv):  # fmt: skip
             if closable is not None:
                 closable.close()
@@ -525,7 +525,7 @@ class _Trainer:
         if isinstance(self.venv, VecNormalize) and self.venv.norm_obs:
             normalizer = self.venv.normalize_obs
         result = evaluate_agent(
-            sb3_policy(self.model, normalizer), self.eval_env, self.recipe.evaluation.seeds
+            sb3_policy(self.model, normalizer), self.eval_envs, self.recipe.evaluation.seeds
         )
         r = np.array(result.returns)
         self.evaluations_log.write([
