@@ -27,13 +27,16 @@ unsaturated law is affine.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import control as ct
 import numpy as np
 
 from pidlab.controller.spec import CoachSpec, Loop, validate_against
 from pidlab.errors import SpecError
 from pidlab.plant.model import LoadedModel
+
+if TYPE_CHECKING:
+    import control as ct
 
 N_LOOP_STATES = 3  # integral, filtered derivative, previous measurement
 
@@ -287,6 +290,8 @@ class Coach:
         integrators (``<loop>_integral``), derivative filters (``<loop>_dfilter``) and
         stored measurements (``<loop>_prev``).
         """
+        import control as ct  # python-control takes seconds to import; training never needs it
+
         lay = self.layout
         n, ny, nr = lay.n_states, len(lay.observation_names), lay.n_loops
         zero_x, zero_y, zero_r = np.zeros(n), np.zeros(ny), np.zeros(nr)

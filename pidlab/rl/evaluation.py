@@ -8,13 +8,14 @@ differ only because the policy did.
 The episodes of one evaluation run side by side, one env each, with one batched forward pass of
 the policy per step (:func:`evaluate_agent`). A matrix product's rounding depends on how many
 rows it multiplies, so the policy is evaluated with a *batch-invariant* copy of its network
-(:func:`batch_invariant`): every layer computes each row's dot products the same way whatever
-the batch, so an episode's actions, and its return, are bit for bit those of the same episode run
-alone. They agree with SB3's own ``predict`` up to float32 rounding (about 1e-7 of an action).
+(:func:`batch_invariant`) whose linear layers multiply each row alone: an episode's actions, and
+its return, are bit for bit those of SB3's ``predict`` on that episode's observations one by one,
+the evaluation pidlab ran before episodes ran side by side.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -119,39 +120,42 @@ def _run_together(policy: Policy, envs: list[gym.Env], seeds: list[int]) -> tupl
 
 
 def batch_invariant(policy: Any) -> Any:
-    """A copy of an SB3 policy whose linear layers give every row the same bits in any batch.
+    """A copy of an SB3 policy whose linear layers give every row the bits it gets alone.
 
     ``torch.nn.Linear`` multiplies with BLAS, whose blocking (and so the rounding of a row) varies
-    with the number of rows. The copy's layers compute ``sum(x * W, -1) + b`` instead: an
-    elementwise product and one reduction per output, done the same way for every row. The
-    weights are the policy's; the copy is in evaluation mode and never trained.
+    with the number of rows. The copy's linear layers multiply each row on its own, as SB3's
+    ``predict`` does for one observation; everything else (activations, squashing) is elementwise
+    and runs on the whole batch. The weights are the policy's at the time of the copy; the copy
+    is in evaluation mode and never trained.
     """
     import torch.nn as nn
 
     frozen = type(policy)(**policy._get_constructor_parameters())  # as SB3 rebuilds a saved policy
     frozen.load_state_dict(policy.state_dict())
+    rowwise = _rowwise_linear_class()
     for module in frozen.modules():
         if type(module) is nn.Linear:
-            module.__class__ = _RowwiseLinear
+            module.__class__ = rowwise
     frozen.set_training_mode(False)
     return frozen
 
 
+@functools.cache
 def _rowwise_linear_class() -> type:
+    """The batch-invariant ``nn.Linear`` (built on first use: importing torch takes seconds)."""
     import torch
     import torch.nn as nn
+    import torch.nn.functional as F
 
     class RowwiseLinear(nn.Linear):
-        """``nn.Linear`` with a batch-invariant forward (see :func:`batch_invariant`)."""
+        """``nn.Linear`` applied to one row at a time (see :func:`batch_invariant`)."""
 
         def forward(self, x: torch.Tensor) -> torch.Tensor:
-            y = (x.unsqueeze(-2) * self.weight).sum(-1)
-            return y if self.bias is None else y + self.bias
+            rows = x.reshape(-1, 1, x.shape[-1])
+            out = [F.linear(row, self.weight, self.bias) for row in rows]
+            return torch.cat(out).reshape(*x.shape[:-1], self.out_features)
 
     return RowwiseLinear
-
-
-_RowwiseLinear = _rowwise_linear_class()
 
 
 def sb3_policy(model: Any, obs_normalizer: Callable[[np.ndarray], np.ndarray] | None = None) -> Policy:

@@ -85,7 +85,6 @@ from pidlab.checks import (
     text,
 )
 from pidlab.checks import seed as check_seed
-from pidlab.controller import autotune
 from pidlab.controller.rollout import MAX_EPISODES
 from pidlab.data import coach_dir
 from pidlab.errors import PidlabError, RecipeError, ScheduleError
@@ -512,8 +511,9 @@ def _trigger(c: dict[str, Any], w: str) -> GrowthTrigger:
 
 _TOP = {"schema", "env_id", "description", "algo", "steps", "n_envs", "vec_env", "seed", "threads",
         "normalize", "win", "evaluation", "checkpoint", "coaching", "pipeline", *ALGOS}  # fmt: skip
-PRESETS = tuple(autotune.PRESETS)
-"""Auto-tuning presets a ``[pipeline]`` table may name (those of :mod:`pidlab.controller.autotune`)."""
+PRESETS = ("robust", "weak")
+"""Auto-tuning presets a ``[pipeline]`` table may name: those of :mod:`pidlab.controller.autotune`
+(named here so that training does not import the tuner and python-control; a test checks they agree)."""
 
 
 @dataclass(frozen=True)
