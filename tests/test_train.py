@@ -84,6 +84,26 @@ def test_accounts_add_up_in_the_logs(tmp_path, ip_spec):
     assert list((run / "tb").glob("events.out.tfevents.*")) and list((run / "tb" / "sb3").glob("events.*"))
 
 
+def test_vectorized_coaching_keeps_the_accounts_per_env(tmp_path, ip_spec):
+    """Four envs in one process, each with its own coach: every env's episodes add up, and the run repeats."""
+    recipe = load_recipe(tiny_recipe(tmp_path, n_envs=4, steps=2000))
+    result = train(recipe, ip_spec, tmp_path / "run", progress_bar=False)
+    assert result.env_steps == result.agent_steps + result.coach_steps >= 2000
+    assert result.agent_steps % 4 == 0  # one agent step of every env per vector step
+    eps = rows(tmp_path / "run")
+    assert {r["env_index"] for r in eps} == {"0", "1", "2", "3"}
+    for i in "0123":
+        mine = [r for r in eps if r["env_index"] == i]
+        agent = sum(int(r["agent_steps"]) for r in mine)
+        # this env's finished episodes, plus at most one unfinished episode (under 1000 steps)
+        assert result.agent_steps // 4 - 1000 < agent <= result.agent_steps // 4
+        assert sum(int(r["coach_steps"]) for r in mine) > 0  # its coach took over
+    assert sum(int(r["coach_steps"]) for r in eps) <= result.coach_steps
+    train(recipe, ip_spec, tmp_path / "again", progress_bar=False)
+    for name in ("episodes.csv", "evaluations.csv"):
+        assert (tmp_path / "run" / name).read_text() == (tmp_path / "again" / name).read_text()
+
+
 def test_run_directory_records_what_reproduces_it(tmp_path, ip_spec):
     import json
 

@@ -68,11 +68,16 @@ class AgentEvaluation:
 
 
 def evaluation_envs(env_id: str, episodes: int) -> list[gym.Env]:
-    """The bare envs an evaluation of ``episodes`` episodes runs on side by side (at most :data:`MAX_BATCH`)."""
+    """The bare envs an evaluation of ``episodes`` episodes runs on side by side (at most :data:`MAX_BATCH`).
+
+    Evaluation envs are made once per run and reset with each episode's seed.
+    """
     return [gym.make(env_id) for _ in range(max(1, min(episodes, MAX_BATCH)))]
 
 
-def evaluate_agent(policy: Policy, envs: gym.Env | Sequence[gym.Env], seeds: Sequence[int]) -> AgentEvaluation:
+def evaluate_agent(
+    policy: Policy, envs: gym.Env | Sequence[gym.Env], seeds: Sequence[int]
+) -> AgentEvaluation:
     """Run ``policy`` alone, one episode per seed, ``len(envs)`` episodes side by side.
 
     Parameters

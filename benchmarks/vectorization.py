@@ -1,0 +1,211 @@
+"""Does learning per env step survive vectorized training? 1 env against the recipes' vectorized settings.
+
+Reads the uncoached runs that ``benchmarks/vectorization.sh`` trained (published, per-run logs only,
+in docs/results/vectorization/ENV.VARIANT/runs/), and writes docs/vectorization.md and its figures.
+Every number comes from those files, so a reader can rerun this without training:
+
+    .venv/bin/python benchmarks/vectorization.py            # write docs/vectorization.md
+    .venv/bin/python benchmarks/vectorization.py --check    # exit 1 if the page differs from its runs
+
+Measures (pidlab's, :mod:`pidlab.experiment.metrics`): env steps until the agent alone reaches the
+recipe's target and keeps it to the end of the run (sustained hit, +inf when never), the final
+agent-alone score, and the mean agent-alone score over the run's evaluations (the area under the
+learning curve, divided by its length: it credits learning early even when no run reaches the
+target). IQM with 95 % stratified-bootstrap intervals, P(vectorized better than 1 env) with its
+interval, and the exact two-sided rank-sum p-value.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from pidlab.experiment.analysis import RunData, load_run, rule_of
+from pidlab.experiment.comparison import Measure, raw_comparison
+from pidlab.experiment.stats import Estimate, bootstrap_ci
+from pidlab.files import atomic_write_text
+from pidlab.report.experiment import estimate_text, p_text
+from pidlab.rl.rundir import load_run_config
+
+ROOT = Path(__file__).resolve().parents[1]
+PUBLISHED = ROOT / "docs" / "results" / "vectorization"
+PAGE = ROOT / "docs" / "vectorization.md"
+IMAGES = ROOT / "docs" / "images"
+# env: (baseline variant, vectorized variant)
+DESIGN = {
+    "InvertedPendulum-v5": ("n1", "n8"),
+    "Hopper-v5": ("n1-b32", "n8-b32"),
+}
+MEASURES = (
+    Measure("env_steps_to_target", True, "env steps to target, sustained"),
+    Measure("final_score", False, "final agent-alone score"),
+    Measure("mean_score", False, "mean agent-alone score over the run"),
+)
+
+
+@dataclass(frozen=True)
+class Variant:
+    """The runs of one recipe variant."""
+
+    name: str
+    n_envs: int
+    n_steps: int
+    batch_size: int
+    runs: tuple[RunData, ...]
+    wall_s: tuple[float, ...]
+
+
+def load_variant(env_id: str, name: str) -> Variant:
+    """Every finished run of ``ENV.name`` in the published folder."""
+    root = PUBLISHED / f"{env_id}.{name}" / "runs" / env_id / "none"
+    runs, walls, recipe = [], [], None
+    for folder in sorted(root.glob("seed-*"), key=lambda p: int(p.name[5:])):
+        recipe, _, _ = load_run_config(folder)
+        run = load_run(folder, env_id, "none", int(folder.name[5:]), rule_of(recipe))
+        if run is not None and run.completed:
+            runs.append(run)
+            walls.append(_wall(folder))
+    if recipe is None:
+        raise SystemExit(
+            f"vectorization: {root}: no runs (run benchmarks/vectorization.sh, then publish them)"
+        )
+    hp = recipe.hyperparameters
+    return Variant(name, recipe.n_envs, int(hp["n_steps"]), int(hp["batch_size"]), tuple(runs), tuple(walls))
+
+
+def _wall(folder: Path) -> float:
+    from pidlab.files import read_json
+
+    return float(read_json(folder / "summary.json")["wall_s_last_session"])
+
+
+def values(v: Variant, name: str) -> np.ndarray:
+    """The measure per run (+inf: never reached)."""
+    if name == "mean_score":
+        return np.array([float(np.mean(r.eval_means)) for r in v.runs])
+    raw = [getattr(r.metrics, name) for r in v.runs]
+    return np.array([np.inf if x is None else float(x) for x in raw])
+
+
+def _iqm(x: np.ndarray) -> Estimate:
+    return bootstrap_ci([x.tolist()], reps=2000, seed=0)
+
+
+def table(env_id: str, base: Variant, vec: Variant) -> list[str]:
+    """The comparison table of one env (markdown lines)."""
+    lines = [
+        f"| measure | {base.name}: {base.n_envs} env | {vec.name}: {vec.n_envs} envs | "
+        f"P({vec.name} better) [95 % CI] | exact p |",
+        "|---|---|---|---|---|",
+    ]
+    for m in MEASURES:
+        a, b = values(vec, m.name), values(base, m.name)
+        c = raw_comparison(a, b, m, reps=2000)
+        reached = ""
+        if m.name == "env_steps_to_target":
+            reached = (
+                f" ({int(np.isfinite(b).sum())}/{b.size} | {int(np.isfinite(a).sum())}/{a.size} reached)"
+            )
+        lines.append(
+            f"| {m.label}{reached} | {estimate_text(_iqm(b))} | {estimate_text(_iqm(a))} | "
+            f"{estimate_text(c.improvement, 2)} | {p_text(c.test.p_value)} |"
+        )
+    return lines
+
+
+def throughput(v: Variant, budget: int) -> str:
+    """Env steps per second of whole runs (two runs at a time on two cores)."""
+    rates = np.array([budget / w for w in v.wall_s])
+    return f"{np.median(rates):,.0f} (range {rates.min():,.0f}-{rates.max():,.0f})"
+
+
+def plot_curves(env_id: str, variants: tuple[Variant, ...], ax: plt.Axes | None = None) -> plt.Axes:
+    """Agent-alone score against env steps: every run thin, the mean over runs thick."""
+    ax = ax if ax is not None else plt.subplots(figsize=(6.4, 3.6))[1]
+    for v, color in zip(variants, ("tab:blue", "tab:orange"), strict=True):
+        for r in v.runs:
+            ax.plot(r.eval_grid, r.eval_means, color=color, lw=0.6, alpha=0.35)
+        grid = v.runs[0].eval_grid
+        mean = np.mean([r.eval_means[: grid.size] for r in v.runs], axis=0)
+        ax.plot(
+            grid, mean, color=color, lw=2.2, label=f"{v.name}: {v.n_envs} env{'s' if v.n_envs > 1 else ''}"
+        )
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("agent-alone return")
+    ax.set_title(env_id)
+    ax.legend(loc="lower right")
+    return ax
+
+
+def page(figures: dict[str, str]) -> str:
+    """docs/vectorization.md."""
+    out = [
+        "# Vectorized training: learning per env step",
+        "",
+        "<!-- written by benchmarks/vectorization.py from docs/results/vectorization: do not edit -->",
+        "",
+        "Before the recipes train on several envs at once (faster: one batched forward pass of the policy",
+        "per step of all envs), we checked that an agent does not learn less per env step. Uncoached PPO,",
+        "the recipe's hyperparameters, the same seeds; the vectorized variant changes only `n_envs`,",
+        "`n_steps` (per env) and `batch_size`, as each table's header says.",
+        "Runs: `bash benchmarks/vectorization.sh`;",
+        "this page: `.venv/bin/python benchmarks/vectorization.py`.",
+        "Each run's logs are in `docs/results/vectorization/`.",
+        "",
+        "IQM over seeds with 95 % stratified-bootstrap intervals; P(better) is the probability that a run",
+        "of the vectorized variant beats a run with one env (0.5: no difference), with the exact",
+        'two-sided rank-sum p-value. "Env steps to target" is the first evaluation from which the agent',
+        "alone keeps the recipe's target (800) to the end of the run; a run that never does counts as",
+        "+inf (\u221e), so the IQM is \u221e when more than a quarter of the runs missed.",
+        "",
+    ]
+    for env_id, (b, v) in DESIGN.items():
+        base, vec = load_variant(env_id, b), load_variant(env_id, v)
+        budget = base.runs[0].budget
+        out += [
+            f"## {env_id}: {len(base.runs)} seeds per variant, {budget:,} env steps",
+            "",
+            f"- `{base.name}`: {base.n_envs} env, n_steps {base.n_steps}, batch_size {base.batch_size} "
+            f"(rollout {base.n_envs * base.n_steps}); env steps/s of a whole run: {throughput(base, budget)}",
+            f"- `{vec.name}`: {vec.n_envs} envs, n_steps {vec.n_steps} per env, batch_size {vec.batch_size} "
+            f"(rollout {vec.n_envs * vec.n_steps}); env steps/s of a whole run: {throughput(vec, budget)}",
+            "",
+            *table(env_id, base, vec),
+            "",
+            f"![{env_id} learning curves](images/{figures[env_id]})",
+            "",
+        ]
+    return "\n".join(out)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true", help="exit 1 if docs/vectorization.md differs")
+    args = parser.parse_args()
+    figures = {env_id: f"vectorization-{env_id}.png" for env_id in DESIGN}
+    text = page(figures)
+    if args.check:
+        same = PAGE.is_file() and PAGE.read_text() == text
+        print(f"{PAGE}: {'matches its runs' if same else 'differs from its runs'}")
+        return 0 if same else 1
+    for env_id, (b, v) in DESIGN.items():
+        fig, ax = plt.subplots(figsize=(6.4, 3.6))
+        plot_curves(env_id, (load_variant(env_id, b), load_variant(env_id, v)), ax)
+        fig.tight_layout()
+        fig.savefig(IMAGES / figures[env_id], dpi=110)
+        plt.close(fig)
+    atomic_write_text(PAGE, text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
