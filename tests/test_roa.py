@@ -52,16 +52,17 @@ def test_independent_samples_inside_the_certified_set_recover(ip_region, models)
     from pidlab.controller.analysis import analyze_coach
     from pidlab.controller.pid import Coach
     from pidlab.region.roa import _check_level
-    from pidlab.region.simulate import Simulator
+    from pidlab.region.simulate import SimulationPool
 
     spec, roa, _ = ip_region
     loaded = models["InvertedPendulum-v5"]
-    sim = Simulator(spec, loaded, analyze_coach(Coach(spec, loaded), loaded).linearization)
-    term, nonconv, _ = _check_level(sim, roa.lyapunov, roa.level, 100, 75, np.random.default_rng(12345))
-    assert term == 0 and nonconv == 0
-    # and far outside it the coach does fail: the check can fail
-    term, nonconv, _ = _check_level(sim, roa.lyapunov, 200 * roa.level, 30, 75, np.random.default_rng(1))
-    assert term + nonconv > 0
+    lin = analyze_coach(Coach(spec, loaded), loaded).linearization
+    with SimulationPool(spec, loaded, lin, workers=1) as pool:
+        term, nonconv, _ = _check_level(pool, roa.lyapunov, roa.level, 100, 75, np.random.default_rng(12345))
+        assert term == 0 and nonconv == 0
+        # and far outside it the coach does fail: the check can fail
+        term, nonconv, _ = _check_level(pool, roa.lyapunov, 200 * roa.level, 30, 75, np.random.default_rng(1))
+        assert term + nonconv > 0
 
 
 def test_bounds_round_trip_in_the_spec(ip_region, models):

@@ -102,6 +102,7 @@ def roa_preview(
         keep_trajectories=ROA_PREVIEW_TRAJECTORIES,
         record=variables,
         progress=_quiet(progress),
+        workers=1,  # a job already runs on one of the app's worker processes
     )
     return RoaPreview(
         roa=roa,
@@ -202,6 +203,7 @@ def autotune_job(env_id: str, bandwidth: float, phase_margin: float, progress: P
         preset="robust",
         max_evaluations=budget,
         progress=count,
+        workers=1,  # a job already runs on one of the app's worker processes
     )
 
 
@@ -223,9 +225,9 @@ def bounds_job(
 
     report = _quiet(progress)
     loaded = _model(spec.env_id)
-    roa, _ = estimate_roa(spec, loaded, samples=samples, progress=report)
+    roa, _ = estimate_roa(spec, loaded, samples=samples, progress=report, workers=1)
     report("one-step check of the bounds", None)
-    crit = derive_bounds(roa, spec, loaded)
+    crit = derive_bounds(roa, spec, loaded, workers=1)
     return BoundsResult(roa=roa, bounds=crit, variables=slice_variables(spec))
 
 

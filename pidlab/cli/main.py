@@ -400,6 +400,7 @@ def tune(
     phase_margin: Annotated[float | None, typer.Option(help="Target phase margin, degrees.")] = None,
     preset: Annotated[str, typer.Option(help="robust or weak.")] = "robust",
     output: Annotated[str | None, typer.Option("-o", "--output", help="Spec file to write (TOML).")] = None,
+    workers: Annotated[int | None, typer.Option(help="--auto: worker processes (default: cores).")] = None,
 ) -> None:
     """Tune a PID coach for ENV: automatically (--auto) or interactively in the browser (--ui)."""
     from rich.progress import Progress
@@ -429,6 +430,7 @@ def tune(
             phase_margin=phase_margin,
             preset=preset,
             progress=lambda n: bar.update(task, completed=n),
+            workers=workers,
         )
     path = save_spec(result.spec, out)
     con = wide_console()
@@ -555,6 +557,9 @@ def roa(
         str | None,
         typer.Option("--slice", help="Two observation variables for the plots (default: first loop)."),
     ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Worker processes for the simulations (default: the machine's cores).")
+    ] = None,
 ) -> None:
     """Estimate and certify the coach's region of attraction (Lyapunov + MuJoCo simulation)."""
     from pidlab.controller.spec import load_spec
@@ -582,6 +587,7 @@ def roa(
         horizon_s=horizon,
         keep_trajectories=80 if pair else 0,
         record=pair,
+        workers=workers,
     )
     con = wide_console()
     con.print(roa_view(result, units))
@@ -658,6 +664,9 @@ def bounds(
         int, typer.Option(help="Simulated initial states in the region's final check.")
     ] = 1000,
     seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
+    workers: Annotated[
+        int | None, typer.Option(help="Worker processes for the simulations (default: the machine's cores).")
+    ] = None,
 ) -> None:
     """Derive critical-state bounds (ellipsoid and box) from the certified region."""
     from pidlab.controller.spec import SpecError, load_spec, save_spec
@@ -680,8 +689,8 @@ def bounds(
         check_variables(names, loaded)
     # --write: the spec is locked from here to its rewrite (a second command on it is refused)
     with hold_lock(spec_file, SpecError) if write else contextlib.nullcontext():
-        result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed)
-        crit = derive_bounds(result, spec, loaded, variables=names, seed=seed)
+        result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed, workers=workers)
+        crit = derive_bounds(result, spec, loaded, variables=names, seed=seed, workers=workers)
         con = wide_console()
         card = loaded.require_card()
         con.print(roa_view(result, {v.name: v.unit for v in card.observation}))

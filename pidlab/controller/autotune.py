@@ -20,6 +20,7 @@ the fastest unstable open-loop pole.
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -240,7 +241,11 @@ class _Evaluations:
         self.progress = progress
 
     def tick(self) -> None:
-        self.count += 1
+        self.add(1)
+
+    def add(self, n: int) -> None:
+        """Count ``n`` more evaluations."""
+        self.count += n
         if self.progress is not None:
             self.progress(self.count)
 
@@ -352,18 +357,59 @@ def _shape(
     return np.asarray(best.x)
 
 
-def _refine_on_env(
-    problem: _Problem, signs: np.ndarray, z: np.ndarray, budget: int, evaluations: _Evaluations
-) -> tuple[np.ndarray, float]:
-    """Maximize the mean coach-alone return on the tuning seeds from two starts; keep the better.
+@dataclass(frozen=True)
+class _Refined:
+    """One refinement on the env: the best negative mean return, its start's signs, its log-gains."""
 
-    Returns the refined gains and their mean return.
+    fun: float
+    signs: np.ndarray
+    z: np.ndarray
+    evaluations: int
+
+
+def _refine_from(
+    problem: _Problem,
+    start: tuple[np.ndarray, np.ndarray],
+    budget: int,
+    tick: Callable[[], None] | None = None,
+) -> _Refined:
+    """Nelder-Mead on the mean coach-alone return on the tuning seeds from ``start = (signs, z)``.
+
+    Depends on nothing but its arguments (a task of :func:`pidlab.parallel.run_all`).
     """
     from pidlab.controller.rollout import coach_alone
 
-    def neg_return(z: np.ndarray, sign: np.ndarray) -> float:
-        evaluations.tick()
-        return -coach_alone(problem.spec(sign * np.exp(z)), problem.loaded, episodes=3, seed0=1000).mean
+    signs, z_start = start
+
+    def neg_return(z: np.ndarray) -> float:
+        if tick is not None:
+            tick()
+        return -coach_alone(problem.spec(signs * np.exp(z)), problem.loaded, episodes=3, seed0=1000).mean
+
+    res = minimize(neg_return, z_start, method="Nelder-Mead", options={"maxfev": budget, "adaptive": True})
+    return _Refined(float(res.fun), signs, np.asarray(res.x), int(res.nfev))
+
+
+def _problem_state(problem: _Problem) -> _Problem:
+    """The state of a refinement worker: the tuning problem itself."""
+    return problem
+
+
+def _refine_on_env(
+    problem: _Problem,
+    signs: np.ndarray,
+    z: np.ndarray,
+    budget: int,
+    evaluations: _Evaluations,
+    workers: int = 1,
+) -> tuple[np.ndarray, float]:
+    """Maximize the mean coach-alone return on the tuning seeds from two starts; keep the better.
+
+    The two refinements are independent: with ``workers`` > 1 they run side by side in worker
+    processes (the same result; ``evaluations`` then advances as each one finishes).
+    Returns the refined gains and their mean return.
+    """
+    from pidlab.parallel import run_all
 
     # two starts: the linear design, and plain posture PD on every joint loop (the torso-pitch
     # loop nearly off); both are refined and the better result is kept
@@ -371,18 +417,15 @@ def _refine_on_env(
         [-v if lt.signal.endswith("joint_pos") else -1e-3 for lt in problem.loops for v in POSTURE_START]
     )
     candidates = [(signs, z), (np.where(posture >= 0, 1.0, -1.0), np.log(np.abs(posture)))]
-    results = []
-    for cand_signs, z_start in candidates:
-        res = minimize(
-            neg_return,
-            z_start,
-            args=(cand_signs,),
-            method="Nelder-Mead",
-            options={"maxfev": budget, "adaptive": True},
-        )
-        results.append((float(res.fun), cand_signs, res))
-    _, best_signs, sim = min(results, key=lambda r: r[0])
-    return best_signs * np.exp(sim.x), float(-sim.fun)
+    if workers > 1:
+        task = functools.partial(_refine_from, budget=budget)
+        results = run_all(_problem_state, (problem,), task, candidates, min(workers, len(candidates)))
+        for r in results:
+            evaluations.add(r.evaluations)
+    else:
+        results = [_refine_from(problem, c, budget, evaluations.tick) for c in candidates]
+    best = min(results, key=lambda r: r.fun)
+    return best.signs * np.exp(best.z), float(-best.fun)
 
 
 def _achieved(spec: CoachSpec, loaded: LoadedModel, lin: Linearization) -> tuple[float, float, float, float]:
@@ -456,6 +499,7 @@ def tune(
     max_evaluations: int = 400,
     refine_evaluations: int = 120,
     progress: Callable[[int], None] | None = None,
+    workers: int | None = None,
 ) -> TuneResult:
     """Tune a coach for ``loaded`` from its template.
 
@@ -480,6 +524,10 @@ def tune(
         seeds 0..N-1); the better is kept. 0 disables it.
     progress : callable, optional
         Called with the number of evaluations so far.
+    workers : int, optional
+        Worker processes for the refinement on the env (default: the machine's cores; at most
+        two are used, one per start; 1: all in this process). The result is the same for any
+        number; with more than one, ``progress`` advances as each refinement finishes.
 
     Returns
     -------
@@ -488,9 +536,13 @@ def tune(
     Raises
     ------
     PidlabError
-        No template for the env, unknown preset, or no stabilizing gains found.
+        No template for the env, unknown preset, or no stabilizing gains found; or ``workers``
+        outside [1, 256].
     """
+    from pidlab.parallel import resolve_workers
+
     card = _check_request(loaded, bandwidth, phase_margin, preset)
+    n_workers = resolve_workers(workers)
     p = PRESETS[preset]
     if lin is None:
         lin = linearize(loaded)
@@ -506,7 +558,7 @@ def tune(
     gains = signs * np.exp(z)
     refined = None
     if card.refine_on_env and preset == "robust" and refine_evaluations > 0:
-        gains, refined = _refine_on_env(problem, signs, z, refine_evaluations, evaluations)
+        gains, refined = _refine_on_env(problem, signs, z, refine_evaluations, evaluations, n_workers)
     elif not card.refine_on_env:
         rho = problem.figures(gains)[3]
         if rho > p.max_spectral_radius:

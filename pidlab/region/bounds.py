@@ -22,6 +22,7 @@ worst-case agent step.
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import itertools
 import math
 from dataclasses import dataclass, field, replace
@@ -40,10 +41,11 @@ from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import RegionError
 from pidlab.linear.linearize import Linearization
+from pidlab.parallel import resolve_workers
 from pidlab.plant.model import LoadedModel
 from pidlab.region.roa import METHOD_SIMULATION, Lyapunov, RegionOfAttraction
 from pidlab.region.shrink import geometric_bisect, shrink_until_clean
-from pidlab.region.simulate import Simulator, horizon_steps, sample_ellipsoid, tangent_index
+from pidlab.region.simulate import SimulationPool, Simulator, horizon_steps, sample_ellipsoid, tangent_index
 
 BOX_SHRINK = 0.7
 """Simulation method: factor on the box scale after a failed final one-step check."""
@@ -145,7 +147,8 @@ class _OneStep:
 
     Attributes
     ----------
-    sim : Simulator
+    pool : SimulationPool
+        Runs the simulations (its ``sim`` serves this process).
     vertices : ndarray, shape (n_vertices, nu)
         Worst-case action deviations from ``lin.op.ctrl`` (corners of the action box).
     steps : int
@@ -154,10 +157,15 @@ class _OneStep:
         The one stream every draw of :func:`derive_bounds` comes from, in order.
     """
 
-    sim: Simulator
+    pool: SimulationPool
     vertices: np.ndarray
     steps: int
     rng: np.random.Generator
+
+    @property
+    def sim(self) -> Simulator:
+        """The simulator of this process."""
+        return self.pool.sim
 
 
 def derive_bounds(
@@ -167,6 +175,7 @@ def derive_bounds(
     variables: list[str] | None = None,
     check_samples: int = 100,
     seed: int = 0,
+    workers: int | None = None,
 ) -> CriticalBounds:
     """Turn a certified region into critical-state bounds.
 
@@ -181,6 +190,9 @@ def derive_bounds(
     check_samples : int
         States on the ellipsoid's boundary checked against one worst-case agent step.
     seed : int
+    workers : int, optional
+        Worker processes for the simulations (default: the machine's cores, at most 4; 1: all
+        in this process). The bounds are the same for any number of workers.
 
     Raises
     ------
@@ -188,26 +200,28 @@ def derive_bounds(
         A variable is not in the observation (the message lists the valid names).
     RegionError
         One worst-case agent step can leave the certified set from anywhere: no useful bound; or
-        ``check_samples`` outside [1, 1e6] or ``seed`` outside [0, 2**32 - 1].
+        ``check_samples`` outside [1, 1e6], ``seed`` outside [0, 2**32 - 1] or ``workers`` outside
+        [1, 256].
     """
     integer(check_samples, "check_samples", RegionError, low=1, high=10**6, param="check_samples")
     check_seed(seed, "seed", RegionError, param="seed")
+    n_workers = resolve_workers(workers, RegionError)
     lp0 = spec.loops[0]
     if variables is None:
         variables = list(roa.box) if roa.box else [v for v in (lp0.signal, lp0.rate_signal) if v]
     check_variables(variables, loaded)
     coach = Coach(spec, loaded)
     lin = analyze_coach(coach, loaded).linearization
-    sim = Simulator(spec, loaded, lin)
     vertices = _action_vertices(coach, lin)
     provenance = _region_provenance(roa)
     rng = np.random.default_rng(seed)
     if len(vertices) > MAX_VERTICES:
         vertices = vertices[rng.choice(len(vertices), MAX_VERTICES, replace=False)]
-    step = _OneStep(sim, vertices, horizon_steps(roa.check.horizon_s, loaded.control_dt), rng)
-    if roa.method == METHOD_SIMULATION:
-        return _box_bounds(roa, spec, step, check_samples, provenance)
-    return _ellipsoid_bounds(roa, spec, lin, step, variables, check_samples, provenance)
+    with SimulationPool(spec, loaded, lin, n_workers) as pool:
+        step = _OneStep(pool, vertices, horizon_steps(roa.check.horizon_s, loaded.control_dt), rng)
+        if roa.method == METHOD_SIMULATION:
+            return _box_bounds(roa, spec, step, check_samples, provenance)
+        return _ellipsoid_bounds(roa, spec, lin, step, variables, check_samples, provenance)
 
 
 def _action_vertices(coach: Coach, lin: Linearization) -> np.ndarray:
@@ -265,7 +279,7 @@ def _box_points(roa: RegionOfAttraction, step: _OneStep, scale: float, n: int) -
 
 def _box_escapes(roa: RegionOfAttraction, step: _OneStep, scale: float, n: int, acts: np.ndarray) -> int:
     """Failed recoveries after one step of ``acts`` from ``n`` states on the box scaled by ``scale``."""
-    return sum(_escapes(step.sim, x, acts, step.steps, None, 0.0) for x in _box_points(roa, step, scale, n))
+    return _escapes(step, _box_points(roa, step, scale, n), acts, None, 0.0)
 
 
 def _box_margin(roa: RegionOfAttraction, step: _OneStep) -> tuple[float, float]:
@@ -280,9 +294,7 @@ def _box_margin(roa: RegionOfAttraction, step: _OneStep) -> tuple[float, float]:
     kappa = geometric_bisect(lambda k: _box_escapes(roa, step, k, n, vertices) == 0)
     if kappa == 0.0:
         zero = np.zeros(2 * step.sim.m.nv)
-        fraction = 0.5 * geometric_bisect(
-            lambda f: _escapes(step.sim, zero, f * vertices, step.steps, None, 0.0) == 0
-        )
+        fraction = 0.5 * geometric_bisect(lambda f: _escapes(step, [zero], f * vertices, None, 0.0) == 0)
         if fraction > 0.0:
             kappa = geometric_bisect(lambda k: _box_escapes(roa, step, k, n, fraction * vertices) == 0)
     return kappa, fraction
@@ -357,7 +369,7 @@ def _ellipsoid_escapes(lyap: Lyapunov, c: float, step: _OneStep, r: float, n: in
     pts = sample_ellipsoid(lyap.P_y, r * c, n, step.rng)
     boundary = pts / np.sqrt(np.einsum("ij,jk,ik->i", pts, lyap.P_y, pts) / (r * c))[:, None]
     plant_n = step.sim.lin.sysd.nstates
-    return sum(_escapes(step.sim, (lyap.to_state @ y)[:plant_n], acts, step.steps, lyap, c) for y in boundary)
+    return _escapes(step, [(lyap.to_state @ y)[:plant_n] for y in boundary], acts, lyap, c)
 
 
 def _rho_margin(lyap: Lyapunov, c: float, step: _OneStep, name: str) -> tuple[float, float]:
@@ -450,34 +462,47 @@ def _ellipsoid_bounds(
 
 
 def _escapes(
-    sim: Simulator, x_plant: np.ndarray, vertices: np.ndarray, steps: int, lyap: Lyapunov | None, c: float
+    step: _OneStep, states: list[np.ndarray], vertices: np.ndarray, lyap: Lyapunov | None, c: float
 ) -> int:
-    """How many worst-case actions (``vertices``) leave the coach unable to recover from ``x_plant``.
+    """Failed recoveries after one worst-case action (each of ``vertices``) from each of ``states``.
 
-    A recovery fails when the env would terminate within ``steps``, or (with ``lyap``) when
-    ``V`` at the end is not below ``V`` just after the kick.
+    The simulations stop at the first failure: a nonzero count is then only a lower bound (only
+    whether it is zero is reproducible).
     """
-    failures = 0
-    for v in vertices:
-        sim.start(x_plant)
-        sim.d.ctrl[:] = sim.lin.op.ctrl + v
-        mujoco.mj_step(sim.m, sim.d, nstep=sim.loaded.frame_skip)
-        if sim.fast.terminated(sim.d):
-            failures += 1
-            continue
-        obs = sim.fast.observe(sim.d)
-        sim.coach.reset(obs)
-        v_kicked = 0.0
-        if lyap is not None:
-            X = sim.closed_loop_state()
-            v_kicked = float(X @ lyap.P @ X)
-        term, _ = sim.run(obs, steps)
-        if term:
-            failures += 1
-        elif lyap is not None:
-            X = sim.closed_loop_state()
-            failures += int(float(X @ lyap.P @ X) >= v_kicked)
-    return failures
+    items = [(x, v) for x in states for v in vertices]
+    task = functools.partial(_kicked_recovery, steps=step.steps, lyap=lyap)
+    return sum(step.pool.run(task, items, stop=bool).results)
+
+
+def _kicked_recovery(
+    sim: Simulator, item: tuple[np.ndarray, np.ndarray], steps: int, lyap: Lyapunov | None
+) -> int:
+    """1 if the coach cannot recover from ``x_plant`` after one agent action ``v``, else 0.
+
+    ``item = (x_plant, v)``, ``v`` a deviation from the operating point's control. A recovery
+    fails when the env would terminate right after the action or within ``steps``, or (with
+    ``lyap``) when ``V`` at the end is not below ``V`` just after the action. A task of
+    :meth:`~pidlab.parallel.WorkerPool.run`.
+    """
+    x_plant, v = item
+    sim.start(x_plant)
+    sim.d.ctrl[:] = sim.lin.op.ctrl + v
+    mujoco.mj_step(sim.m, sim.d, nstep=sim.loaded.frame_skip)
+    obs = sim.observe()
+    if sim.terminated(obs):
+        return 1
+    sim.coach.reset(obs)
+    v_kicked = 0.0
+    if lyap is not None:
+        X = sim.closed_loop_state()
+        v_kicked = float(X @ lyap.P @ X)
+    term, _ = sim.run(obs, steps)
+    if term:
+        return 1
+    if lyap is not None:
+        X = sim.closed_loop_state()
+        return int(float(X @ lyap.P @ X) >= v_kicked)
+    return 0
 
 
 def with_bounds(spec: CoachSpec, bounds: CriticalBounds) -> CoachSpec:

@@ -31,6 +31,7 @@ Every result says which method produced it.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -48,10 +49,11 @@ from pidlab.controller.pid import N_LOOP_STATES, Coach, law
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import PidlabError, RegionError
 from pidlab.linear.linearize import Linearization
+from pidlab.parallel import resolve_workers, run_all
 from pidlab.plant.card import ModelCard
 from pidlab.plant.model import LoadedModel
 from pidlab.region.shrink import geometric_bisect, halving_bisect, shrink_until_clean
-from pidlab.region.simulate import Simulator, horizon_steps, sample_ellipsoid, tangent_index
+from pidlab.region.simulate import SimulationPool, Simulator, horizon_steps, sample_ellipsoid, tangent_index
 
 OPTIMIZATION_HORIZON_S = 0.5
 """Window of the finite-step decrease condition in the CasADi estimate, s."""
@@ -74,10 +76,13 @@ def _no_progress(stage: str, fraction: float | None) -> None:
 
 
 def _final_tick(report: Progress, samples: int) -> Callable[[int], None]:
+    """``tick(done)``: reports the final check's progress every 2 % (``done`` may jump, from workers)."""
     every = max(1, samples // 50)
+    shown = [-1]
 
     def tick(i: int) -> None:
-        if i % every == 0:
+        if i // every != shown[0]:
+            shown[0] = i // every
             report(f"final check ({i}/{samples} samples)", i / samples)
 
     return tick
@@ -264,8 +269,37 @@ class Trajectory:
     recovered: bool
 
 
+RECOVERED, TERMINATED, NOT_CONVERGED = 0, 1, 2
+"""Outcomes of one simulation from a state in ``{V <= c}``."""
+
+
+def _level_sample(
+    sim: Simulator, item: tuple[np.ndarray, bool], lyap: Lyapunov, steps: int, record: list[int] | None
+) -> tuple[int, np.ndarray | None]:
+    """One simulation from ``item = (y_dev, keep_path)``: its outcome, and its path if kept.
+
+    A task of :meth:`~pidlab.parallel.WorkerPool.run`.
+    """
+    y_dev, keep_path = item
+    X0 = lyap.to_state @ y_dev
+    obs = sim.start(X0[: sim.lin.sysd.nstates])
+    v0 = float(X0 @ lyap.P @ X0)
+    term, path = sim.run(obs, steps, record)
+    outcome = TERMINATED if term else RECOVERED
+    if not term:
+        X = sim.closed_loop_state()
+        if float(X @ lyap.P @ X) >= v0:
+            outcome = NOT_CONVERGED
+    return outcome, (path if keep_path else None)
+
+
+def _level_failed(result: tuple[int, np.ndarray | None]) -> bool:
+    """Whether :func:`_level_sample` found a failure (stops a batch)."""
+    return result[0] != RECOVERED
+
+
 def _check_level(
-    sim: Simulator,
+    pool: SimulationPool,
     lyap: Lyapunov,
     c: float,
     n: int,
@@ -275,28 +309,19 @@ def _check_level(
     keep: int = 0,
     tick: Callable[[int], None] | None = None,
 ) -> tuple[int, int, list[Trajectory]]:
-    """(terminated, not converged, kept trajectories) among n samples in {V <= c}."""
-    terminated = not_converged = 0
-    kept: list[Trajectory] = []
-    plant_n = sim.lin.sysd.nstates
-    for i, y_dev in enumerate(sample_ellipsoid(lyap.P_y, c, n, rng)):
-        if tick is not None:
-            tick(i)
-        X0 = lyap.to_state @ y_dev
-        obs = sim.start(X0[:plant_n])
-        v0 = float(X0 @ lyap.P @ X0)
-        term, path = sim.run(obs, steps, record)
-        failed = term
-        if term:
-            terminated += 1
-        else:
-            X = sim.closed_loop_state()
-            if float(X @ lyap.P @ X) >= v0:
-                not_converged += 1
-                failed = True
-        if len(kept) < keep:
-            kept.append(Trajectory(path, not failed))
-    return terminated, not_converged, kept
+    """(terminated, not converged, kept trajectories) among n samples in {V <= c}.
+
+    The n samples are drawn from ``rng`` first (always all n). The simulations stop at the
+    first failure: then the counts are those found so far (only whether they are zero is
+    reproducible) and no trajectory is kept.
+    """
+    items = [(y, i < keep) for i, y in enumerate(sample_ellipsoid(lyap.P_y, c, n, rng))]
+    task = functools.partial(_level_sample, lyap=lyap, steps=steps, record=record)
+    batch = pool.run(task, items, stop=_level_failed, tick=tick)
+    outcomes = [code for code, _ in batch.results]
+    first = [] if batch.stopped else batch.results[:keep]
+    kept = [Trajectory(path, code == RECOVERED) for code, path in first if path is not None]
+    return outcomes.count(TERMINATED), outcomes.count(NOT_CONVERGED), kept
 
 
 def phase_portrait(
@@ -344,6 +369,7 @@ def optimization_level(
     starts: int = 16,
     seed: int = 0,
     c_scale: float = 1.0,
+    workers: int | None = None,
 ) -> float | None:
     """``min V(X)`` subject to ``V(F^k(X)) >= V(X)``, ``V(X) >= delta``, multi-start IPOPT.
 
@@ -354,7 +380,8 @@ def optimization_level(
     needlessly small, so ``k > 1`` uses the finite-step Lyapunov condition (``V`` decreases
     over every ``k`` steps), which also implies attraction. Returns None when there is no
     symbolic model (not a cart-pole chain) or the coach has states of its own (the static map
-    ``u(X)`` would not be the coach).
+    ``u(X)`` would not be the coach). The starts are solved over ``workers`` processes (default:
+    the machine's cores, at most 4); the result does not depend on their number.
     """
     from pidlab.linear.symbolic import cart_pole_dynamics, cart_pole_parameters
 
@@ -377,7 +404,9 @@ def optimization_level(
     # decrease; below delta = 1e-4 c_scale that is all the optimizer would find
     delta = 1e-4 * c_scale
     solver = _ipopt({"x": x, "f": V, "g": cs.vertcat(V_next - V, V)})
-    return _multistart_minimum(solver, x_op, P, c_scale, delta, starts, seed)
+    return _multistart_minimum(
+        solver, x_op, P, c_scale, delta, starts, seed, resolve_workers(workers, RegionError)
+    )
 
 
 def _symbolic_observation(card: ModelCard, m: mujoco.MjModel, x: cs.SX) -> cs.Function:
@@ -439,27 +468,53 @@ def _ipopt(nlp: dict[str, cs.SX]) -> cs.Function:
 
 
 def _multistart_minimum(
-    solver: cs.Function, x_op: np.ndarray, P: np.ndarray, c_scale: float, delta: float, starts: int, seed: int
+    solver: cs.Function,
+    x_op: np.ndarray,
+    P: np.ndarray,
+    c_scale: float,
+    delta: float,
+    starts: int,
+    seed: int,
+    workers: int = 1,
 ) -> float | None:
     """Smallest feasible ``V`` IPOPT finds from ``starts`` random starts; None if none is feasible.
 
     Start points lie on the level sets ``V = c_scale * 10^(-3..2)``, in random directions; the
-    search stays within ``V <= 100 c_scale``.
+    search stays within ``V <= 100 c_scale``. The starts are drawn first, then solved (over
+    ``workers`` processes: each start's solve depends on nothing else).
     """
     rng = np.random.default_rng(seed)
-    best = math.inf
+    x0s = []
     for _ in range(starts):
         d = rng.standard_normal(len(x_op))
         d *= math.sqrt(c_scale * 10 ** rng.uniform(-3, 2) / float(d @ P @ d))
-        try:
-            sol = solver(x0=x_op + d, lbg=[0.0, delta], ubg=[cs.inf, 100.0 * c_scale])
-        except RuntimeError:  # pragma: no cover - IPOPT gives up on a start
-            continue
-        if solver.stats()["success"]:
-            g = np.array(sol["g"]).ravel()
-            if g[0] >= -1e-7 * g[1] and g[1] >= delta * 0.99:
-                best = min(best, float(sol["f"]))
+        x0s.append(x_op + d)
+    task = functools.partial(_solve_from, bounds=([0.0, delta], [cs.inf, 100.0 * c_scale]), delta=delta)
+    best = math.inf
+    for value in run_all(_given, (solver,), task, x0s, workers):
+        if value is not None:
+            best = min(best, value)
     return best if math.isfinite(best) else None
+
+
+def _given(value: cs.Function) -> cs.Function:
+    """The state of a worker that solves from given starts: the solver itself."""
+    return value
+
+
+def _solve_from(
+    solver: cs.Function, x0: np.ndarray, bounds: tuple[list[float], list[float]], delta: float
+) -> float | None:
+    """``V`` at IPOPT's solution from ``x0``, or None when it fails or ends infeasible."""
+    try:
+        sol = solver(x0=x0, lbg=bounds[0], ubg=bounds[1])
+    except RuntimeError:  # pragma: no cover - IPOPT gives up on a start
+        return None
+    if solver.stats()["success"]:
+        g = np.array(sol["g"]).ravel()
+        if g[0] >= -1e-7 * g[1] and g[1] >= delta * 0.99:
+            return float(sol["f"])
+    return None
 
 
 # --------------------------------------------------------------------------------------------
@@ -529,6 +584,7 @@ def estimate_roa(
     keep_trajectories: int = 0,
     record: tuple[str, str] | None = None,
     progress: Progress | None = None,
+    workers: int | None = None,
 ) -> tuple[RegionOfAttraction, list[Trajectory]]:
     """Estimate and certify the region of attraction of ``spec`` on its env.
 
@@ -553,6 +609,9 @@ def estimate_roa(
     progress : callable, optional
         Called as ``progress(stage, fraction)`` while the estimate runs (``fraction`` in [0, 1],
         or None where the stage's length is unknown). It may raise to abandon the estimate.
+    workers : int, optional
+        Worker processes for the simulations (default: the machine's cores, at most 4; 1: all
+        in this process). The result is the same for any number of workers.
 
     Returns
     -------
@@ -562,22 +621,25 @@ def estimate_roa(
     ------
     RegionError
         Unstable closed loop, or nothing certified; or an argument out of its range (``samples``
-        in [1, 1e7], ``seed`` in [0, 2**32 - 1], ``horizon_s`` in (0, 3600] s, ...).
+        in [1, 1e7], ``seed`` in [0, 2**32 - 1], ``horizon_s`` in (0, 3600] s, ``workers`` in
+        [1, 256], ...).
     """
     _check_budget(samples, seed, horizon_s, bisection_samples, bisection_rounds, keep_trajectories)
+    n_workers = resolve_workers(workers, RegionError)
     t0 = time.perf_counter()
     report = progress if progress is not None else _no_progress
     coach = Coach(spec, loaded)
     analysis = analyze_coach(coach, loaded)
     budget = _Budget(samples, seed, horizon_s, bisection_samples, bisection_rounds, keep_trajectories, record)
-    if loaded.require_card().region_method == "simulation":
-        return _recoverable_box(spec, loaded, analysis, budget, t0, report)
-    return _lyapunov_region(spec, loaded, coach, analysis, budget, t0, report)
+    with SimulationPool(spec, loaded, analysis.linearization, n_workers) as pool:
+        if loaded.require_card().region_method == "simulation":
+            return _recoverable_box(pool, spec, budget, t0, report)
+        return _lyapunov_region(pool, spec, coach, analysis, budget, t0, report)
 
 
 def _lyapunov_region(
+    pool: SimulationPool,
     spec: CoachSpec,
-    loaded: LoadedModel,
     coach: Coach,
     analysis: CoachAnalysis,
     budget: _Budget,
@@ -586,11 +648,11 @@ def _lyapunov_region(
 ) -> tuple[RegionOfAttraction, list[Trajectory]]:
     """The Lyapunov method: bisection on ``c``, then the final check with ``N`` samples."""
     lin = analysis.linearization
-    sim = Simulator(spec, loaded, lin)
-    lyap = lyapunov_function(analysis, coach, sim.y_op)
+    loaded = pool.sim.loaded
+    lyap = lyapunov_function(analysis, coach, pool.sim.y_op)
     steps = horizon_steps(budget.horizon_s, loaded.control_dt)
-    c_opt, hi = _level_ceiling(spec, loaded, lyap, coach, lin, budget.seed, report)
-    lo = hi * _bisect_level(sim, lyap, hi, steps, budget, report)
+    c_opt, hi = _level_ceiling(pool, spec, lyap, coach, lin, budget.seed, report)
+    lo = hi * _bisect_level(pool, lyap, hi, steps, budget, report)
     if lo == 0.0:
         smallest = hi * 0.25 ** max(budget.bisection_rounds - 1, 0)
         raise RegionError(
@@ -601,7 +663,7 @@ def _lyapunov_region(
     rec = budget.record_columns(loaded.require_card())
     final = shrink_until_clean(
         lambda level: _check_level(
-            sim,
+            pool,
             lyap,
             level,
             budget.samples,
@@ -636,8 +698,8 @@ def _lyapunov_region(
 
 
 def _level_ceiling(
+    pool: SimulationPool,
     spec: CoachSpec,
-    loaded: LoadedModel,
     lyap: Lyapunov,
     coach: Coach,
     lin: Linearization,
@@ -647,8 +709,10 @@ def _level_ceiling(
     """``(c_opt, hi)``: the CasADi estimate and the top of the bisection on ``c``.
 
     ``hi`` is the smaller of the termination cap and ``4 c_opt`` (the simulation may certify
-    somewhat beyond the estimate); with neither, ``1e3 (max center^2 + 1)``.
+    somewhat beyond the estimate); with neither, ``1e3 (max center^2 + 1)``. The CasADi starts
+    run on as many processes as ``pool`` has workers.
     """
+    loaded = pool.sim.loaded
     hi = _termination_cap(lyap, loaded)
     report("level estimate (CasADi)", None)
     c_opt = optimization_level(
@@ -660,6 +724,7 @@ def _level_ceiling(
         horizon_steps=horizon_steps(OPTIMIZATION_HORIZON_S, loaded.control_dt),
         seed=seed,
         c_scale=hi if math.isfinite(hi) else 1.0,
+        workers=pool.workers,
     )
     if c_opt is not None:
         hi = min(hi, 4.0 * c_opt)
@@ -669,7 +734,7 @@ def _level_ceiling(
 
 
 def _bisect_level(
-    sim: Simulator, lyap: Lyapunov, hi: float, steps: int, budget: _Budget, report: Progress
+    pool: SimulationPool, lyap: Lyapunov, hi: float, steps: int, budget: _Budget, report: Progress
 ) -> float:
     """Largest fraction of ``hi`` whose level passes the bisection's check (0 if none)."""
     rng = np.random.default_rng(budget.seed)
@@ -679,7 +744,7 @@ def _bisect_level(
     def passes(fraction: float) -> bool:
         tried[0] += 1
         report(f"bisection on the level ({tried[0]}/{rounds})", tried[0] / rounds)
-        term, nonconv, _ = _check_level(sim, lyap, fraction * hi, budget.bisection_samples, steps, rng)
+        term, nonconv, _ = _check_level(pool, lyap, fraction * hi, budget.bisection_samples, steps, rng)
         return term + nonconv == 0
 
     return geometric_bisect(passes, rounds - 1)
@@ -693,7 +758,7 @@ class _BoxCheck:
     half-widths at scale 1.
     """
 
-    sim: Simulator
+    pool: SimulationPool
     addr: tuple[int, int]
     shape: np.ndarray
     steps: int
@@ -707,47 +772,66 @@ class _BoxCheck:
         keep: int = 0,
         tick: Callable[[int], None] | None = None,
     ) -> tuple[int, list[Trajectory]]:
-        """(failures, kept trajectories) from the box's 4 corners, then uniform interior points."""
-        failures = 0
-        kept: list[Trajectory] = []
+        """(failures, kept trajectories) from the box's 4 corners, then uniform interior points.
+
+        The points are drawn from ``rng`` first (always all of them). The simulations stop at
+        the first failure: then ``failures`` counts those found so far (only whether it is zero
+        is reproducible) and no trajectory is kept.
+        """
         corners = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float)
         points = np.vstack([corners, rng.uniform(-1, 1, (max(n - 4, 0), 2))])[:n]
+        items = []
         for i, p in enumerate(points):
-            if tick is not None:
-                tick(i)
-            x = np.zeros(2 * self.sim.m.nv)
+            x = np.zeros(2 * self.pool.sim.m.nv)
             x[self.addr[0]], x[self.addr[1]] = p * self.shape * scale
-            obs = self.sim.start(x)
-            term, path = self.sim.run(obs, self.steps, self.record)
-            failures += term
-            if len(kept) < keep:
-                kept.append(Trajectory(path, not term))
+            items.append((x, i < keep))
+        task = functools.partial(_box_sample, steps=self.steps, record=self.record)
+        batch = self.pool.run(task, items, stop=_box_failed, tick=tick)
+        failures = sum(term for term, _ in batch.results)
+        first = [] if batch.stopped else batch.results[:keep]
+        kept = [Trajectory(path, not term) for term, path in first if path is not None]
         return failures, kept
 
 
-def _box_check(spec: CoachSpec, loaded: LoadedModel, analysis: CoachAnalysis, budget: _Budget) -> _BoxCheck:
+def _box_sample(
+    sim: Simulator, item: tuple[np.ndarray, bool], steps: int, record: list[int] | None
+) -> tuple[bool, np.ndarray | None]:
+    """One simulation from ``item = (x_plant, keep_path)``: whether it terminated, and its path if kept.
+
+    A task of :meth:`~pidlab.parallel.WorkerPool.run`.
+    """
+    x, keep_path = item
+    term, path = sim.run(sim.start(x), steps, record)
+    return term, (path if keep_path else None)
+
+
+def _box_failed(result: tuple[bool, np.ndarray | None]) -> bool:
+    """Whether :func:`_box_sample` found a failure (stops a batch)."""
+    return bool(result[0])
+
+
+def _box_check(pool: SimulationPool, budget: _Budget) -> _BoxCheck:
     """The box's simulations: pitch up to the termination limit, pitch rate up to 10x that per second."""
+    loaded = pool.sim.loaded
     card = loaded.require_card()
-    sim = Simulator(spec, loaded, analysis.linearization)
     m = loaded.model
     pos, rate = card.region_variables  # the card's [region] variables, e.g. torso pitch and its rate
     pitch_limit = min(abs(t.high) for t in card.termination if t.signal == pos)
     addr = (tangent_index(m, pos), tangent_index(m, rate))
     shape = np.array([pitch_limit, 10.0 * pitch_limit])
     steps = horizon_steps(budget.horizon_s, loaded.control_dt)
-    return _BoxCheck(sim, addr, shape, steps, budget.record_columns(card))
+    return _BoxCheck(pool, addr, shape, steps, budget.record_columns(card))
 
 
 def _recoverable_box(
+    pool: SimulationPool,
     spec: CoachSpec,
-    loaded: LoadedModel,
-    analysis: CoachAnalysis,
     budget: _Budget,
     t0: float,
     report: Progress,
 ) -> tuple[RegionOfAttraction, list[Trajectory]]:
     """Largest box over (torso pitch, pitch rate) from which the coach recovers (simulation)."""
-    check = _box_check(spec, loaded, analysis, budget)
+    check = _box_check(pool, budget)
     rng = np.random.default_rng(budget.seed)
     rounds = budget.bisection_rounds
     tried = [0]
@@ -777,7 +861,7 @@ def _recoverable_box(
             f"no recoverable set certified for {spec.name}: failures persist as the box shrinks"
         )
     level = final.value
-    variables = loaded.require_card().region_variables
+    variables = pool.sim.loaded.require_card().region_variables
     box = {v: float(h * level) for v, h in zip(variables, check.shape, strict=True)}
     result = RegionOfAttraction(
         env_id=spec.env_id,

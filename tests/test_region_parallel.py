@@ -1,0 +1,177 @@
+"""The region stages over worker processes: the same results for any number of workers, no leaks."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import mujoco
+import numpy as np
+import pytest
+
+from pidlab.controller.analysis import analyze_coach
+from pidlab.controller.autotune import tune
+from pidlab.controller.pid import Coach
+from pidlab.controller.spec import dumps_spec, load_spec, loads_spec
+from pidlab.errors import RegionError
+from pidlab.parallel import WorkerPool, resolve_workers
+from pidlab.region.bounds import derive_bounds
+from pidlab.region.roa import estimate_roa
+from pidlab.region.simulate import SimulationPool
+from tests.helpers import PAPER_ENVS, TUNING, cli_in_process
+
+
+def _region_and_bounds(spec, loaded, workers, **budget):
+    roa, kept = estimate_roa(spec, loaded, seed=3, workers=workers, **budget)
+    crit = derive_bounds(roa, spec, loaded, check_samples=12, seed=3, workers=workers)
+    return roa, kept, crit
+
+
+def _same(a, b):
+    roa1, kept1, crit1 = a
+    roa2, kept2, crit2 = b
+    for name in ("level", "c_optimization", "c_simulation", "check", "box", "method"):
+        assert getattr(roa1, name) == getattr(roa2, name), name
+    assert len(kept1) == len(kept2)
+    for t1, t2 in zip(kept1, kept2, strict=True):
+        assert t1.recovered == t2.recovered and np.array_equal(t1.path, t2.path)
+    assert crit1.to_table() == crit2.to_table()
+
+
+@pytest.mark.parametrize(
+    ("env", "budget"),
+    [
+        (
+            "InvertedPendulum-v5",
+            {"samples": 60, "bisection_samples": 12, "bisection_rounds": 4, "horizon_s": 0.5},
+        ),
+        ("Hopper-v5", {"samples": 8, "bisection_samples": 4, "bisection_rounds": 3, "horizon_s": 0.2}),
+    ],
+)
+def test_one_and_two_workers_give_the_same_region_and_bounds(models, env, budget):
+    spec = load_spec(TUNING / f"{env}.pidlab-robust.toml")
+    if env == "InvertedPendulum-v5":  # a derivative filter: the coach has a state, no CasADi estimate (fast)
+        spec = loads_spec(dumps_spec(spec).replace("tf = 0.0", "tf = 0.01", 1))
+    loaded = models[env]
+    budget = {**budget, "keep_trajectories": 5, "record": (spec.loops[0].signal, spec.loops[0].rate_signal)}
+    _same(_region_and_bounds(spec, loaded, 1, **budget), _region_and_bounds(spec, loaded, 2, **budget))
+
+
+def test_casadi_starts_on_two_workers_give_the_same_level(models):
+    from pidlab.region.roa import lyapunov_function, optimization_level
+
+    spec = load_spec(TUNING / "InvertedPendulum-v5.pidlab-robust.toml")
+    loaded = models["InvertedPendulum-v5"]
+    coach = Coach(spec, loaded)
+    analysis = analyze_coach(coach, loaded)
+    with SimulationPool(spec, loaded, analysis.linearization, 1) as pool:
+        lyap = lyapunov_function(analysis, coach, pool.sim.y_op)
+    one, two = (
+        optimization_level(
+            spec, loaded, lyap, coach, analysis.linearization, 12, starts=6, c_scale=2.0, workers=w
+        )
+        for w in (1, 2)
+    )
+    assert one is not None and one == two
+
+
+def test_refinement_on_two_workers_gives_the_same_coach(models):
+    one, two = (tune(models["Hopper-v5"], max_evaluations=5, refine_evaluations=1, workers=w) for w in (1, 2))
+    assert one.spec == two.spec and one.refined_return == two.refined_return
+    assert one.evaluations == two.evaluations
+
+
+def _pids(pool):
+    return [p.pid for p in pool._executor._processes.values()]  # the executor's live workers
+
+
+def _gone(pids, timeout=10.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        alive = []
+        for pid in pids:
+            try:
+                os.kill(pid, 0)
+                alive.append(pid)
+            except ProcessLookupError:
+                pass
+        if not alive:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _square(state, x):
+    return state * x * x
+
+
+def _fails_on_three(state, x):
+    if x == 3:
+        raise ValueError("three")
+    return x
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_pools_stop_their_workers_on_exit_errors_and_interrupts():
+    with WorkerPool(int, (2,), workers=2) as pool:
+        assert pool.run(_square, list(range(10))).results == [2 * x * x for x in range(10)]
+        pids = _pids(pool)
+    assert len(pids) == 2 and _gone(pids)
+    # an error in a task reaches the caller; the pool's workers still stop
+    with pytest.raises(ValueError, match="three"), WorkerPool(int, (1,), workers=2) as pool:
+        pool.run(_square, [1, 2])
+        pids = _pids(pool)
+        pool.run(_fails_on_three, list(range(8)))
+    assert _gone(pids)
+
+    # a progress callback that raises (a cancelled job, Ctrl-C) abandons the batch
+    def cancel(done):
+        raise _Stop
+
+    with pytest.raises(_Stop), WorkerPool(int, (1,), workers=2) as pool:
+        pool.run(_square, [1, 2])
+        pids = _pids(pool)
+        pool.run(_square, list(range(100)), tick=cancel)
+    assert _gone(pids)
+
+
+def test_a_batch_stops_at_a_failure_and_is_complete_otherwise():
+    for workers in (1, 2):
+        with WorkerPool(int, (1,), workers=workers) as pool:
+            batch = pool.run(_square, list(range(40)), stop=bool)
+            assert batch.stopped and 1 in batch.results
+            batch = pool.run(_square, [0] * 40, stop=bool)
+            assert not batch.stopped and batch.results == [0] * 40
+
+
+def test_worker_counts_are_checked():
+    assert 1 <= resolve_workers(None) <= 4
+    with pytest.raises(RegionError, match=r"workers=0: expected"):
+        resolve_workers(0, RegionError)
+    code, stderr = cli_in_process(
+        "bounds", str(TUNING / "InvertedPendulum-v5.pidlab-robust.toml"), "--workers", "0"
+    )
+    assert code == 2 and "--workers 0" in stderr and len(stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("env", PAPER_ENVS)
+def test_simulator_observes_and_terminates_as_the_compiled_card(models, env):
+    spec = load_spec(TUNING / f"{env}.pidlab-robust.toml")
+    loaded = models[env]
+    with SimulationPool(spec, loaded, analyze_coach(Coach(spec, loaded), loaded).linearization, 1) as pool:
+        sim = pool.sim
+        rng = np.random.default_rng(0)
+        terminated = 0
+        for _ in range(20):
+            sim.start(rng.normal(0.0, 0.3, 2 * sim.m.nv))
+            for _ in range(10):
+                sim.d.ctrl[:] = rng.uniform(-1, 1, sim.m.nu)
+                mujoco.mj_step(sim.m, sim.d, nstep=loaded.frame_skip)
+                obs = sim.observe()
+                assert obs.tobytes() == sim.fast.observe(sim.d).tobytes()
+                assert sim.terminated(obs) == sim.fast.terminated(sim.d)
+                terminated += sim.terminated(obs)
+        assert terminated > 0  # the comparison covered terminal states too
