@@ -34,3 +34,13 @@ def test_a_published_report_is_recomputed_from_its_runs_logs(folder):
 
 def test_the_results_pages_tables_come_from_the_summaries():
     assert recompute.check_readme() == []
+
+
+def test_the_vectorization_page_comes_from_its_runs():
+    """docs/vectorization.md, recomputed from the published runs' logs (benchmarks/vectorization.py --check)."""
+    import vectorization
+
+    figures = {(e, v): f"vectorization-{e}-{v}.png" for e, _, v, _ in vectorization.DESIGN}
+    assert (ROOT / "docs" / "vectorization.md").read_text() == vectorization.page(figures)
+    for name in figures.values():
+        assert (ROOT / "docs" / "images" / name).is_file()

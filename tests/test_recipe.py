@@ -307,3 +307,36 @@ def test_schedule_values_are_checked(value, message):
     with pytest.raises(ScheduleError) as err:
         parse_schedule(value, "w")
     assert message in str(err.value)
+
+
+def _ip_data(**ppo) -> dict:
+    data = tomllib.loads((ROOT / "coach" / "InvertedPendulum-v5.toml").read_text())
+    data["n_envs"] = 1
+    data["ppo"].update(ppo)
+    data["sac"].pop("n_envs", None)
+    return data
+
+
+def test_an_algorithm_table_sets_its_own_number_of_envs():
+    r = parse_recipe(_ip_data(n_envs=4, n_steps=8))
+    assert (r.algo, r.n_envs, r.algorithm_envs) == ("ppo", 4, {"ppo": 4, "sac": 1})
+    assert "n_envs" not in r.hyperparameters  # pidlab's key, never passed to SB3
+    sac = with_overrides(r, algo="sac")  # SAC keeps its own one env (its train_freq counts vector steps)
+    assert (sac.n_envs, sac.algorithm_envs) == (1, {"ppo": 4, "sac": 1})
+    two = with_overrides(r, n_envs=2)
+    assert (two.n_envs, two.algorithm_envs["ppo"]) == (2, 2)
+    for recipe in (r, sac, two):  # what a run's config.toml holds reads back the same
+        again = parse_recipe(recipe_to_dict(recipe))
+        assert (again.algo, again.n_envs, again.algorithm_envs) == (recipe.algo, recipe.n_envs, recipe.algorithm_envs)
+
+
+@pytest.mark.parametrize(("value", "message"), [(0, "recipe.ppo.n_envs"), ("4", "recipe.ppo.n_envs"), (2000, "1024")])
+def test_a_bad_number_of_envs_in_a_table_names_it(value, message):
+    with pytest.raises(RecipeError, match=message):
+        parse_recipe(_ip_data(n_envs=value))
+
+
+def test_the_ppo_rollout_is_checked_with_the_tables_envs():
+    parse_recipe(_ip_data(n_envs=2, n_steps=1))  # a rollout of 2
+    with pytest.raises(RecipeError, match="rollout"):
+        parse_recipe(_ip_data(n_envs=1, n_steps=1))

@@ -256,6 +256,7 @@ class Coach:
         self.state = np.zeros(self.layout.n_states)
         self._primed = False
         self.last_command = np.zeros(len(self.layout.actuator_names))
+        self._setpoints = self.layout.setpoints  # built once: act runs every control step
 
     @property
     def dt(self) -> float:
@@ -279,7 +280,7 @@ class Coach:
         y = np.asarray(obs, dtype=float)
         if not self._primed:
             self._prime(y)
-        self.state, self.last_command, u = law(self.layout, self.state, y, self.layout.setpoints)
+        self.state, self.last_command, u = law(self.layout, self.state, y, self._setpoints)
         return u
 
     def linear_model(self) -> ct.StateSpace:

@@ -12,7 +12,7 @@ Schema ``pidlab.recipe/1``::
     description = "..."
     algo = "ppo"                 # default algorithm: ppo | sac
     steps = 100000               # budget in env steps (agent + coach steps)
-    n_envs = 1                   # parallel envs
+    n_envs = 1                   # parallel envs (default for every algorithm)
     vec_env = "dummy"            # dummy (one process) | subproc (one process per env)
     seed = 0
     threads = 1                  # torch threads per training process
@@ -47,7 +47,8 @@ Schema ``pidlab.recipe/1``::
 
     [ppo]                        # keyword arguments of stable_baselines3.PPO
     source = "where the values come from"
-    n_steps = 32
+    n_envs = 4                   # optional: this algorithm's parallel envs (overrides the top level)
+    n_steps = 8                  # per env: the rollout is n_steps * n_envs
     learning_rate = 0.000222425  # or "lin_0.0003" (linear decay, the zoo's notation)
     policy_kwargs = { net_arch = { pi = [64, 64], vf = [64, 64] }, activation_fn = "tanh" }
 
@@ -167,6 +168,7 @@ class Recipe:
     steps : int
         Budget, env steps (agent + coach).
     n_envs : int
+        Parallel envs of ``algo`` (its table's ``n_envs``, else the top-level one).
     vec_env : {"dummy", "subproc"}
     seed, threads : int
     normalize_obs, normalize_reward : bool
@@ -179,6 +181,8 @@ class Recipe:
         ``{"ppo": {...}, "sac": {...}}``: SB3 keyword arguments per algorithm, as written.
     sources : dict
         Per algorithm, where its values come from.
+    algorithm_envs : dict
+        Per algorithm, its parallel envs (``n_envs`` is ``algorithm_envs[algo]``).
     path : str or None
     """
 
@@ -198,6 +202,7 @@ class Recipe:
     coaching: Coaching
     algorithms: dict[str, dict[str, Any]]
     sources: dict[str, str]
+    algorithm_envs: dict[str, int] = field(default_factory=dict)
     path: str | None = None
 
     @property
@@ -416,14 +421,18 @@ def algorithm_arguments(algo: str) -> tuple[str, ...]:
     return tuple(ARGUMENTS[algo])
 
 
+PIDLAB_KEYS = ("source", "n_envs")
+"""Keys of an algorithm table that are pidlab's, not SB3 arguments."""
+
+
 def _check_algorithm(algo: str, table: dict[str, Any], where: str) -> tuple[dict[str, Any], str]:
     checks = ARGUMENTS[algo]
-    kwargs = {k: v for k, v in table.items() if k != "source"}
+    kwargs = {k: v for k, v in table.items() if k not in PIDLAB_KEYS}
     unknown = set(kwargs) - set(checks)
     if unknown:
         raise RecipeError(
             f"{where}: unknown {algo.upper()} argument(s) {sorted(unknown)}; "
-            f"allowed: {', '.join(sorted(checks))}"
+            f"allowed: {', '.join(sorted([*checks, *PIDLAB_KEYS]))}"
         )
     for key, value in kwargs.items():
         checks[key](value, f"{where}.{key}")
@@ -650,9 +659,9 @@ def parse_recipe(data: dict[str, Any], where: str = "recipe") -> Recipe:
         flag(norm.get(key, False), f"{where}.normalize.{key}", RecipeError) for key in ("obs", "reward")
     )
     steps = _int(data, "steps", where, low=1, high=MAX_STEPS)
-    n_envs = _int(data, "n_envs", where, 1, low=1, high=MAX_PARALLEL)
+    envs = _algorithm_envs(data, algorithms, where)
     if "ppo" in algorithms:
-        check_rollout(algorithms["ppo"], n_envs, f"{where}.ppo")
+        check_rollout(algorithms["ppo"], envs["ppo"], f"{where}.ppo")
     ck = _table(data, "checkpoint", where, {"every"})
     parse_pipeline(data, where)  # checked here so a bad [pipeline] fails wherever the recipe loads
     return Recipe(
@@ -660,7 +669,7 @@ def parse_recipe(data: dict[str, Any], where: str = "recipe") -> Recipe:
         description=text(data.get("description", ""), f"{where}.description", RecipeError),
         algo=algo,
         steps=steps,
-        n_envs=n_envs,
+        n_envs=envs[algo],
         vec_env=_choice(data, "vec_env", where, VEC_ENVS, "dummy"),
         seed=check_seed(data.get("seed", 0), f"{where}.seed", RecipeError),
         threads=_int(data, "threads", where, 1, low=1, high=MAX_PARALLEL),
@@ -672,8 +681,18 @@ def parse_recipe(data: dict[str, Any], where: str = "recipe") -> Recipe:
         coaching=_coaching(data, where),
         algorithms=algorithms,
         sources=sources,
+        algorithm_envs=envs,
         path=None,
     )
+
+
+def _algorithm_envs(data: dict[str, Any], algorithms: dict[str, Any], where: str) -> dict[str, int]:
+    """Parallel envs per algorithm: its table's ``n_envs``, else the top-level ``n_envs`` (default 1)."""
+    default = _int(data, "n_envs", where, 1, low=1, high=MAX_PARALLEL)
+    return {
+        algo: _int(data[algo], "n_envs", f"{where}.{algo}", default, low=1, high=MAX_PARALLEL)
+        for algo in algorithms
+    }
 
 
 def load_recipe(path: str | Path) -> Recipe:
@@ -733,10 +752,13 @@ def with_overrides(
             )
     if steps is not None:
         integer(steps, "steps", RecipeError, low=1, high=MAX_STEPS, param="steps")
+    chosen = algo or recipe.algo
     if n_envs is not None:
         integer(n_envs, "n_envs", RecipeError, low=1, high=MAX_PARALLEL, param="n_envs")
-        if "ppo" in recipe.algorithms:
+        if chosen == "ppo":
             check_rollout(recipe.algorithms["ppo"], n_envs, "ppo", param="n_envs")
+    elif chosen != recipe.algo:  # another algorithm: its own number of envs
+        n_envs = recipe.algorithm_envs.get(chosen, recipe.n_envs)
     if seed is not None:
         check_seed(seed, "seed", RecipeError, param="seed")
     return replace(
@@ -745,6 +767,7 @@ def with_overrides(
         steps=steps or recipe.steps,
         seed=recipe.seed if seed is None else seed,
         n_envs=n_envs or recipe.n_envs,
+        algorithm_envs={**recipe.algorithm_envs, chosen: n_envs or recipe.n_envs},
     )
 
 
@@ -790,7 +813,11 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
         "coaching": coaching,
     }
     for algo, kwargs in recipe.algorithms.items():
-        out[algo] = {"source": recipe.sources.get(algo, ""), **kwargs}
+        # the top level holds the chosen algorithm's envs (what the run uses); another algorithm's
+        # table says its own only where it differs, so recipes without per-algorithm envs read as before
+        envs = recipe.algorithm_envs.get(algo, recipe.n_envs)
+        own = {"n_envs": envs} if algo != recipe.algo and envs != recipe.n_envs else {}
+        out[algo] = {"source": recipe.sources.get(algo, ""), **own, **kwargs}
     return out
 
 
