@@ -65,6 +65,13 @@ class Variant:
     runs: tuple[RunData, ...]
 
 
+def recipe_budget(env_id: str) -> int:
+    """The shipped recipe's budget, env steps."""
+    from pidlab.rl.recipe import load_recipe
+
+    return load_recipe(ROOT / "coach" / f"{env_id}.toml").steps
+
+
 def load_variant(env_id: str, name: str) -> Variant:
     """Every finished run of ``ENV.name`` in the published folder."""
     root = PUBLISHED / f"{env_id}.{name}" / "runs" / env_id / "none"
@@ -129,7 +136,7 @@ def table(env_id: str, base: Variant, vec: Variant) -> list[str]:
         reached = ""
         if m.name == "env_steps_to_target":
             reached = (
-                f" ({int(np.isfinite(b).sum())}/{b.size} | {int(np.isfinite(a).sum())}/{a.size} reached)"
+                f" (reached: {int(np.isfinite(b).sum())}/{b.size} and {int(np.isfinite(a).sum())}/{a.size})"
             )
         lines.append(
             f"| {m.label}{reached} | {estimate_text(_iqm(b), m.name)} | {estimate_text(_iqm(a), m.name)} | "
@@ -139,11 +146,16 @@ def table(env_id: str, base: Variant, vec: Variant) -> list[str]:
     return lines
 
 
+def _minibatches(v: Variant) -> str:
+    k = max(v.n_envs * v.n_steps // v.batch_size, 1)
+    return f"{k} minibatch" + ("es" if k > 1 else "")
+
+
 def _setting(v: Variant) -> str:
     env = "env" if v.n_envs == 1 else "envs"
     return (
         f"{v.n_envs} {env}, n_steps {v.n_steps} per env, batch_size {v.batch_size} "
-        f"(rollout {v.n_envs * v.n_steps}, {v.n_envs * v.n_steps // v.batch_size} minibatches per epoch)"
+        f"(rollout {v.n_envs * v.n_steps}; {_minibatches(v)} per epoch)"
     )
 
 
@@ -198,7 +210,8 @@ def page(figures: dict[tuple[str, str], str]) -> str:
         out += [
             f"## {env_id}: `{vec.name}` against `{base.name}`",
             "",
-            f"{len(base.runs)} seeds each, {budget:,} env steps per run.",
+            f"{len(base.runs)} seeds each, {budget:,} env steps per run "
+            f"({budget / recipe_budget(env_id):.0%} of the recipe's budget of {recipe_budget(env_id):,}).",
             "",
             f"Why: {why}.",
             "",

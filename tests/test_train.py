@@ -41,6 +41,8 @@ def tiny_recipe(tmp_path: Path, name: str = "tiny.toml", **changes) -> Path:
     data["checkpoint"] = {"every": 1000}
     data["sac"]["learning_starts"] = 200
     data["sac"]["buffer_size"] = 5000
+    data["ppo"].pop("n_envs")  # one env (the zoo's rollout): each episode's steps add up to the totals
+    data["ppo"]["n_steps"] = 32
     for key, value in changes.items():
         if isinstance(value, dict) and isinstance(data.get(key), dict):
             data[key].update(value)
