@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import platform
 import shutil
 import statistics
@@ -206,8 +207,8 @@ def report(figs: list[EnvFigures], repeats: int) -> str:
         f"{repeats} paired rounds (range in brackets); torch on one thread. The evaluations' own env steps",
         "are extra work that the rates do not count (they are not charged to the budget either).",
         "",
-        f"Machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads "
-        f"available, Python {platform.python_version()}, "
+        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch on "
+        f"{torch.get_num_threads()} thread, Python {platform.python_version()}, "
         f"pidlab {__version__} ({(git.get('sha') or '?')[:10]}), "
         f"MuJoCo {mujoco.__version__}, torch {torch.__version__}.",
         "",
@@ -256,7 +257,7 @@ def report(figs: list[EnvFigures], repeats: int) -> str:
         "|---|" + "---:|" * len(figs),
     ]
     for label in PARTS:
-        lines.append(f"| {label} | " + " | ".join(f"{f.shares[label]:.0%}" for f in figs) + " |")
+        lines.append(f"| {label} | " + " | ".join(f"{f.shares[label]:.1%}" for f in figs) + " |")
     return "\n".join(lines) + "\n"
 
 
