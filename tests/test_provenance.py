@@ -44,6 +44,14 @@ from tests.helpers import ROOT, TUNING
 
 IP = "InvertedPendulum-v5"
 PUBLISHED = sorted((ROOT / "docs" / "results").glob("*/experiment.json"))
+# The recipes as shipped when the published experiments ran (1 env; the recipes vectorize PPO since):
+# an experiment resumes with the recipes it was run with, and is refused with others
+RECIPES_THEN = ROOT / "tests" / "data" / "legacy" / "recipes"
+
+
+def recipes_then(envs: list[str]) -> list[str]:
+    """The recipes of ``envs`` as shipped then."""
+    return [str(RECIPES_THEN / f"{env}.toml") for env in envs]
 ARGV = ["pidlab", "test"]
 
 
@@ -76,16 +84,21 @@ def test_spec_digest_is_the_full_sha256_of_the_spec_text():
 
 @pytest.mark.parametrize("path", PUBLISHED, ids=lambda p: p.parent.name)
 def test_published_experiments_plan_to_their_recorded_identity(tmp_path, path):
-    """`pidlab experiment` with a published experiment's own command still accepts its folder."""
+    """`pidlab experiment` with a published experiment's own command and recipes still accepts its folder."""
     record = read_json(path)
     ident, command = record["identity"], record["command"]
     steps = int(command[command.index("--steps") + 1]) if "--steps" in command else None
     algo = command[command.index("--algo") + 1] if "--algo" in command else None
-    p = plan(ident["envs"], ident["conditions"], ident["seeds"], tmp_path / "exp", steps=steps, algo=algo)
+    out = tmp_path / "exp"
+    then = recipes_then(ident["envs"])
+    p = plan(ident["envs"], ident["conditions"], ident["seeds"], out, steps=steps, algo=algo, recipe_files=then)
     assert p.identity() == ident
-    (tmp_path / "exp").mkdir()
-    shutil.copy(path, tmp_path / "exp" / "experiment.json")
+    out.mkdir()
+    shutil.copy(path, out / "experiment.json")
     assert check_out_folder(p) is not None
+    today = plan(ident["envs"], ident["conditions"], ident["seeds"], out, steps=steps, algo=algo)
+    with pytest.raises(ExperimentError, match="holds another experiment"):  # the recipes changed since
+        check_out_folder(today)
 
 
 # ---------------------------------------------------------------- new, resume, read, write
@@ -177,7 +190,8 @@ def test_published_experiment_record_migrates_and_resumes(tmp_path):
     old = read_json(published)
     assert all("time" in r for r in old["resumes"])
     ident = old["identity"]
-    p = plan(ident["envs"], ident["conditions"], ident["seeds"], tmp_path / "exp")
+    then = recipes_then(ident["envs"])
+    p = plan(ident["envs"], ident["conditions"], ident["seeds"], tmp_path / "exp", recipe_files=then)
     (tmp_path / "exp").mkdir()
     shutil.copy(published, tmp_path / "exp" / "experiment.json")
     assert check_out_folder(p) == record_from_dict(old, "pidlab.experiment/1")
