@@ -45,6 +45,7 @@ from pidlab import __version__
 from pidlab.files import atomic_write_text
 from pidlab.provenance import git_state
 from pidlab.rl.recipe import Recipe, load_recipe
+from pidlab.rl.rundir import read_csv_rows
 from pidlab.rl.train import sb3_arguments, train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,11 +83,8 @@ def pidlab_run(recipe: Recipe, steps: int) -> tuple[float, int]:
             dataclasses.replace(recipe, steps=steps, seed=0), None, folder / "run", progress_bar=False
         )
         wall = time.perf_counter() - start
-        rows = (folder / "run" / "evaluations.csv").read_text().splitlines()[1:]
-        header = (folder / "run" / "evaluations.csv").read_text().splitlines()[0].split(",")
-        n_episodes = recipe.evaluation.episodes
-        k = header.index("mean_length")
-        eval_steps = round(sum(float(row.split(",")[k]) * n_episodes for row in rows))
+        rows = read_csv_rows(folder / "run" / "evaluations.csv")
+        eval_steps = round(sum(float(r["mean_length"]) * recipe.evaluation.episodes for r in rows))
         assert result.env_steps >= steps
         return wall, eval_steps
     finally:

@@ -130,6 +130,7 @@ class CompiledCard:
     def __init__(self, card: ModelCard, model: mujoco.MjModel) -> None:
         self.card = card
         n = len(card.observation)
+        self._plain = _gather_index(card, model)
         self._source = [v.source for v in card.observation]
         self._addr = np.array([_address(model, v) for v in card.observation])
         self._sin = np.array([v.transform == "sin" for v in card.observation])
@@ -151,15 +152,23 @@ class CompiledCard:
         self._limits = limits
 
     def observe(self, data: mujoco.MjData) -> np.ndarray:
-        """The observation (as :func:`observe`)."""
+        """The observation (as :func:`observe`): one gather when no variable is a sine or cosine."""
+        if self._plain is not None:
+            sources, flat, clipped = self._plain
+            parts = [getattr(data, k) for k in sources]
+            raw = parts[0] if len(parts) == 1 else np.concatenate(parts)
+            return np.clip(raw[flat], self._lo, self._hi) if clipped else raw[flat]
         out = np.empty(len(self._addr))
         for source, idx in self._groups.items():
             out[idx] = getattr(data, source)[self._addr[idx]]
         out = np.where(self._sin, np.sin(out), np.where(self._cos, np.cos(out), out))
         return np.clip(out, self._lo, self._hi)
 
-    def terminated(self, data: mujoco.MjData) -> bool:
-        """Whether the env would terminate (as :func:`check_termination`)."""
+    def terminated(self, data: mujoco.MjData, obs: np.ndarray | None = None) -> bool:
+        """Whether the env would terminate (as :func:`check_termination`).
+
+        ``obs``: :meth:`observe` of ``data`` when the caller has it (not computed again).
+        """
         for kind, a, b, limit in self._limits:
             if kind == "site":
                 v = float(data.site_xpos[a, b])
@@ -169,4 +178,23 @@ class CompiledCard:
                 v = float(data.qvel[a])
             if not limit.healthy(v):
                 return True
-        return bool(self.card.terminate_on_nonfinite and not np.all(np.isfinite(self.observe(data))))
+        if not self.card.terminate_on_nonfinite:
+            return False
+        return not bool(np.all(np.isfinite(self.observe(data) if obs is None else obs)))
+
+
+_SOURCE_SIZE = {"qpos": "nq", "qvel": "nv", "qfrc_constraint": "nv"}
+
+
+def _gather_index(card: ModelCard, model: mujoco.MjModel) -> tuple[tuple[str, ...], np.ndarray, bool] | None:
+    """``(sources, flat, clipped)``: the observation as one index into the sources laid end to end.
+
+    None when a variable is a sine or cosine (the general path applies the transforms).
+    """
+    if any(v.transform in ("sin", "cos") for v in card.observation):
+        return None
+    sources = tuple(dict.fromkeys(v.source for v in card.observation))
+    sizes = [int(getattr(model, _SOURCE_SIZE[k])) for k in sources]
+    base = dict(zip(sources, np.cumsum([0, *sizes]), strict=False))
+    flat = np.array([int(base[v.source]) + _address(model, v) for v in card.observation])
+    return sources, flat, any(v.clip for v in card.observation)

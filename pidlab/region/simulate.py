@@ -17,81 +17,8 @@ from pidlab.controller.spec import CoachSpec
 from pidlab.errors import RegionError
 from pidlab.linear.linearize import Linearization
 from pidlab.parallel import WorkerPool, resolve_workers
-from pidlab.plant.card import ModelCard, TerminationLimit
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import CompiledCard, observe_at
-
-
-class _FastObservation:
-    """The observation and termination rule of a card, with less work per control period.
-
-    The same values as :class:`~pidlab.plant.observation.CompiledCard` (whose ``observe`` and
-    ``terminated`` a simulation would otherwise call once and twice per step): the observation
-    is gathered with one index (transforms and clipping, when the card has them, are left to
-    ``CompiledCard``), and termination reads the limits' signals directly and tests for
-    non-finite values on the observation already computed.
-    """
-
-    def __init__(self, card: ModelCard, model: mujoco.MjModel, fast: CompiledCard) -> None:
-        self.fast = fast
-        self.sources = tuple(dict.fromkeys(v.source for v in card.observation))
-        sizes = {"qpos": model.nq, "qvel": model.nv, "qfrc_constraint": model.nv}
-        base = dict(zip(self.sources, np.cumsum([0] + [sizes[s] for s in self.sources]), strict=False))
-        self.flat = np.array(
-            [
-                int(base[v.source]) + int(a)
-                for v, a in zip(card.observation, _addresses(card, model), strict=True)
-            ]
-        )
-        self.plain = not any(v.transform in ("sin", "cos") for v in card.observation)
-        self.lo = np.array([v.clip[0] if v.clip else -np.inf for v in card.observation])
-        self.hi = np.array([v.clip[1] if v.clip else np.inf for v in card.observation])
-        self.clipped = any(v.clip for v in card.observation)
-        self.limits = [_compiled_limit(model, limit) for limit in card.termination]
-        self.nonfinite = card.terminate_on_nonfinite
-
-    def observe(self, d: mujoco.MjData) -> np.ndarray:
-        """The observation (as ``CompiledCard.observe``)."""
-        if not self.plain:
-            return self.fast.observe(d)
-        if len(self.sources) == 1:
-            out = getattr(d, self.sources[0])[self.flat]
-        else:
-            out = np.concatenate([getattr(d, s) for s in self.sources])[self.flat]
-        return np.clip(out, self.lo, self.hi) if self.clipped else out
-
-    def terminated(self, d: mujoco.MjData, obs: np.ndarray) -> bool:
-        """Whether the env would terminate at ``d``, whose observation is ``obs`` (as ``CompiledCard``)."""
-        for kind, a, b, limit in self.limits:
-            if kind == "site":
-                v = float(d.site_xpos[a, b])
-            elif kind == "pos":
-                v = float(d.qpos[a])
-            else:
-                v = float(d.qvel[a])
-            if not limit.healthy(v):
-                return True
-        return bool(self.nonfinite and not np.all(np.isfinite(obs)))
-
-
-def _addresses(card: ModelCard, model: mujoco.MjModel) -> list[int]:
-    """Each observation variable's index in its source array."""
-    out = []
-    for v in card.observation:
-        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, v.joint)
-        out.append(int(model.jnt_qposadr[jid]) if v.source == "qpos" else int(model.jnt_dofadr[jid]))
-    return out
-
-
-def _compiled_limit(model: mujoco.MjModel, limit: TerminationLimit) -> tuple[str, int, int, TerminationLimit]:
-    """``(kind, address, axis, limit)``: where a termination limit's signal is read."""
-    if limit.signal.startswith("site:"):
-        site, _, axis = limit.signal[5:].rpartition(":")
-        return "site", mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site), "xyz".index(axis), limit
-    joint, _, kind = limit.signal.rpartition("_")
-    jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
-    adr = int(model.jnt_qposadr[jid]) if kind == "pos" else int(model.jnt_dofadr[jid])
-    return kind, adr, 0, limit
 
 
 class Simulator:
@@ -129,16 +56,15 @@ class Simulator:
         card = loaded.require_card()
         self.card = card
         self.fast = CompiledCard(card, self.m)
-        self._quick = _FastObservation(card, self.m, self.fast)
         self.y_op = observe_at(self.card, self.m, lin.op.qpos, lin.op.qvel)
 
     def observe(self) -> np.ndarray:
-        """The observation at the current state (as ``fast.observe(d)``, with less work)."""
-        return self._quick.observe(self.d)
+        """The observation at the current state (``fast.observe(d)``)."""
+        return self.fast.observe(self.d)
 
     def terminated(self, obs: np.ndarray) -> bool:
         """Whether the env would terminate now; ``obs`` is :meth:`observe` (as ``fast.terminated(d)``)."""
-        return self._quick.terminated(self.d, obs)
+        return self.fast.terminated(self.d, obs)
 
     def start(self, x_plant: np.ndarray) -> np.ndarray:
         """Put MuJoCo at the operating point (+) ``x_plant`` and reset the coach.
@@ -199,16 +125,16 @@ class Simulator:
         path : ndarray, shape (T + 1, len(record))
             The recorded columns, from ``obs`` on (empty without ``record``).
         """
-        m, d, act, quick = self.m, self.d, self.coach.act, self._quick
+        m, d, act, card = self.m, self.d, self.coach.act, self.fast
         frame_skip = self.loaded.frame_skip
         path = [obs[record]] if record is not None else []
         for _ in range(steps):
             d.ctrl[:] = act(obs)
             mujoco.mj_step(m, d, nstep=frame_skip)
-            obs = quick.observe(d)
+            obs = card.observe(d)
             if record is not None:
                 path.append(obs[record])
-            if quick.terminated(d, obs):
+            if card.terminated(d, obs):
                 return True, np.array(path)
         return False, np.array(path)
 
