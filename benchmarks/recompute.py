@@ -5,14 +5,21 @@ holds its record (experiment.json) and, under runs/ENV/CONDITION/seed-S/, every 
 episodes.csv, evaluations.csv, summary.json and config.toml (the recipe it ran). This script
 analyzes those logs with pidlab's own code, without retraining, and compares the result byte for
 byte with the committed metrics.csv, summary.csv, report.md and report.html; then it recomputes the
-tables of docs/results/README.md (benchmarks/results_table.py) from the summaries.
+tables of docs/results/README.md (benchmarks/results_table.py) from the summaries. For a pipeline's
+experiment (docs/results/pipeline-ENV/experiment/) it also recomputes the section of the pipeline's
+own report (docs/results/pipeline-ENV/report.md) that reads those runs, "The agent alone" (its
+table, design note and reading; the other sections come from stages whose data is not published),
+and checks that the pipeline's report.html is its report.md rendered.
+
+With --write it writes the recomputed files (and that section of a pipeline's report, with its
+report.html) instead of comparing: run it after a change to the report code, then review the diff.
 
 It also prints, per condition, the numbers behind two of the reports' explanations, straight from
 the logs: the first hit against the hit that lasted (runs whose first hit did not last), and the
 training episodes with their mean length (a coach that keeps episodes alive gives fewer, longer ones).
 
 Exit status: 0 everything matches, 1 a difference (shown as a diff), 2 a folder cannot be read.
-Run: .venv/bin/python benchmarks/recompute.py [FOLDER ...]
+Run: .venv/bin/python benchmarks/recompute.py [--write] [FOLDER ...]
 """
 
 from __future__ import annotations
@@ -26,7 +33,8 @@ import numpy as np
 from pidlab.errors import PidlabError
 from pidlab.experiment.analysis import Analysis, analyze, recipes_of_runs
 from pidlab.files import read_json
-from pidlab.report.experiment import figure_names, report_texts
+from pidlab.report.experiment import figure_names, render_html, report_texts
+from pidlab.report.pipeline import AGENT_ALONE, agent_alone
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"
@@ -64,6 +72,31 @@ def differences(folder: Path, texts: dict[str, str]) -> list[str]:
     return out
 
 
+def pipeline_report(folder: Path) -> Path | None:
+    """The pipeline report beside a pipeline's experiment folder (None: not a pipeline's experiment)."""
+    report = folder.parent / "report.md"
+    return report if folder.name == "experiment" and folder.parent.name.startswith("pipeline-") else None
+
+
+def pipeline_texts(a: Analysis, report: Path) -> dict[str, str]:
+    """A pipeline's report.md with its section on the agent alone recomputed, and its report.html.
+
+    The section runs from its heading to the link to the experiment report that follows it.
+
+    Raises
+    ------
+    ValueError
+        The report has no such section, or not for exactly one env.
+    """
+    if len(a.envs) != 1:
+        raise ValueError(f"a pipeline's experiment has one env, not {len(a.envs)}")
+    text = report.read_text()
+    start = text.index(f"\n{AGENT_ALONE}\n") + 1
+    end = text.index("\nThe full experiment report", start) + 1
+    text = text[:start] + "\n".join(agent_alone(a, a.envs[0])) + "\n" + text[end:]
+    return {"report.md": text, "report.html": render_html(text, f"pidlab run {a.envs[0]}")}
+
+
 def explanations(a: Analysis) -> list[str]:
     """Per condition: hits that did not last, and training episodes with their length."""
     lines = []
@@ -93,22 +126,34 @@ def check_readme() -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    """Recompute the folders given (default: every published one); print what differs."""
+    """Recompute the folders given (default: every published one); print what differs, or write it."""
+    write = "--write" in argv
+    argv = [a for a in argv if a != "--write"]
     folders = [Path(f) for f in argv] or published_folders()
     problems: list[str] = []
     for folder in folders:
+        report = pipeline_report(folder)
         try:
             a, texts = recompute(folder)
+            extra = pipeline_texts(a, report) if report is not None and report.exists() else {}
         except (PidlabError, OSError, KeyError, ValueError, TypeError) as exc:
             print(f"recompute: {folder}: cannot be read ({exc})", file=sys.stderr)
             return 2
-        diffs = differences(folder, texts)
+        outputs = [(folder, texts), *([(folder.parent, extra)] if extra else [])]
         runs = sum(len(c.runs) for c in a.cells.values())
-        print(f"{folder.relative_to(ROOT) if folder.is_relative_to(ROOT) else folder}: {runs} runs; "
-              f"{', '.join(texts)}: {'all match' if not diffs else f'{len(diffs)} differ'}")  # fmt: skip
+        for where, files in outputs:
+            shown = where.relative_to(ROOT) if where.is_relative_to(ROOT) else where
+            if write:
+                for name, text in files.items():
+                    (where / name).write_text(text)
+                print(f"{shown}: {runs} runs; wrote {', '.join(files)}")
+                continue
+            diffs = differences(where, files)
+            print(f"{shown}: {runs} runs; "
+                  f"{', '.join(files)}: {'all match' if not diffs else f'{len(diffs)} differ'}")  # fmt: skip
+            problems += diffs
         print("\n".join(explanations(a)))
-        problems += diffs
-    if not argv:
+    if not argv and not write:
         problems += check_readme()
     for p in problems:
         print(p)

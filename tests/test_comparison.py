@@ -35,8 +35,10 @@ def test_all_missed_is_not_testable_at_this_budget():
     missed = verdicts[("pidlab", "env_steps_to_target")]
     assert missed.verdict == "not testable" and "no run of either condition reached" in missed.reason
     assert missed.p_holm is None and missed.improvement.value == 0.5
+    assert missed.label == "not testable at this budget"
     same = verdicts[("pidlab", "final_score")]
     assert same.verdict == "not testable" and "same value, 300" in same.reason
+    assert same.label == "not testable"
 
 
 def test_a_condition_that_never_trained_gets_no_coaching_verdict():

@@ -3,7 +3,9 @@
 Every experiment folder under docs/results/ ships its runs' episodes.csv, evaluations.csv,
 summary.json and config.toml; benchmarks/recompute.py re-analyzes them. Here the same recompute
 must give the committed metrics.csv, summary.csv and report.md byte for byte, so a change to the
-measures that is not followed by regenerating the published reports fails.
+measures that is not followed by regenerating the published reports fails. For a pipeline's
+experiment, the section of the pipeline's own report.md that reads those runs ("The agent alone")
+and its report.html must match too.
 """
 
 from __future__ import annotations
@@ -27,9 +29,14 @@ def test_every_published_experiment_ships_its_runs():
 
 @pytest.mark.parametrize("folder", FOLDERS, ids=[str(f.relative_to(ROOT / "docs" / "results")) for f in FOLDERS])
 def test_a_published_report_is_recomputed_from_its_runs_logs(folder):
-    _, texts = recompute.recompute(folder)
+    a, texts = recompute.recompute(folder)
     for name in ("metrics.csv", "summary.csv", "report.md"):
         assert (folder / name).read_text() == texts[name], f"{folder / name}: run benchmarks/recompute.py"
+    report = recompute.pipeline_report(folder)
+    if report is not None:
+        for name, text in recompute.pipeline_texts(a, report).items():
+            committed = (report.parent / name).read_text()
+            assert committed == text, f"{report.parent / name}: run benchmarks/recompute.py"
 
 
 def test_the_results_pages_tables_come_from_the_summaries():

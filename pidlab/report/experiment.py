@@ -11,6 +11,7 @@ Files written into the experiment folder (each atomically)::
 from __future__ import annotations
 
 import csv
+import functools
 import html
 import io
 from collections.abc import Mapping, Sequence
@@ -27,7 +28,7 @@ from pidlab.experiment.comparison import (
     detectable,
     reachable,
 )
-from pidlab.experiment.stats import Estimate
+from pidlab.experiment.stats import Estimate, detectable_improvement
 from pidlab.experiment.sweep import Plan, check_out_folder
 from pidlab.files import atomic_write_text, read_json, save_figure
 from pidlab.plant.card import PaperNumbers, find_card
@@ -231,6 +232,12 @@ def verdict_text(c: Comparison) -> str:
     return f"{word}{' (indicative)' if c.indicative else ''} ({effect}, {test})"
 
 
+@functools.lru_cache(maxsize=64)
+def _detectable_at(n: int, m: int, alpha: float) -> float | None:
+    """The smallest P(improvement) that ``n`` against ``m`` runs detect at level ``alpha`` (None: none)."""
+    return detectable_improvement(n, m, alpha=alpha, power=POWER)
+
+
 def design_note(a: Analysis, env: str) -> str:
     """What the seeds can show: run counts, Holm family, smallest detectable effect, smallest p."""
     comps = [c for (e, _), cs in a.comparisons.items() if e == env for c in cs.values()]
@@ -239,12 +246,19 @@ def design_note(a: Analysis, env: str) -> str:
     n, m = comps[0].test.n, comps[0].test.m
     family = max(c.family for c in comps)
     d = detectable(n, m)
-    power = (
-        f"with {n} against {m} seeds, an exact two-sided test at {ALPHA:g} detects with "
-        f"{100 * POWER:.0f} % power only effects of P >= {d:.2f} (normal location-shift model)"
-        if d is not None
-        else f"with {n} against {m} seeds no exact test can reach p < {ALPHA:g}"
-    )
+    if d is None:
+        power = f"with {n} against {m} seeds no exact test can reach p < {ALPHA:g}"
+    else:
+        power = (
+            f"with {n} against {m} seeds, one exact two-sided test at {ALPHA:g} (before Holm) detects "
+            f"with {100 * POWER:.0f} % power only effects of P >= {d:.2f}"
+        )
+        strict = _detectable_at(n, m, ALPHA / family) if family > 1 else None
+        if strict is not None:
+            power += (
+                f", and one at the Holm family's strictest level, {ALPHA:g}/{family}, only P >= {strict:.2f}"
+            )
+        power += " (normal location-shift model)"
     text = (
         f"Design: {power}; the smallest possible p is {p_text(comps[0].smallest_p)}. "
         f"{len(comps)} comparisons; the {family} testable ones form one Holm family, and a verdict "
@@ -297,7 +311,10 @@ HOW_TO_READ = (
     "*reaches* the target at the first evaluation from which it scores at least the target at every "
     "evaluation to the end of the run (a transient hit does not count; the first hit is shown apart). "
     "Runs are compared at the evaluation's grid point (a multiple of `evaluation.every`): an evaluation "
-    "runs at the first env step at or after its point, a few steps late when a coach step crosses it.",
+    "runs at the first env step at or after its point. A coach intervention (takeover or nudge) under "
+    "way at the point, or at the budget, finishes first, so an evaluation can run late and a coached "
+    "run can end over its budget, by a few steps or by hundreds; the accounts table gives the largest "
+    "delay per run.",
     "- Agent-alone evaluations are not charged to the budget (for every condition alike); the env steps "
     "they spent are listed per run in `metrics.csv` (`evaluation_env_steps`) and below.",
     "- Training return: what the agent was paid on its own steps. Return with the coach: the same "

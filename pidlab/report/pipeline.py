@@ -23,6 +23,7 @@ from pidlab.report.experiment import (
     cell_metric,
     design_note,
     markdown_table,
+    p_text,
     reading,
     report_header,
 )
@@ -306,11 +307,31 @@ def _training(f: PipelineFacts) -> list[str]:
         lines += [f"Not finished (not counted): {', '.join(a.missing)}.", ""]
     if f.curves_figure:
         lines += [f"![Learning curves]({f.curves_figure})", ""]
+    lines += agent_alone(a, env)
     lines += [
-        "### The agent alone",
+        "The full experiment report, with the paper's measures beside its Table II: "
+        "[experiment/report.html](experiment/report.html) ([Markdown](experiment/report.md)).",
+        "",
+    ]
+    return lines
+
+
+AGENT_ALONE = "### The agent alone"
+
+
+def agent_alone(a: Analysis, env: str) -> list[str]:
+    """Section 4's table of the agent alone, its design note and reading (Markdown lines).
+
+    A pure function of the experiment's analysis, so that ``benchmarks/recompute.py`` can recompute
+    it from the published runs' logs and compare it with the committed report.
+    """
+    lines = [
+        AGENT_ALONE,
         "",
         "Deterministic policy, coach off, fixed evaluation seeds. IQM over seeds with its 95 % "
-        "stratified bootstrap interval; P: probability of improvement over no coach (0.5: no difference).",
+        "stratified bootstrap interval; P: probability of improvement over no coach (0.5: no difference), "
+        "with the exact two-sided Wilcoxon-Mann-Whitney p-value and its Holm adjustment over the env's "
+        "comparisons.",
         "",
     ]
     rows = []
@@ -319,11 +340,17 @@ def _training(f: PipelineFacts) -> list[str]:
         if cell is None:
             continue
         per_seed = ", ".join(f"{r.metrics.final_score:.0f}" for r in cell.runs)
-        p = a.improvement(env, cond, "final_score")
+        c = a.comparisons.get((env, cond), {}).get("final_score")
+        if cond == BASELINE or c is None:
+            p, exact, holm = "-", "-", "-"
+        else:
+            e = c.improvement
+            p, exact = f"{e.value:.2f} [{e.low:.2f}, {e.high:.2f}]", p_text(c.test.p_value)
+            holm = "-" if c.p_holm is None else p_text(c.p_holm)
         rows.append(
             [cond, cell_metric(cell, "final_score"), per_seed, cell_metric(cell, "env_steps_to_target"),
-             cell_metric(cell, "intervention_rate"), f"{cell.coach_dependent}/{len(cell.runs)}",
-             "-" if cond == BASELINE or p is None else f"{p.value:.2f} [{p.low:.2f}, {p.high:.2f}]"]
+             cell_metric(cell, "intervention_rate"), f"{cell.coach_dependent}/{len(cell.runs)}", p, exact,
+             holm]
         )  # fmt: skip
     lines += [
         markdown_table(
@@ -335,6 +362,8 @@ def _training(f: PipelineFacts) -> list[str]:
                 "coach's share of env steps",
                 "coach-dependent",
                 "P(higher final score)",
+                "exact p",
+                "Holm p",
             ],
             rows,
         ),
@@ -342,9 +371,6 @@ def _training(f: PipelineFacts) -> list[str]:
         design_note(a, env),
         "",
         *(f"- {s}" for s in reading(a, env, ("env_steps_to_target", "final_score"))),
-        "",
-        "The full experiment report, with the paper's measures beside its Table II: "
-        "[experiment/report.html](experiment/report.html) ([Markdown](experiment/report.md)).",
         "",
     ]
     return lines
