@@ -11,6 +11,8 @@ command-line verb second. The stage functions are available from the top level::
     region, _ = pidlab.estimate_roa(result.spec, loaded)        # region
     bounds = pidlab.derive_bounds(region, result.spec, loaded)
     spec = pidlab.with_bounds(result.spec, bounds)
+    spec = pidlab.with_rescue(spec, pidlab.estimate_rescue(spec, loaded))  # the takeover region
+    pidlab.load_region(spec).contains(obs)                      # is this observation in it?
     run = pidlab.train(pidlab.load_recipe("coach/InvertedPendulum-v5.toml"), spec, "runs/demo")  # rl
 
 The subpackages, in pipeline order:
@@ -62,6 +64,9 @@ _EXPORTS = {
     "estimate_roa": "pidlab.region.roa",
     "derive_bounds": "pidlab.region.bounds",
     "with_bounds": "pidlab.region.bounds",
+    "estimate_rescue": "pidlab.region.rescue",
+    "with_rescue": "pidlab.region.rescue",
+    "load_region": "pidlab.region.takeover",
     # rl
     "Recipe": "pidlab.rl.recipe",
     "load_recipe": "pidlab.rl.recipe",
@@ -94,11 +99,13 @@ __all__ = [
     "analyze_lti",
     "coach_alone",
     "derive_bounds",
+    "estimate_rescue",
     "estimate_roa",
     "find_card",
     "linearize",
     "load_model",
     "load_recipe",
+    "load_region",
     "load_spec",
     "plan",
     "resolve_operating_point",
@@ -110,6 +117,7 @@ __all__ = [
     "train",
     "tune",
     "with_bounds",
+    "with_rescue",
 ]
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
@@ -128,7 +136,9 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from pidlab.plant.model import LoadedModel, load_model
     from pidlab.plant.operating_point import resolve_operating_point
     from pidlab.region.bounds import derive_bounds, with_bounds
+    from pidlab.region.rescue import estimate_rescue, with_rescue
     from pidlab.region.roa import estimate_roa
+    from pidlab.region.takeover import load_region
     from pidlab.rl.coaching import CoachingWrapper
     from pidlab.rl.recipe import Recipe, load_recipe
     from pidlab.rl.train import resume, train

@@ -398,8 +398,13 @@ def tune(
     ] = None,
     bandwidth: Annotated[float | None, typer.Option(help="Target gain crossover, rad/s.")] = None,
     phase_margin: Annotated[float | None, typer.Option(help="Target phase margin, degrees.")] = None,
-    preset: Annotated[str, typer.Option(help="robust or weak.")] = "robust",
+    preset: Annotated[
+        str, typer.Option(help="robust, weak, or room (pendulums: the largest rescue region).")
+    ] = "robust",
     output: Annotated[str | None, typer.Option("-o", "--output", help="Spec file to write (TOML).")] = None,
+    name: Annotated[
+        str | None, typer.Option(help="--auto: the spec's name (default: pidlab-PRESET).")
+    ] = None,
     workers: Annotated[int | None, typer.Option(help="--auto: worker processes (default: cores).")] = None,
 ) -> None:
     """Tune a PID coach for ENV: automatically (--auto) or interactively in the browser (--ui)."""
@@ -417,30 +422,47 @@ def tune(
     if ui:
         _tune_ui(env, spec, port, tuning_dir, (animation, bounds_samples, allow_host or []))
         return
-    if preset not in PRESETS:
-        _fail(f"--preset {preset!r}: expected {' or '.join(PRESETS)}")
-    out = output or f"tuning/{env}.pidlab-{preset}.toml"
+    if preset not in (*PRESETS, "room"):
+        _fail(f"--preset {preset!r}: expected {', '.join(PRESETS)} or room")
+    from pidlab.checks import check_name
+
+    spec_name = check_name(name, "--name", PidlabError) if name is not None else f"pidlab-{preset}"
+    out = output or f"tuning/{env}.{spec_name}.toml"
     check_output_file(out, "output")  # before the tuning, not after
     loaded = load_model(env)
     with Progress(transient=True) as bar:
         task = bar.add_task(f"tuning {env} ({preset})", total=None)
-        result = run_tune(
-            loaded,
-            bandwidth=bandwidth,
-            phase_margin=phase_margin,
-            preset=preset,
-            progress=lambda n: bar.update(task, completed=n),
-            workers=workers,
-        )
-    path = save_spec(result.spec, out)
+        tick = lambda n: bar.update(task, completed=n)  # noqa: E731
+        if preset == "room":
+            from pidlab.region.room import tune_for_room
+
+            result = tune_for_room(loaded, workers=workers, progress=tick)
+        else:
+            result = run_tune(
+                loaded,
+                bandwidth=bandwidth,
+                phase_margin=phase_margin,
+                preset=preset,
+                progress=tick,
+                workers=workers,
+            )
+    path = save_spec(dataclasses.replace(result.spec, name=spec_name), out)
+    _print_tuned(env, preset, result)
+    wide_console().print(f"wrote {path}")
+
+
+def _print_tuned(env: str, preset: str, result: Any) -> None:
+    """``tune --auto``: what was asked and achieved (rad/s, degrees)."""
+    from pidlab.report.console import wide_console
+
     con = wide_console()
     con.print(f"[bold]{env}[/bold] {preset} coach: {result.evaluations} evaluations")
     con.print(
-        f"  gain crossover (rad/s): asked {result.asked_bandwidth:.4g}, "
+        f"  gain crossover (rad/s): asked {_asked(result.asked_bandwidth, '.4g')}, "
         f"achieved {result.achieved_bandwidth:.4g}"
     )
     con.print(
-        f"  phase margin (deg):     asked {result.asked_phase_margin:.1f}, "
+        f"  phase margin (deg):     asked {_asked(result.asked_phase_margin, '.1f')}, "
         f"achieved {result.achieved_phase_margin:.1f}"
     )
     con.print(f"  Ms: {result.achieved_ms:.3g}; closed-loop spectral radius {result.spectral_radius:.5f}")
@@ -448,7 +470,11 @@ def tune(
         con.print(
             f"  refined on the real env: mean return {result.refined_return:.1f} on tuning seeds 1000-1002"
         )
-    con.print(f"wrote {path}")
+
+
+def _asked(value: float, fmt: str) -> str:
+    """A tuning target as asked, or "nothing" (the room preset asks for no crossover or margin)."""
+    return format(value, fmt) if np.isfinite(value) else "nothing"
 
 
 def _tune_ui(
@@ -698,6 +724,99 @@ def bounds(
         if write:
             path = save_spec(with_bounds(spec, crit), spec_file)
             con.print(f"wrote the bounds into {path}")
+
+
+@app.command()
+@friendly_errors
+def rescue(
+    spec_file: Annotated[str, typer.Argument(metavar="SPEC", help="A coach spec (TOML).")],
+    trigger: Annotated[
+        str,
+        typer.Option(help="predictive (the trigger vets each agent action) or reactive (checks after it)."),
+    ] = "predictive",
+    fraction: Annotated[
+        float | None,
+        typer.Option(
+            help="reactive: the agent step's size, a fraction of the action range in (0, 1] "
+            "(default: the full range if the coach handles it, else the largest it does)."
+        ),
+    ] = None,
+    validation: Annotated[int, typer.Option(help="Fresh states per validation draw.")] = 2000,
+    coverage: Annotated[int, typer.Option(help="Fresh states over the domain for the coverage.")] = 2000,
+    probes: Annotated[int, typer.Option(help="Random probes per cell (after the guard corners).")] = 2,
+    horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
+    seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
+    write: Annotated[
+        bool, typer.Option("--write", help="Write the region into the spec as its takeover region.")
+    ] = False,
+    plots: Annotated[str | None, typer.Option(help="Folder for the region's figure (PNG).")] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Worker processes for the simulations (default: the machine's cores).")
+    ] = None,
+) -> None:
+    """Estimate the coach's rescue region by simulation, validate it and score its coverage."""
+    from dataclasses import replace
+
+    from rich.progress import Progress
+
+    from pidlab.controller.spec import SpecError, load_spec, save_spec
+    from pidlab.files import check_output_file, check_output_folder
+    from pidlab.plant.model import load_model
+    from pidlab.provenance import hold_lock
+    from pidlab.region.rescue import default_settings, estimate_rescue, with_rescue
+    from pidlab.report.console import rescue_view, wide_console
+
+    if trigger not in ("predictive", "reactive"):
+        _fail(f"--trigger {trigger!r}: expected predictive or reactive")
+    if fraction is not None and not 0.0 < fraction <= 1.0:
+        _fail(f"--fraction {fraction}: expected a fraction of the action range in (0, 1]")
+    if fraction is not None and trigger == "predictive":
+        _fail("--fraction: the predictive trigger vets the agent's action itself and needs no room for it; "
+              "use it with --trigger reactive")  # fmt: skip
+    if write:
+        check_output_file(spec_file, "write")
+    if plots:
+        check_output_folder(plots, "plots")
+    spec = load_spec(spec_file)
+    loaded = load_model(spec.env_id)
+    settings = replace(
+        default_settings(spec, loaded, trigger), action_fraction=fraction, validation=validation,
+        coverage=coverage, probes=probes, horizon_s=horizon, seed=seed,
+    )  # fmt: skip
+    with hold_lock(spec_file, SpecError) if write else contextlib.nullcontext():
+        with Progress(transient=True) as bar:
+            task = bar.add_task("rescue region", total=1.0)
+            region = estimate_rescue(
+                spec, loaded, settings, workers=workers,
+                progress=lambda stage, f: bar.update(task, description=stage, completed=f or 0.0),
+            )  # fmt: skip
+        units = {v.name: v.unit for v in loaded.require_card().observation}
+        con = wide_console()
+        con.print(rescue_view(region, units))
+        if plots:
+            folder = _write_rescue_plot(spec, region, units, plots, write)
+            con.print(f"wrote the region's figure to {folder}")
+        if write:
+            path = save_spec(with_rescue(spec, region), spec_file)
+            con.print(f"wrote the rescue region into {path} as its takeover region")
+
+
+def _write_rescue_plot(spec: Any, region: Any, units: dict[str, str], plots: str, write: bool) -> Any:
+    """``rescue --plots``: the region with the certified core and the takeover box, as PNG.
+
+    The legend names the takeover region the spec has after the command (the rescue region with
+    ``--write``, else the spec's own).
+    """
+    from pidlab.files import make_folder, save_figure
+    from pidlab.region.takeover import takeover_kind
+    from pidlab.report.plots import plot_rescue_region
+
+    takeover = "rescue" if write else takeover_kind(spec.bounds) or "none"
+    bounds = {**(spec.bounds or {}), "rescue": region.to_table(), "takeover": takeover}
+    folder = make_folder(plots, "plots")
+    fig = plot_rescue_region(region.grid, bounds, units, f"{spec.env_id} / {spec.name}")
+    save_figure(fig, folder / f"rescue_{'_'.join(region.grid.variables)}.png")
+    return folder
 
 
 def _resolve_coach(env: str, coach: str) -> tuple[Any, str | None]:
@@ -955,9 +1074,7 @@ def run(
     argv = ["pidlab", *sys.argv[1:]]
     result = run_pipeline(env, folder, settings, workers=workers, progress_bar=progress, argv=argv)
     if result.interrupted:
-        typer.echo(
-            "interrupted: finished stages and runs are kept; run the same command to resume", err=True
-        )
+        typer.echo("interrupted: finished stages and runs are kept; run the same command to resume", err=True)
         raise typer.Exit(code=130)
     typer.echo(f"report: {result.report_html}")
     typer.echo(f"        {result.report_md} (Markdown, figures in {result.out / 'figures'})")

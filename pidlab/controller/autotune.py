@@ -24,6 +24,7 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import control as ct
 import numpy as np
@@ -137,13 +138,15 @@ def _spec(
     return CoachSpec(env_id=env_id, name=name, loops=tuple(out), offset=offset)
 
 
-def _lqr_projection(
-    lin: Linearization, loops: tuple[LoopTemplate, ...]
+def lqr_projection(
+    lin: Linearization, loops: tuple[LoopTemplate, ...], input_weight: float = 0.5
 ) -> tuple[np.ndarray, tuple[LoopTemplate, ...]]:
     """Least-squares PD gains reproducing a discrete LQR state feedback through the structure.
 
-    Loops without fixed actuators get their weights from the LQR gain's column of their signal
-    (normalized to a largest weight of 1). Returns the gains and the loops with weights set.
+    The LQR weighs what the coach measures (``Q = C'C``, unmeasured directions weakly) against
+    ``input_weight`` times the identity on the actuators. Loops without fixed actuators get their
+    weights from the LQR gain's column of their signal (normalized to a largest weight of 1).
+    Returns the gains (``kp, kd`` per loop) and the loops with weights set.
     """
     Ad, Bd, C = lin.Ad, lin.Bd, lin.C
     obs = list(lin.output_names)
@@ -151,7 +154,7 @@ def _lqr_projection(
     n = Ad.shape[0]
     # weight what the coach measures; keep unmeasured directions weakly penalized
     Q = C.T @ C + 1e-3 * np.eye(n)
-    R = np.eye(Bd.shape[1]) * 0.5
+    R = np.eye(Bd.shape[1]) * input_weight
     K, _, _ = ct.dlqr(Ad, Bd, Q, R)
     pinv_c = np.linalg.pinv(C)
     resolved = []
@@ -275,7 +278,7 @@ def _check_request(
     return card
 
 
-def _problem(
+def tuning_problem(
     loaded: LoadedModel, card: ModelCard, lin: Linearization, p: Preset
 ) -> tuple[_Problem, np.ndarray]:
     """The tuning problem (loops with weights resolved) and its LQR-projected start gains."""
@@ -285,7 +288,7 @@ def _problem(
     loops = tuple(lt for lt in card.tuning if lt.core or not p.core_only)
     y_abs = observe_at(card, loaded.model, lin.op.qpos, lin.op.qvel)
     plant, _ = observable_part(lin.sysd)
-    start, loops = _lqr_projection(lin, loops)
+    start, loops = lqr_projection(lin, loops)
     problem = _Problem(
         loaded=loaded,
         loops=loops,
@@ -443,7 +446,7 @@ def _achieved(spec: CoachSpec, loaded: LoadedModel, lin: Linearization) -> tuple
     return float(wc), float(pm), float(ms), float(rho)
 
 
-def _result(
+def tune_result(
     spec: CoachSpec,
     loaded: LoadedModel,
     lin: Linearization,
@@ -451,13 +454,16 @@ def _result(
     targets: tuple[float, float],
     evaluations: int,
     refined: float | None,
+    description: str | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> TuneResult:
     """The tuned spec with its description and provenance, and what it achieved."""
     wc, pm, ms, rho = _achieved(spec, loaded, lin)
     target_wc, target_pm = (float(t) for t in targets)
     spec = replace(
         spec,
-        description=(
+        description=description
+        or (
             f"pidlab auto-tuned coach ({preset} preset) for {loaded.env_id}: LQR-projected start, then "
             f"Nelder-Mead on crossover and phase margin at every actuator."
         ),
@@ -465,14 +471,15 @@ def _result(
             "tool": f"pidlab {__version__} tune --auto",
             "date": _dt.date.today().isoformat(),
             "preset": preset,
-            "asked_bandwidth_rad_s": target_wc,
-            "asked_phase_margin_deg": target_pm,
+            **({"asked_bandwidth_rad_s": target_wc} if math.isfinite(target_wc) else {}),
+            **({"asked_phase_margin_deg": target_pm} if math.isfinite(target_pm) else {}),
             "achieved_bandwidth_rad_s": wc,
             "achieved_phase_margin_deg": pm,
             "achieved_ms": ms,
             "closed_loop_spectral_radius": rho,
             "operating_point": lin.op.source,
             **({"refined_mean_return_tuning_seeds": refined} if refined is not None else {}),
+            **(extra or {}),
         },
     )
     return TuneResult(
@@ -546,7 +553,7 @@ def tune(
     p = PRESETS[preset]
     if lin is None:
         lin = linearize(loaded)
-    problem, start = _problem(loaded, card, lin, p)
+    problem, start = tuning_problem(loaded, card, lin, p)
     wc0 = problem.figures(start)[0]
     targets = (
         _target_bandwidth(lin, wc0, bandwidth, p),
@@ -568,4 +575,4 @@ def tune(
                 "or phase margin (degrees)"
             )
     spec = problem.spec(gains, f"pidlab-{preset}")
-    return _result(spec, loaded, lin, preset, targets, evaluations.count, refined)
+    return tune_result(spec, loaded, lin, preset, targets, evaluations.count, refined)

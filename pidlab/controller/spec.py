@@ -49,6 +49,7 @@ import tomli_w
 from pidlab.checks import as_table, check_name, number, shown, text
 from pidlab.errors import SpecError
 from pidlab.files import parse_toml, read_toml
+from pidlab.lookup import parse_lookup
 
 SPEC_SCHEMA = "pidlab.coach-spec/1"
 ACTIONS = ("reverse", "direct")
@@ -379,10 +380,11 @@ def _check_ellipsoid(e: Any, where: str) -> None:
 
 def _check_bounds(b: Any, where: str) -> None:
     b = _table(b, where, "a table")
-    unknown = set(b) - {"method", "ellipsoid", "box", "provenance"}
+    unknown = set(b) - {"method", "ellipsoid", "box", "rescue", "takeover", "provenance"}
     if unknown:
         raise SpecError(
-            f"{where}: unknown field(s) {sorted(unknown)}; allowed: method, ellipsoid, box, provenance"
+            f"{where}: unknown field(s) {sorted(unknown)}; "
+            "allowed: method, ellipsoid, box, rescue, takeover, provenance"
         )
     _str(b.get("method"), f"{where}.method")
     _free_form(b.get("provenance", {}), f"{where}.provenance")
@@ -392,6 +394,12 @@ def _check_bounds(b: Any, where: str) -> None:
         box = _table(b["box"], f"{where}.box", "a table of variable = [low, high]")
         for name, lim in box.items():
             _limits(lim, f"{where}.box.{name}", finite=True)
+    if "rescue" in b:
+        parse_lookup(b["rescue"], f"{where}.rescue")
+    if "takeover" in b:
+        kind = _choice(b["takeover"], f"{where}.takeover", ("box", "ellipsoid", "rescue"))
+        if kind not in b:
+            raise SpecError(f"{where}.takeover: {kind!r}, but the table has no [bounds.{kind}]")
 
 
 def bound_variables(spec: CoachSpec) -> list[str]:

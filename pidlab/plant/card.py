@@ -47,6 +47,13 @@ Schema ``pidlab.model-card/1``::
     method = "lyapunov"        # lyapunov (certified level set) | simulation (recoverable box)
     variables = ["rooty_pos", "rooty_vel"]  # simulation only: the box's position and its rate
 
+    [rescue]                   # optional: what pidlab.region.rescue's estimate covers
+    variables = ["hinge_pos", "hinge_vel"]  # the lookup grid's variables (a joint's position,
+                                            # its sine or its velocity)
+    half_range = [0.2, 2.0]    # the grid's half-widths about the operating point
+    cells = [40, 40]           # cells per grid variable
+    guard = { slider_pos = 0.3 }  # other variables drawn within +-these (and required there)
+
     [paper]                    # optional: what the paper published for this env
     win_target = 800           # the score a "win" needs
     episodes_to_5_wins = { coached = 100, uncoached = 160 }     # Table II
@@ -199,6 +206,28 @@ class PaperNumbers:
 
 
 @dataclass(frozen=True)
+class RescueDomain:
+    """What a rescue-region estimate covers (the card's ``[rescue]`` table).
+
+    Attributes
+    ----------
+    variables : tuple of str
+        The lookup grid's variables.
+    half_range : tuple of float
+        Its half-widths about the operating point.
+    cells : tuple of int
+        Cells per grid variable.
+    guard : tuple of (str, float)
+        Other variables and their half-widths about the operating point.
+    """
+
+    variables: tuple[str, ...]
+    half_range: tuple[float, ...]
+    cells: tuple[int, ...]
+    guard: tuple[tuple[str, float], ...] = ()
+
+
+@dataclass(frozen=True)
 class ModelCard:
     """A parsed model card (see the module docstring for the schema).
 
@@ -224,6 +253,8 @@ class ModelCard:
         The simulation method's box variables: a joint position and its rate.
     paper : PaperNumbers or None
         What the paper published for this env.
+    rescue : RescueDomain or None
+        What a rescue-region estimate covers by default.
     """
 
     env_id: str
@@ -238,6 +269,7 @@ class ModelCard:
     region_method: str = "lyapunov"
     region_variables: tuple[str, ...] = ()
     paper: PaperNumbers | None = None
+    rescue: RescueDomain | None = None
 
     @property
     def observation_names(self) -> tuple[str, ...]:
@@ -417,6 +449,38 @@ def _parse_region(data: dict[str, Any], path: str, names: list[str]) -> tuple[st
     return str(method), tuple(variables)
 
 
+def _parse_rescue(data: dict[str, Any], path: str, names: list[str]) -> RescueDomain | None:
+    if "rescue" not in data:
+        return None
+    w = f"{path}: rescue"
+    table = as_table(data["rescue"], w, ModelCardError)
+    unknown = sorted(set(table) - {"variables", "half_range", "cells", "guard"})
+    if unknown:
+        raise ModelCardError(f"{w}: unknown field(s) {unknown}; allowed: variables, half_range, cells, guard")
+    variables = table.get("variables")
+    if (
+        not isinstance(variables, list)
+        or not 1 <= len(variables) <= 3
+        or not all(v in names for v in variables)
+    ):
+        raise ModelCardError(f"{w}.variables: {shown(variables)}; expected 1 to 4 observation names")
+    k = len(variables)
+    half, cells = table.get("half_range"), table.get("cells")
+    if not isinstance(half, list) or len(half) != k or not isinstance(cells, list) or len(cells) != k:
+        raise ModelCardError(f"{w}: expected half_range and cells with {k} entries each")
+    half_range = tuple(number(v, f"{w}.half_range", ModelCardError, low=0.0, low_open=True) for v in half)
+    n_cells = tuple(integer(v, f"{w}.cells", ModelCardError, low=2, high=400) for v in cells)
+    guard_t = as_table(table.get("guard", {}), f"{w}.guard", ModelCardError)
+    for g in guard_t:
+        if g not in names or g in variables:
+            raise ModelCardError(f"{w}.guard.{g}: expected an observation name that is not a grid variable")
+    guard = tuple(
+        (str(g), number(v, f"{w}.guard.{g}", ModelCardError, low=0.0, low_open=True))
+        for g, v in guard_t.items()
+    )
+    return RescueDomain(tuple(str(v) for v in variables), half_range, n_cells, guard)
+
+
 def _parse_paper(data: dict[str, Any], path: str) -> PaperNumbers | None:
     if "paper" not in data:
         return None
@@ -508,6 +572,7 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
         region_method=region[0],
         region_variables=region[1],
         paper=_parse_paper(data, path),
+        rescue=_parse_rescue(data, path, names),
     )
 
 

@@ -4,5 +4,9 @@
   level sets checked against MuJoCo simulation);
 - :mod:`pidlab.region.bounds` derives the critical-state bounds (a box and/or an ellipsoid) that
   trigger a takeover;
-- :mod:`pidlab.region.simulate` holds the simulation helpers both share.
+- :mod:`pidlab.region.rescue` estimates the coach's rescue region by simulation (a lookup grid,
+  validated on fresh states), and :mod:`pidlab.region.room` tunes a coach for the largest one;
+- :mod:`pidlab.region.takeover` answers, for every shape, whether an observation lies in a spec's
+  takeover region (:func:`pidlab.load_region`);
+- :mod:`pidlab.region.simulate` holds the simulation helpers they share.
 """

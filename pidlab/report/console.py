@@ -439,6 +439,49 @@ def bounds_view(b: Any) -> Group:
     return Group(head, t)
 
 
+def rescue_view(r: Any, units: dict[str, str]) -> Group:
+    """What ``pidlab rescue`` prints: the region, its validation and its coverage against the other sets."""
+    s, g = r.settings, r.grid
+    head = Text()
+    head.append(f"rescue region of {r.spec_name} on {r.env_id} ({s.trigger} trigger)\n", style="bold")
+    if s.trigger == "reactive":
+        chosen = (
+            " (the largest the coach handles)"
+            if r.provenance.get("fraction_chosen") and s.action_fraction < 1
+            else ""
+        )
+        head.append(f"room for one agent step of up to {s.action_fraction:.0%} of the action range{chosen}\n")
+    cells = " x ".join(str(c) for c in g.cells)
+    head.append(
+        f"lookup grid {cells} over {', '.join(g.variables)}: {int(g.table.sum()):,} cells marked "
+        f"({g.fraction_marked():.1%}); probes per cell: the centre at each guard corner, then "
+        f"{s.probes} random\n"
+    )
+    samples, failures = r.validation
+    head.append(
+        f"validation in MuJoCo: {samples:,} fresh states in the region, {failures} not rescued "
+        f"(failure rate < {r.failure_bound_95:.2%} at 95 %); {r.rounds} draw(s), "
+        f"{r.unmarked} cell(s) unmarked\n"
+    )
+    t = Table(title="Domain (rescued: brought into the certified core, no termination)", title_justify="left")
+    for col in ("variable", "role", "low", "high"):
+        t.add_column(col, justify="left" if col in ("variable", "role") else "right")
+    for v, lo, hi in zip(g.variables, g.lower, g.upper, strict=True):
+        t.add_row(f"{v} ({units.get(v, '')})", "grid", f"{lo:.4g}", f"{hi:.4g}")
+    for v, (lo, hi) in g.guard.items():
+        t.add_row(f"{v} ({units.get(v, '')})", "guard", f"{lo:.4g}", f"{hi:.4g}")
+    c = r.coverage
+    cov = Table(
+        title=f"Coverage: {c.rescuable:,} of {c.samples:,} fresh states over the domain are rescuable",
+        title_justify="left",
+    )
+    for col in ("region", "coverage (of rescuable)", "size (of domain)"):
+        cov.add_column(col, justify="left" if col == "region" else "right")
+    for name in c.contained:
+        cov.add_row(name, f"{c.fraction(name):.1%}", f"{c.volume[name]:.1%}")
+    return Group(head, t, cov)
+
+
 def train_view(result: Any, win_target: float) -> Group:
     """What ``pidlab train`` prints at the end: step accounts and the agent-alone score."""
     t = Table(title=f"Training run {result.run_dir}", title_justify="left")

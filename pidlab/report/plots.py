@@ -248,6 +248,84 @@ def _draw_bounds(ax: Axes, bounds: Any, variables: tuple[str, str]) -> None:
         )
 
 
+def _draw_rescue(ax: Axes, grid: Any, label: str) -> None:
+    """The marked cells of a rescue grid in the plane of its first two variables (any cell of the rest)."""
+    table = np.asarray(grid.table)
+    plane = table.reshape(table.shape[0], table.shape[1], -1).any(axis=2) if table.ndim > 2 else table
+    if table.ndim == 1:
+        plane = table[:, None]
+    x = np.linspace(grid.lower[0], grid.upper[0], plane.shape[0] + 1)
+    y = np.linspace(grid.lower[1], grid.upper[1], plane.shape[1] + 1) if table.ndim > 1 else np.array([-1, 1])
+    shown = np.ma.masked_where(~plane.T, np.ones_like(plane.T, dtype=float))
+    ax.pcolormesh(x, y, shown, cmap="Greens", vmin=0, vmax=1.6, alpha=0.6, shading="flat")
+    ax.add_patch(Rectangle((0, 0), 0, 0, color="tab:green", alpha=0.5, label=label))
+
+
+def plot_rescue_region(
+    grid: Any, bounds: dict[str, Any] | None, units: dict[str, str], title: str, ax: Axes | None = None
+) -> Figure:
+    """A rescue region beside the certified core and the takeover box, in its first two variables' plane.
+
+    Parameters
+    ----------
+    grid : pidlab.lookup.LookupGrid
+        The region (with more than two variables: the cells marked for any value of the rest).
+    bounds : dict, optional
+        The spec's ``[bounds]`` table: its certified core (``ellipsoid`` at ``level``), the
+        ellipsoid shrunk to ``rho * level`` and the ``box`` are drawn where they span the plane.
+    units : dict
+        Variable name -> unit, for the axis labels.
+    title : str
+    ax : Axes, optional
+        The axes to draw on; default: a new figure.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from pidlab.region.roa import ellipse_slice
+
+    fig, axes, _ = figure_axes(ax, 1, 1, (7, 6))
+    ax = axes[0, 0]
+    b = bounds or {}
+    takeover = b.get("takeover", "rescue" if "rescue" in b else "box")
+    variables = tuple(grid.variables[:2])
+    mark = " (takeover region)"
+    _draw_rescue(ax, grid, f"rescue region, {grid.trigger} trigger{mark if takeover == 'rescue' else ''}")
+    e = b.get("ellipsoid")
+    if e and len(variables) == 2 and all(v in e["variables"] for v in variables):
+        idx = (e["variables"].index(variables[0]), e["variables"].index(variables[1]))
+        P, c = np.array(e["shape"]), np.array(e["center"])
+        for level, style, label in (
+            (e["level"], "k", "certified core (slice of V <= c)"),
+            (e["rho"] * e["level"], "C1", f"core shrunk to rho = {e['rho']:.3g}"),
+        ):
+            pts = ellipse_slice(P, c, level, idx, points=300)
+            ax.plot(
+                pts[0],
+                pts[1],
+                style,
+                lw=1.5,
+                label=label + (mark if takeover == "ellipsoid" and style == "C1" else ""),
+            )
+    box = b.get("box") or {}
+    if len(variables) == 2 and all(v in box for v in variables):
+        (x0, x1), (y0, y1) = (box[v] for v in variables)
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, lw=1.5, ls="--", color="C0",
+                               label="critical box" + (mark if takeover == "box" else "")))  # fmt: skip
+    ax.set_xlim(grid.lower[0], grid.upper[0])
+    if len(variables) == 2:
+        ax.set_ylim(grid.lower[1], grid.upper[1])
+        ax.set_ylabel(f"{variables[1]} ({units.get(variables[1], '')})")
+    ax.set_xlabel(f"{variables[0]} ({units.get(variables[0], '')})")
+    guard = ", ".join(f"|{k}| in [{lo:.3g}, {hi:.3g}]" for k, (lo, hi) in grid.guard.items())
+    ax.set_title(
+        f"{title}\n{'guard: ' + guard if guard else 'other variables at the operating point'}", fontsize=9
+    )
+    ax.legend(fontsize=7, loc="upper right")
+    return fig
+
+
 def plot_roa_slice(
     result: Any,
     variables: tuple[str, str],

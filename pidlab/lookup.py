@@ -1,0 +1,180 @@
+"""A boolean lookup table on a rectangular grid, and its TOML form: the data of a rescue region.
+
+The rescue region of :mod:`pidlab.region.rescue` is stored in a coach spec's ``[bounds.rescue]``
+table as a :class:`LookupGrid`; :mod:`pidlab.region.takeover` tests membership in it. The data
+structure lives here, below every stage, because the spec reader of :mod:`pidlab.controller.spec`
+checks the table too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pidlab.errors import SpecError
+
+TRIGGERS = ("reactive", "predictive")
+"""What a rescue region was derived for: a check after the agent's step, or one before it."""
+
+MAX_CELLS = 1_000_000
+"""The largest lookup grid a spec may hold."""
+
+
+@dataclass(frozen=True)
+class LookupGrid:
+    """A rescue region's data: a boolean lookup grid cut by a guard box.
+
+    A state is in the region when every guard variable lies in its range and the grid cell of
+    its grid variables is marked. Cells are half-open ``[lower + i h, lower + (i+1) h)``
+    (the last one closed), ``h = (upper - lower) / cells``.
+
+    Attributes
+    ----------
+    variables : tuple of str
+        Grid variables (observation names).
+    lower, upper : tuple of float
+        The grid's domain.
+    cells : tuple of int
+        Cells per variable.
+    table : ndarray of bool, shape ``cells``
+        Marked cells.
+    guard : dict
+        ``variable -> (low, high)``: the other variables' ranges the estimate covered.
+    trigger : {"reactive", "predictive"}
+        What the region was derived for.
+    action_fraction : float
+        The agent step's size as a fraction of the action range (0 for ``predictive``).
+    """
+
+    variables: tuple[str, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    cells: tuple[int, ...]
+    table: np.ndarray = field(compare=False, hash=False)
+    guard: dict[str, tuple[float, float]] = field(default_factory=dict, compare=False, hash=False)
+    trigger: str = "predictive"
+    action_fraction: float = 0.0
+
+    @property
+    def widths(self) -> np.ndarray:
+        """Cell widths, shape ``(k,)``."""
+        return (np.array(self.upper) - np.array(self.lower)) / np.array(self.cells)
+
+    def cell_of(self, points: np.ndarray) -> np.ndarray:
+        """Cell indices of ``points`` (shape ``(n, k)``), ``-1`` rows for points outside the grid."""
+        p = np.atleast_2d(np.asarray(points, dtype=float))
+        lo, hi, n = np.array(self.lower), np.array(self.upper), np.array(self.cells)
+        k = np.floor((p - lo) / self.widths).astype(int)
+        k = np.where(p == hi, n - 1, k)
+        outside = np.any((p < lo) | (p > hi) | ~np.isfinite(p), axis=1)
+        k[outside] = -1
+        return k
+
+    def depth(self) -> np.ndarray:
+        """Per cell, the distance in cells to the nearest unmarked cell or the grid's edge (0 outside)."""
+        from scipy import ndimage
+
+        padded = np.pad(self.table, 1, constant_values=False)
+        d = ndimage.distance_transform_cdt(padded, metric="chessboard")
+        return d[tuple(slice(1, -1) for _ in self.cells)].astype(int)
+
+    def fraction_marked(self) -> float:
+        """Share of the grid's cells that are marked."""
+        return float(np.mean(self.table))
+
+    def to_table(self) -> dict[str, Any]:
+        """The ``[bounds.rescue]`` TOML table (rows of ``0``/``1`` along the last variable)."""
+        rows = ["".join("1" if v else "0" for v in row) for row in self.table.reshape(-1, self.cells[-1])]
+        return {
+            "trigger": self.trigger,
+            "action_fraction": float(self.action_fraction),
+            "variables": list(self.variables),
+            "lower": [float(v) for v in self.lower],
+            "upper": [float(v) for v in self.upper],
+            "cells": [int(v) for v in self.cells],
+            "guard": {k: [float(v[0]), float(v[1])] for k, v in self.guard.items()},
+            "rows": rows,
+        }
+
+
+def _finite_list(value: Any, k: int | None, where: str) -> list[float]:
+    ok = isinstance(value, list) and (k is None or len(value) == k)
+    if ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+        out = [float(v) for v in value]
+        if all(np.isfinite(out)):
+            return out
+    n = f"{k} " if k is not None else ""
+    raise SpecError(f"{where}: expected a list of {n}finite numbers")
+
+
+def _check_cells(value: Any, k: int, where: str) -> list[int]:
+    ok = isinstance(value, list) and len(value) == k
+    if not ok or not all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 10_000 for v in value):
+        raise SpecError(f"{where}: expected {k} whole numbers in [1, 10000]")
+    if int(np.prod(value)) > MAX_CELLS:
+        raise SpecError(f"{where}: {int(np.prod(value))} cells; at most {MAX_CELLS}")
+    return list(value)
+
+
+def _check_rows(value: Any, cells: list[int], where: str) -> np.ndarray:
+    n_rows = int(np.prod(cells[:-1]))
+    ok = isinstance(value, list) and len(value) == n_rows
+    if not ok or not all(isinstance(r, str) and len(r) == cells[-1] and set(r) <= {"0", "1"} for r in value):
+        raise SpecError(f"{where}: expected {n_rows} strings of {cells[-1]} characters 0 or 1")
+    flat = np.array([c == "1" for r in value for c in r], dtype=bool)
+    return flat.reshape(cells)
+
+
+def _check_guard(value: Any, grid_vars: list[str], where: str) -> dict[str, tuple[float, float]]:
+    if not isinstance(value, dict):
+        raise SpecError(f"{where}: expected a table of variable = [low, high]")
+    out = {}
+    for name, lim in value.items():
+        lo, hi = _finite_list(lim, 2, f"{where}.{name}")
+        if not lo <= hi:
+            raise SpecError(f"{where}.{name}: [{lo}, {hi}]; expected low <= high")
+        if name in grid_vars:
+            raise SpecError(f"{where}.{name}: a grid variable cannot be a guard variable too")
+        out[str(name)] = (lo, hi)
+    return out
+
+
+def parse_lookup(t: Any, where: str = "bounds.rescue") -> LookupGrid:
+    """Read and check a ``[bounds.rescue]`` table.
+
+    Raises
+    ------
+    SpecError
+        A field missing, of the wrong type or out of range; the message names it.
+    """
+    if not isinstance(t, dict):
+        raise SpecError(f"{where}: expected a table")
+    allowed = {"trigger", "action_fraction", "variables", "lower", "upper", "cells", "guard", "rows"}
+    allowed.add("provenance")
+    unknown = set(t) - allowed
+    if unknown:
+        raise SpecError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {', '.join(sorted(allowed))}")
+    trigger = t.get("trigger")
+    if trigger not in TRIGGERS:
+        raise SpecError(f"{where}.trigger: {trigger!r}; expected one of {', '.join(TRIGGERS)}")
+    frac = t.get("action_fraction")
+    if isinstance(frac, bool) or not isinstance(frac, int | float) or not 0.0 <= frac <= 1.0:
+        raise SpecError(f"{where}.action_fraction: {frac!r}; expected a number in [0, 1]")
+    raw = t.get("variables")
+    names: list[str] = list(raw) if isinstance(raw, list) else []
+    if not all(isinstance(v, str) and v for v in names) or not 1 <= len(names) <= 4:
+        raise SpecError(f"{where}.variables: expected 1 to 4 observation variable names")
+    if len(set(names)) != len(names):
+        raise SpecError(f"{where}.variables: a variable is named twice")
+    k = len(names)
+    lower = _finite_list(t.get("lower"), k, f"{where}.lower")
+    upper = _finite_list(t.get("upper"), k, f"{where}.upper")
+    if not all(lo < hi for lo, hi in zip(lower, upper, strict=True)):
+        raise SpecError(f"{where}: expected lower < upper for every variable")
+    cells = _check_cells(t.get("cells"), k, f"{where}.cells")
+    table = _check_rows(t.get("rows"), cells, f"{where}.rows")
+    guard = _check_guard(t.get("guard", {}), names, f"{where}.guard")
+    grid = (tuple(names), tuple(lower), tuple(upper), tuple(cells))
+    return LookupGrid(*grid, table, guard, trigger, float(frac))

@@ -1,0 +1,295 @@
+"""Takeover regions: where the agent acts freely, and the one question every consumer asks of them.
+
+A coach spec's ``[bounds]`` table may hold three sets, in observation variables:
+
+``ellipsoid``
+    The **certified core**: the Lyapunov level set of :mod:`pidlab.region.roa`, checked in MuJoCo.
+    As a takeover region it is shrunk to ``rho * level`` (room for one worst-case agent step).
+``box``
+    A box on a few variables (inside the core's projection, or the simulated recoverable box).
+``rescue``
+    A **rescue region** (:mod:`pidlab.region.rescue`): a lookup grid on two or three variables,
+    cut by a guard box on others, whose cells hold the states from which the coach recovers in
+    MuJoCo (after one agent step for the ``reactive`` trigger; from the state itself for the
+    ``predictive`` one).
+
+``[bounds] takeover = "rescue" | "box" | "ellipsoid"`` names the spec's takeover region (default:
+the rescue region when there is one, else the box). :func:`load_region` returns it as an object
+whose ``contains(obs)`` takes the env's observation vector: the coaching wrapper, the reports
+and users ask the same object.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from pidlab.errors import CoachingError
+from pidlab.lookup import LookupGrid, parse_lookup
+
+KINDS = ("box", "ellipsoid", "rescue")
+"""The shapes a takeover region can have."""
+
+
+class Region(Protocol):
+    """What every takeover region answers."""
+
+    kind: str
+    variables: tuple[str, ...]
+
+    def contains(self, obs: np.ndarray) -> bool:
+        """Whether the observation ``obs`` lies in the region (where the agent acts freely)."""
+        ...
+
+    def inner(self, fraction: float) -> Region:
+        """The region shrunk to ``fraction`` of its size (a hand-back region), ``0 < fraction <= 1``."""
+        ...
+
+
+def _indices(names: tuple[str, ...] | list[str], observation_names: tuple[str, ...], where: str) -> list[int]:
+    out = []
+    for n in names:
+        if n not in observation_names:
+            valid = ", ".join(observation_names)
+            raise CoachingError(f"{where}: {n!r} is not an observation variable; valid: {valid}")
+        out.append(observation_names.index(n))
+    return out
+
+
+def _check_fraction(fraction: float, where: str) -> float:
+    f = float(fraction)
+    if not 0.0 < f <= 1.0 or not np.isfinite(f):
+        raise CoachingError(f"{where}: {fraction!r}; expected a fraction in (0, 1]")
+    return f
+
+
+class BoxRegion:
+    """Every listed variable within its range.
+
+    Parameters
+    ----------
+    box : dict
+        ``variable -> (low, high)``.
+    observation_names : tuple of str
+    scale : float
+        Factor on the half-widths about the box's centre.
+    """
+
+    kind = "box"
+
+    def __init__(self, box: dict[str, Any], observation_names: tuple[str, ...], scale: float = 1.0) -> None:
+        self.box = {k: (float(v[0]), float(v[1])) for k, v in box.items()}
+        self.variables = tuple(self.box)
+        self._obs_names = observation_names
+        idx = _indices(self.variables, observation_names, "bounds.box")
+        lo = np.array([v[0] for v in self.box.values()])
+        hi = np.array([v[1] for v in self.box.values()])
+        self.center, self.half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        self._idx = idx
+        self.scale = scale
+
+    @property
+    def scale(self) -> float:
+        """Factor on the half-widths."""
+        return self._scale
+
+    @scale.setter
+    def scale(self, value: float) -> None:
+        self._scale = float(value)
+        # plain floats: for a handful of variables Python comparisons beat numpy on tiny arrays
+        self._limits = [
+            (i, float(c - h * self._scale), float(c + h * self._scale))
+            for i, c, h in zip(self._idx, self.center, self.half, strict=True)
+        ]
+
+    def contains(self, obs: np.ndarray) -> bool:
+        """Whether ``obs`` lies in the (scaled) box."""
+        return all(lo <= obs[i] <= hi for i, lo, hi in self._limits)
+
+    def inner(self, fraction: float) -> BoxRegion:
+        """The box with its half-widths times ``fraction``."""
+        return BoxRegion(self.box, self._obs_names, self._scale * _check_fraction(fraction, "hand-back"))
+
+
+class EllipsoidRegion:
+    """``(y - center)' shape (y - center) <= rho * level * scale**2``.
+
+    Parameters
+    ----------
+    ellipsoid : dict
+        The ``[bounds.ellipsoid]`` table.
+    observation_names : tuple of str
+    scale : float
+    certified : bool
+        ``True``: the whole certified level ``level`` (the core); ``False``: ``rho * level``.
+    """
+
+    kind = "ellipsoid"
+
+    def __init__(
+        self, ellipsoid: dict[str, Any], observation_names: tuple[str, ...], scale: float = 1.0,
+        certified: bool = False,
+    ) -> None:  # fmt: skip
+        self.ellipsoid = ellipsoid
+        self.certified = certified
+        self.variables = tuple(ellipsoid["variables"])
+        self._obs_names = observation_names
+        self.index = np.array(_indices(self.variables, observation_names, "bounds.ellipsoid"))
+        self.center = np.array(ellipsoid["center"], dtype=float)
+        self.shape = np.array(ellipsoid["shape"], dtype=float)
+        rho = 1.0 if certified else float(ellipsoid["rho"])
+        self.threshold = rho * float(ellipsoid["level"])
+        self.scale = float(scale)
+
+    def contains(self, obs: np.ndarray) -> bool:
+        """Whether ``obs`` lies in the (scaled) ellipsoid."""
+        y = np.asarray(obs, dtype=float)[self.index] - self.center
+        return bool(y @ self.shape @ y <= self.threshold * self.scale**2)
+
+    def inner(self, fraction: float) -> EllipsoidRegion:
+        """The ellipsoid with its semi-axes times ``fraction``."""
+        f = self.scale * _check_fraction(fraction, "hand-back")
+        return EllipsoidRegion(self.ellipsoid, self._obs_names, f, self.certified)
+
+
+class GridRegion:
+    """Membership in a :class:`LookupGrid`, bound to an env's observation layout.
+
+    Parameters
+    ----------
+    grid : LookupGrid
+    observation_names : tuple of str
+    min_depth : int
+        Only cells at least this deep count (0: every marked cell); see :meth:`inner`.
+    """
+
+    kind = "rescue"
+
+    def __init__(self, grid: LookupGrid, observation_names: tuple[str, ...], min_depth: int = 0) -> None:
+        self.grid = grid
+        self.variables = grid.variables
+        self.min_depth = int(min_depth)
+        self._obs_names = observation_names
+        self._depth = grid.depth()
+        marked = self._depth > self.min_depth if self.min_depth > 0 else grid.table
+        self._flat = [bool(v) for v in np.asarray(marked).ravel()]
+        idx = _indices(grid.variables, observation_names, "bounds.rescue.variables")
+        strides = np.cumprod((*grid.cells[1:], 1)[::-1])[::-1]
+        self._axes = [
+            (i, lo, hi, float(n) / (hi - lo), n, int(s))
+            for i, lo, hi, n, s in zip(idx, grid.lower, grid.upper, grid.cells, strides, strict=True)
+        ]
+        gidx = _indices(tuple(grid.guard), observation_names, "bounds.rescue.guard")
+        self._guard = [(i, lo, hi) for i, (lo, hi) in zip(gidx, grid.guard.values(), strict=True)]
+        self.scale = 1.0
+
+    @property
+    def max_depth(self) -> int:
+        """The deepest cell's depth."""
+        return int(self._depth.max(initial=0))
+
+    def contains(self, obs: np.ndarray) -> bool:
+        """Whether ``obs`` lies in the guard box and in a marked cell."""
+        for i, lo, hi in self._guard:
+            if not lo <= obs[i] <= hi:
+                return False
+        flat = 0
+        for i, lo, hi, inv, n, stride in self._axes:
+            x = float(obs[i])
+            if not lo <= x <= hi:
+                return False
+            flat += min(int((x - lo) * inv), n - 1) * stride
+        return self._flat[flat]
+
+    def inner(self, fraction: float) -> GridRegion:
+        """The cells deeper than ``(1 - fraction)`` of the deepest cell's depth."""
+        f = _check_fraction(fraction, "hand-back")
+        depth = int(np.floor((1.0 - f) * self.max_depth))
+        return GridRegion(self.grid, self._obs_names, max(depth, self.min_depth))
+
+
+def takeover_kind(bounds: dict[str, Any] | None) -> str | None:
+    """The takeover region a ``[bounds]`` table names (``None`` without bounds)."""
+    if not bounds:
+        return None
+    if "takeover" in bounds:
+        return str(bounds["takeover"])
+    if "rescue" in bounds:
+        return "rescue"
+    return "box" if "box" in bounds else "ellipsoid" if "ellipsoid" in bounds else None
+
+
+def region_from_bounds(
+    bounds: dict[str, Any] | None, observation_names: tuple[str, ...], kind: str | None = None,
+    name: str = "spec",
+) -> Region:  # fmt: skip
+    """The region ``kind`` (default: the takeover one) of a ``[bounds]`` table.
+
+    Raises
+    ------
+    CoachingError
+        ``kind`` unknown, or the table has no such region.
+    """
+    kind = kind if kind is not None else takeover_kind(bounds)
+    if kind not in KINDS:
+        raise CoachingError(f"region {kind!r}: expected one of {', '.join(KINDS)}")
+    b = bounds or {}
+    if kind not in b:
+        hint = {
+            "rescue": "run `pidlab rescue SPEC --write`",
+            "ellipsoid": "its bounds come from a simulated recoverable box (contacts), which has no "
+            'ellipsoid; use region = "box"'
+            if b.get("box")
+            else "run `pidlab bounds SPEC --write`",
+            "box": "run `pidlab bounds SPEC --write`",
+        }[kind]
+        raise CoachingError(f"{name}: the spec has no [bounds.{kind}]; {hint}")
+    if kind == "box":
+        return BoxRegion(b["box"], observation_names)
+    if kind == "ellipsoid":
+        return EllipsoidRegion(b["ellipsoid"], observation_names)
+    return GridRegion(parse_lookup(b["rescue"]), observation_names)
+
+
+def load_region(spec: Any, kind: str | None = None) -> Region:
+    """The takeover region of a coach spec, whatever its shape.
+
+    Parameters
+    ----------
+    spec : CoachSpec or str or Path
+        A spec, or the path of a spec file.
+    kind : {"box", "ellipsoid", "rescue"}, optional
+        Another of the spec's regions (default: the one ``[bounds] takeover`` names).
+
+    Returns
+    -------
+    Region
+        ``region.contains(obs)`` takes the env's observation vector.
+
+    Raises
+    ------
+    CoachingError
+        The spec has no such region, or its env has no model card.
+    SpecError
+        The spec file cannot be read.
+
+    Examples
+    --------
+    >>> region = pidlab.load_region("tuning/InvertedPendulum-v5.pidlab-robust.toml")  # doctest: +SKIP
+    >>> region.contains(env.reset(seed=0)[0])  # doctest: +SKIP
+    True
+    """
+    from pidlab.controller.spec import CoachSpec, load_spec
+    from pidlab.plant.card import find_card
+
+    if isinstance(spec, str | Path):
+        spec = load_spec(spec)
+    if not isinstance(spec, CoachSpec):
+        got = type(spec).__name__
+        raise CoachingError(f"load_region: expected a CoachSpec or a spec file's path, got {got}")
+    card = find_card(spec.env_id)
+    if card is None:
+        raise CoachingError(f"{spec.name}: {spec.env_id} has no model card, so its observation is unknown")
+    return region_from_bounds(spec.bounds, card.observation_names, kind, spec.name)
