@@ -312,15 +312,15 @@ def test_no_coach_is_a_pass_through_that_keeps_accounts(models):
 
 
 def test_ellipsoid_region_on_a_box_only_spec_says_why(models):
-    from pidlab.rl.coaching import CriticalRegion
+    from pidlab.region.takeover import region_from_bounds
 
     names = tuple(v.name for v in models["Hopper-v5"].card.observation)
     spec = load_spec(TUNING / "Hopper-v5.pidlab-robust.toml")
     with pytest.raises(CoachingError, match='recoverable box .*use region = "box"'):
-        CriticalRegion(spec, names, "ellipsoid")
+        region_from_bounds(spec.bounds, names, "ellipsoid", spec.name)
     bare = dataclasses.replace(spec, bounds=None)
     with pytest.raises(CoachingError, match=r"no \[bounds.ellipsoid\]; run `pidlab bounds SPEC --write`"):
-        CriticalRegion(bare, names, "ellipsoid")
+        region_from_bounds(bare.bounds, names, "ellipsoid", bare.name)
 
 
 # ---------------------------------------------------------------- conditions files (issue 17, items 2, 8, 13)
@@ -393,6 +393,23 @@ def test_a_trigger_without_mode_is_checked_as_a_nudge_and_resolved_with_the_reci
         _conditions(coaching={"mode": "nudge"}, env={"X-v0": {"coaching": {"trigger": trigger}}})
     )
     assert conds["c"].for_env("X-v0").coaching == {"mode": "nudge", "trigger": trigger}
+
+
+def test_a_predictive_trigger_is_kept_by_a_condition_that_sets_the_mode():
+    """A recipe's trigger = "predictive" is not a growth trigger: a takeover condition keeps it."""
+    from pidlab.experiment.conditions import parse_conditions, resolve
+    from pidlab.rl.recipe import load_recipe
+
+    conds = parse_conditions(_conditions(coaching={"trigger": "predictive", "view": "penalty"}))
+    assert conds["c"].default.coaching == {"trigger": "predictive", "view": "penalty"}  # no nudge added
+    recipe = load_recipe(Path(__file__).resolve().parents[1] / "coach" / f"{IP}.toml")
+    recipe = dataclasses.replace(
+        recipe, coaching=dataclasses.replace(recipe.coaching, trigger="predictive", region="rescue")
+    )
+    takeover = parse_conditions(_conditions(coaching={"mode": "takeover", "handback": 0.5}))["c"]
+    resolved, spec, _ = resolve(takeover, recipe)
+    c = resolved.coaching
+    assert (c.trigger, c.region, c.handback, spec) == ("predictive", "rescue", 0.5, None)
 
 
 def test_spec_names_cannot_leave_tuning():

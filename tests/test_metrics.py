@@ -195,3 +195,29 @@ def test_probability_of_improvement_known_cases():
     assert p.value == 0.5
     # pairs (1,1) tie, (1,3) lose, (2,1) win, (2,3) lose: 1.5 of 4
     assert probability_of_improvement([[1.0, 2.0]], [[1.0, 3.0]]).value == pytest.approx((0.5 + 1) / 4)
+
+
+def test_falls_and_env_resets_of_old_and_new_run_logs(tmp_path):
+    """Runs logged before falls were counted: a terminated episode was a fall, and every episode's end a reset."""
+    from pidlab.experiment.analysis import read_logs
+
+    old = "episode,env_steps_so_far,agent_steps_so_far,agent_steps,coach_steps,interventions,agent_return,total_return,terminated,env_index\n"
+    rows = [f"{i},{100 * (i + 1)},{100 * (i + 1)},100,0,0,100.0,100.0,{int(i % 3 == 0)},{i % 2}\n" for i in range(7)]
+    (tmp_path / "episodes.csv").write_text(old + "".join(rows))
+    (tmp_path / "evaluations.csv").write_text(
+        "env_steps_so_far,agent_steps_so_far,episodes_so_far,mean_return,std_return,min_return,max_return,mean_length,returns\n"
+        "0,0,0,10.0,0.0,10.0,10.0,10.0,10.0\n"
+    )
+    (tmp_path / "config.toml").write_text("[recipe]\nn_envs = 2\n")
+    summary = {"completed": True, "env_steps": 700, "agent_steps": 700, "coach_steps": 0, "resumes": 1}
+    got = read_logs(tmp_path, summary)
+    assert got.falls == 3  # episodes 0, 3, 6 ended terminated
+    assert got.env_resets == 7 + 2 * 2  # one per episode, and each of 2 envs at each of 2 sessions
+    m = run_metrics(got, RULE)
+    assert (m.falls, m.env_resets) == (3, 11)
+    # a run that counted them says so in summary.json (a terminal-view rescue is not a fall)
+    assert read_logs(tmp_path, {**summary, "falls": 1, "env_resets": 4}).falls == 1
+    (tmp_path / "config.toml").unlink()
+    assert read_logs(tmp_path, summary).env_resets is None  # not derivable without the run's n_envs
+    with pytest.raises(ValueError, match="falls = -1"):
+        read_logs(tmp_path, {**summary, "falls": -1})

@@ -31,6 +31,20 @@ def test_shipped_recipes_load_and_round_trip(env):
     assert again == type(r)(**{**r.__dict__, "path": None})
 
 
+def test_trigger_view_cost_and_handback_round_trip():
+    data = base()
+    data["coaching"] = {"trigger": "predictive", "view": "penalty", "cost": 2.5, "handback": 0.5}
+    r = parse_recipe(data)
+    c = r.coaching
+    assert (c.trigger, c.region, c.view, c.cost, c.handback) == ("predictive", "rescue", "penalty", 2.5, 0.5)
+    assert parse_recipe(recipe_to_dict(r)) == r
+    # the defaults are not written (a run's settings read as before), and "exit" is the default trigger
+    data["coaching"] = {"trigger": "exit"}
+    plain = parse_recipe(data)
+    assert plain.coaching.trigger is None and plain.coaching.region == "box" and plain.coaching.cost is None
+    assert not {"trigger", "view", "cost", "handback"} & set(recipe_to_dict(plain)["coaching"])
+
+
 def test_schedules():
     lin = Schedule("linear", 1.0, 0.0, 0.2, 0.6)
     assert lin(0.0) == 1.0 and lin(0.2) == 1.0 and math.isclose(lin(0.4), 0.5) and lin(0.6) == 0.0 and lin(1) == 0.0
@@ -76,6 +90,17 @@ def base() -> dict:
         ({"coaching": {"off_after": 1.5}}, "off_after = 1.5"),
         ({"coaching": {"trigger": {"variable": "hinge_vel", "high": 0.3, "steps": 2}}}, "needs mode = 'nudge'"),
         ({"coaching": {"mode": "nudge", "trigger": {"variable": "v", "high": 0.3, "steps": 0}}}, "steps = 0"),
+        ({"coaching": {"view": "peek"}}, "coaching.view = 'peek': expected one of hidden, penalty, terminal"),
+        ({"coaching": {"cost": -1.0}}, "coaching.cost = -1.0: expected a finite number >= 0"),
+        ({"coaching": {"handback": 0.0}}, "coaching.handback = 0.0: expected a finite number in (0, 1]"),
+        ({"coaching": {"handback": 1.5}}, "coaching.handback = 1.5: expected a finite number in (0, 1]"),
+        ({"coaching": {"trigger": "later"}}, "coaching.trigger = 'later': expected one of exit, predictive"),
+        ({"coaching": {"trigger": 3}}, "coaching.trigger = 3: expected one of exit, predictive"),
+        ({"coaching": {"trigger": "predictive", "mode": "nudge"}}, "'predictive' needs mode = 'takeover'"),
+        ({"coaching": {"trigger": "predictive", "region": "box"}}, "expected region = 'rescue'"),
+        ({"coaching": {"region": "rescue", "width": {"shape": "linear", "start": 1.0, "end": 2.0}}},
+         "coaching.width: a rescue region (a lookup grid) cannot be scaled"),
+        ({"coaching": {"view": "terminal", "reward": "total"}}, "coaching.reward = 'total' with view = 'terminal'"),
         ({"win": {}}, "win.target: missing"),
         ({"evaluation": {"episodes": 0}}, "evaluation.episodes = 0"),
         ({"normalize": {"obs": "yes"}}, "normalize.obs = 'yes': expected true or false"),

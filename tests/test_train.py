@@ -251,6 +251,37 @@ def test_a_run_written_before_the_provenance_module_resumes(tmp_path):
     assert new["resumes"][1]["budget_env_steps"] == 600 and all("time" not in r for r in new["resumes"])
 
 
+def test_a_run_logged_before_env_episodes_were_counted_resumes_and_derives_them(tmp_path):
+    """episodes.csv without env_end/fell and state.json without the env counters: upgraded on resume."""
+    import json
+
+    from pidlab.rl.rundir import EPISODE_COLUMNS, LEGACY_EPISODE_COLUMNS
+
+    every = {"every": 200}
+    path = tiny_recipe(tmp_path, steps=400, checkpoint=every, evaluation={**every, "episodes": 1})
+    run = tmp_path / "run"
+    train(load_recipe(path), None, run, progress_bar=False)
+    lines = (run / "episodes.csv").read_text().splitlines()
+    assert lines[0] == ",".join(EPISODE_COLUMNS)
+    (run / "episodes.csv").write_text("".join(",".join(line.split(",")[:-2]) + "\n" for line in lines))
+    state_file = latest_checkpoint(run) / "state.json"
+    state = json.loads(state_file.read_text())
+    state_file.write_text(
+        json.dumps({k: v for k, v in state.items() if k not in ("env_episodes", "env_resets", "falls")})
+    )
+    assert resume(run, steps=600, progress_bar=False).completed
+    eps = rows(run)
+    assert (
+        (run / "episodes.csv").read_text().splitlines()[0]
+        == ",".join(EPISODE_COLUMNS)
+        != ",".join(LEGACY_EPISODE_COLUMNS)
+    )
+    assert all(r["env_end"] == "1" and r["fell"] == r["terminated"] for r in eps)  # no terminal view then
+    s = read_json(run / "summary.json")
+    assert s["falls"] == sum(int(r["terminated"]) for r in eps)
+    assert s["env_episodes"] == len(eps) and s["env_resets"] == len(eps) + 2  # one env, two sessions
+
+
 def test_sigterm_stops_with_a_checkpoint_and_resumes(tmp_path):
     path = tiny_recipe(tmp_path, steps=8000, checkpoint={"every": 2000})
     run = tmp_path / "run"

@@ -25,7 +25,7 @@ from pidlab.errors import ExperimentError
 from pidlab.experiment.comparison import MEASURES, Comparison, decide, raw_comparison
 from pidlab.experiment.metrics import Rule, RunLogs, RunMetrics, grid_points, moving_average, run_metrics
 from pidlab.experiment.stats import Estimate, bootstrap_ci, iqm
-from pidlab.files import load_json
+from pidlab.files import load_json, read_toml
 from pidlab.rl.rundir import read_csv_rows
 
 BASELINE = "none"
@@ -135,6 +135,8 @@ METRICS: dict[str, tuple[bool, bool]] = {
     "policy_updates": (False, False),
     "evaluation_env_steps": (False, False),
     "evaluation_delay": (False, False),
+    "falls": (True, False),
+    "env_resets": (True, False),
 }
 
 
@@ -187,6 +189,46 @@ def _updates(summary: Any) -> int | None:
     return value
 
 
+def _count(summary: Any, key: str) -> int | None:
+    value = summary.get(key)
+    if value is None:
+        return None
+    if type(value) is not int or value < 0:
+        raise ValueError(f"{key} = {value!r}, expected an integer >= 0")
+    return value
+
+
+def _falls(summary: Any, episodes: list[dict[str, str]]) -> int:
+    """The run's falls: ``summary.json``'s, else from ``episodes.csv``.
+
+    A run logged before pidlab counted falls had no ``terminal`` view: each of its episodes that
+    ended ``terminated`` was a fall of the env.
+    """
+    falls = _count(summary, "falls")
+    if falls is not None:
+        return falls
+    return sum(int(r["fell"] if "fell" in r else r["terminated"]) for r in episodes)
+
+
+def _env_resets(run_dir: Path, summary: Any, episodes: list[dict[str, str]]) -> int | None:
+    """The run's real env resets: ``summary.json``'s, else derived (None when the config is missing).
+
+    Before pidlab counted them every episode's end was the env's: one reset per episode, plus
+    each env's first reset of every session (the first and one per resume).
+    """
+    resets = _count(summary, "env_resets")
+    if resets is not None:
+        return resets
+    config = run_dir / "config.toml"
+    if not config.is_file():
+        return None
+    n_envs = read_toml(config, "run config", ExperimentError).get("recipe", {}).get("n_envs", 1)
+    if type(n_envs) is not int or n_envs < 1:
+        raise ValueError(f"config.toml: n_envs = {n_envs!r}, expected an integer >= 1")
+    resumes = _count(summary, "resumes") or 0
+    return len(episodes) + n_envs * (resumes + 1)
+
+
 def read_logs(run_dir: Path, summary: Any) -> RunLogs:
     """A run's ``episodes.csv``, ``evaluations.csv`` and totals of ``summary.json`` (``summary``)."""
     updates = _updates(summary)
@@ -210,6 +252,8 @@ def read_logs(run_dir: Path, summary: Any) -> RunLogs:
         agent_steps=int(summary["agent_steps"]),
         coach_steps=int(summary["coach_steps"]),
         policy_updates=updates,
+        falls=_falls(summary, episodes),
+        env_resets=_env_resets(run_dir, summary, episodes),
     )
 
 

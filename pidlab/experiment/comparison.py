@@ -71,13 +71,21 @@ class Measure:
 
 MEASURES = (
     Measure("episodes_to_wins", True, "episodes to 5 wins (training returns)", "episodes_to_wins_with_coach"),
-    Measure("episodes_to_average", True, "episodes to the moving-average target (training returns)",
-            "episodes_to_average_with_coach"),
+    Measure(
+        "episodes_to_average",
+        True,
+        "episodes to the moving-average target (training returns)",
+        "episodes_to_average_with_coach",
+    ),
     Measure("episodes_to_wins_with_coach", True, "episodes to 5 wins (returns with the coach's rewards)"),
-    Measure("episodes_to_average_with_coach", True,
-            "episodes to the moving-average target (returns with the coach's rewards)"),
+    Measure(
+        "episodes_to_average_with_coach",
+        True,
+        "episodes to the moving-average target (returns with the coach's rewards)",
+    ),
     Measure("env_steps_to_target", True, "env steps until the agent alone reaches the target and keeps it"),
     Measure("final_score", False, "final agent-alone score"),
+    Measure("falls", True, "falls during training (terminations of the real env, agent or coach acting)"),
 )
 MEASURE = {m.name: m for m in MEASURES}
 

@@ -229,8 +229,12 @@ def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | N
     where = f"condition {condition.name} on {env_id}"
     table = recipe_to_dict(recipe)
     coaching = {**table["coaching"], **c.coaching}
-    if coaching.get("mode") != "nudge" and "trigger" not in c.coaching:
-        coaching.pop("trigger", None)
+    if (
+        coaching.get("mode") != "nudge"
+        and isinstance(coaching.get("trigger"), dict)
+        and "trigger" not in c.coaching
+    ):
+        coaching.pop("trigger", None)  # the recipe's growth trigger (nudge only) does not apply
     table["coaching"] = coaching
     try:
         resolved = replace(parse_recipe(table, where), path=recipe.path)

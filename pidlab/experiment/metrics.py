@@ -192,6 +192,10 @@ class RunLogs:
         The run's totals.
     policy_updates : int or None
         Gradient steps of the policy's optimizer (None: not recorded by the run).
+    falls : int or None
+        Terminations of the training env, whoever was acting (None: unknown).
+    env_resets : int or None
+        Real resets of the training envs (None: unknown).
     """
 
     returns: np.ndarray
@@ -206,6 +210,8 @@ class RunLogs:
     agent_steps: int
     coach_steps: int
     policy_updates: int | None
+    falls: int | None = None
+    env_resets: int | None = None
 
 
 @dataclass(frozen=True)
@@ -252,6 +258,14 @@ class RunMetrics:
         The largest distance, env steps, between an evaluation and its grid point.
     env_steps_per_episode : float
         Mean training episode length, env steps (agent + coach).
+    falls : int or None
+        Failures during training: terminations of the real env, whoever was acting (agent or
+        coach). An agent episode ended by a ``terminal``-view takeover whose rescue succeeded is
+        not one. None: not recorded.
+    env_resets : int or None
+        Real resets of the training envs (each env's first reset of every session included; a
+        ``terminal``-view rescue that hands the running env to a new agent episode is none).
+        None: not recorded.
     """
 
     episodes_to_wins: int | None
@@ -275,6 +289,8 @@ class RunMetrics:
     evaluation_env_steps: int
     evaluation_delay: int
     env_steps_per_episode: float
+    falls: int | None = None
+    env_resets: int | None = None
 
 
 def _tail_mean(values: np.ndarray, window: int) -> float:
@@ -327,4 +343,6 @@ def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
         evaluation_env_steps=int(np.sum(logs.eval_steps)),
         evaluation_delay=int(np.max(logs.eval_env_steps - grid)) if grid.size else 0,
         env_steps_per_episode=logs.env_steps / len(logs.returns) if len(logs.returns) else float("nan"),
+        falls=logs.falls,
+        env_resets=logs.env_resets,
     )

@@ -41,7 +41,7 @@ from typing import Any
 from pidlab.checks import MAX_SEEDS, SEED_MAX, check_name, clip, is_file, path_under, shown
 from pidlab.checks import seed as check_seed
 from pidlab.controller.spec import CoachSpec, parse_spec, spec_to_dict
-from pidlab.errors import ExperimentError, RunDirError
+from pidlab.errors import ExperimentError, PidlabError, RunDirError
 from pidlab.experiment.conditions import Condition, load_conditions, resolve, select
 from pidlab.orphans import orphaned, stop_with_parent
 from pidlab.provenance import (
@@ -224,6 +224,27 @@ def _task(env_id: str, cond: Condition, base: Recipe, spec: CoachSpec | None, so
     )
 
 
+def _check_fits(env_id: str, condition: str, recipe: Recipe, spec: CoachSpec | None) -> None:
+    """The condition's coach has the takeover region its coaching tests, before any run starts.
+
+    Raises
+    ------
+    ExperimentError
+        For example the predictive trigger with a spec that has no rescue region.
+    """
+    from pidlab.plant.card import find_card
+    from pidlab.rl.coaching import takeover_region
+
+    c = recipe.coaching
+    card = find_card(env_id)
+    if spec is None or card is None or not (c.trigger is None or isinstance(c.trigger, str)):
+        return  # no coach, no card to check against, or a growth trigger (it uses no region)
+    try:
+        takeover_region(spec, card.observation_names, c.region, c.trigger == "predictive", c.width)
+    except PidlabError as exc:
+        raise ExperimentError(f"condition {condition!r} on {env_id}: {exc}") from None
+
+
 def plan(
     envs: Sequence[str],
     condition_names: Sequence[str],
@@ -267,6 +288,7 @@ def plan(
     for env_id in envs:
         for cond in chosen:
             base, spec, source = resolve(cond, recipes[env_id])
+            _check_fits(env_id, cond.name, base, spec)
             tasks += [_task(env_id, cond, base, spec, source, seed, root) for seed in seeds]
     return Plan(
         out=root,

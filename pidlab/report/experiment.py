@@ -50,6 +50,8 @@ UNITS = {
     "policy_updates": "gradient steps",
     "evaluation_env_steps": "env steps",
     "evaluation_delay": "env steps",
+    "falls": "falls",
+    "env_resets": "resets",
 }
 
 VERSIONS = (
@@ -73,7 +75,7 @@ def format_value(v: float, name: str) -> str:
         return "n/a"
     if name == "intervention_rate":
         return f"{100 * v:.1f} %"
-    if "steps" in name or name in ("episodes", "policy_updates", "evaluation_delay"):
+    if "steps" in name or name in ("episodes", "policy_updates", "evaluation_delay", "falls", "env_resets"):
         return f"{v:,.0f}"
     return f"{v:.0f}" if abs(v) >= 100 else f"{v:.1f}"
 
@@ -317,6 +319,11 @@ HOW_TO_READ = (
     "delay per run.",
     "- Agent-alone evaluations are not charged to the budget (for every condition alike); the env steps "
     "they spent are listed per run in `metrics.csv` (`evaluation_env_steps`) and below.",
+    "- Falls during training: terminations of the real training env, whoever was acting (agent or "
+    "coach). A takeover is not a fall, nor is an agent episode that a `terminal`-view takeover ended when "
+    "the coach's rescue succeeded. Env resets: real resets of the training envs (a rescued env handed to "
+    "a new agent episode is not reset). Runs logged before pidlab counted them: an episode that ended "
+    "terminated is a fall, and every episode's end a reset.",
     "- Training return: what the agent was paid on its own steps. Return with the coach: the same "
     "episodes with the coach's steps' rewards included. Coach-dependent: a trained agent whose return "
     "with the coach over the last window reached the target while it did not alone. Never trained: "
@@ -351,6 +358,7 @@ def _honest_table(a: Analysis, env: str, cells: Sequence[CellResult]) -> str:
     header = [
         "condition",
         "env steps to target, reached and kept (agent alone)",
+        "falls during training",
         "agent steps to target",
         "env steps to a first hit",
         "final agent-alone score",
@@ -360,7 +368,7 @@ def _honest_table(a: Analysis, env: str, cells: Sequence[CellResult]) -> str:
         "never trained",
         "intervention rate",
     ]
-    names = ("env_steps_to_target", "agent_steps_to_target", "first_hit_env_steps", "final_score",
+    names = ("env_steps_to_target", "falls", "agent_steps_to_target", "first_hit_env_steps", "final_score",
              "final_training_score", "final_coached_score")  # fmt: skip
     rows = [
         [c.condition, *(cell_metric(c, n) for n in names), f"{c.coach_dependent}/{len(c.runs)}",
@@ -380,10 +388,10 @@ def _range(cell: CellResult, name: str) -> str:
 
 
 def _accounts_table(cells: Sequence[CellResult]) -> str:
-    header = ["condition", "training episodes", "env steps per training episode",
+    header = ["condition", "training episodes", "env steps per training episode", "env resets",
               "policy updates (gradient steps)", "agent-alone evaluation env steps (not charged)",
               "largest evaluation delay (env steps)"]  # fmt: skip
-    names = ("episodes", "env_steps_per_episode", "policy_updates", "evaluation_env_steps",
+    names = ("episodes", "env_steps_per_episode", "env_resets", "policy_updates", "evaluation_env_steps",
              "evaluation_delay")  # fmt: skip
     rows = [[c.condition, *(_range(c, n) for n in names)] for c in cells]
     return markdown_table(header, rows)

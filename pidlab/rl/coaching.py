@@ -1,28 +1,40 @@
-"""The coaching wrapper: the PID coach takes over outside the critical region, hidden from the agent.
+"""The coaching wrapper: the PID coach takes over outside the takeover region.
 
 :class:`CoachingWrapper` is a ``gymnasium.Wrapper``. Coach steps run *inside* ``step()``: the
 agent acts at ``s_t``, and the observation it gets back is the state after the coach handed
 control back. Any SB3 algorithm therefore stores only the agent's own transitions.
 
 Intervention modes
-    ``takeover`` (the paper's text): after an agent step that leaves the critical region, the
-    coach acts until the state is back inside (or the episode ends, or ``max_coach_steps``).
-    ``nudge`` (the paper's original code): exactly ``nudge_steps`` coach steps when the trigger
-    fires (fewer only if a coach step ends the episode).
+    ``takeover`` (the paper's text): once the trigger fires, the coach acts until the state is in
+    the hand-back region (or the episode ends, or ``max_coach_steps``). ``nudge`` (the paper's
+    original code): exactly ``nudge_steps`` coach steps when the trigger fires (fewer only if a
+    coach step ends the episode).
 
 Triggers
-    ``exit`` (default): the state left the critical region. ``growth`` (the paper's code, see
-    :class:`GrowthTrigger`): a variable's magnitude lies in a band and has grown with the same
-    sign for a number of consecutive steps. ``takeover`` needs the region to hand back, so it
-    uses ``exit``.
+    ``exit`` (default, reactive): the agent's step left the region. ``predictive``: before the
+    agent's action runs, the state after it is predicted on a copy of the env's MuJoCo data; an
+    action that would leave the region is vetoed (it never runs) and the coach takes over from
+    the current state (``takeover`` only, the spec's rescue region). ``growth`` (the paper's
+    code, see :class:`GrowthTrigger`, ``nudge`` only): a variable's magnitude lies in a band and
+    has grown with the same sign for a number of consecutive steps.
 
 Region
-    From the spec's ``[bounds]`` table: ``box`` (every listed variable within its range) or
-    ``ellipsoid`` (``(y - center)' shape (y - center) <= rho * level``).
+    From the spec's ``[bounds]`` table (:func:`pidlab.region.takeover.region_from_bounds`):
+    ``box``, ``ellipsoid`` or ``rescue`` (the lookup grid of ``[bounds.rescue]``). A takeover
+    hands back once the state is in ``region.inner(handback)`` (``handback = 1``: the region).
+
+What the agent sees of a takeover (``view``)
+    ``hidden``: nothing; its transition carries its own step's reward (predictive: the reward of
+    the coach step that ran in place of its vetoed action) and the observation after the hand-back.
+    ``penalty``: the same, with ``cost`` taken off the transition that triggered the takeover.
+    ``terminal``: the agent's episode ends at the trigger as if it had failed (``terminated``,
+    the env's failure reward, :func:`failure_reward`); the coach rescues the real env (inside the
+    same ``step()``) and the next ``reset()`` returns the rescued state instead of resetting, unless
+    the rescue ended the env's episode, or the reset has a seed or options.
 
 Rewards
     By default the agent is given its own step's reward only; the coach's rewards are reported
-    in ``info["coach_reward"]``. ``reward="total"`` gives the agent both.
+    in ``info["coach_reward"]``. ``reward="total"`` gives the agent both (not with ``terminal``).
 
 Episode ends
     A coach step may end the episode: ``terminated`` / ``truncated`` are passed through
@@ -30,8 +42,8 @@ Episode ends
 
 Schedules
     ``probability(progress)``: chance of intervening when the trigger fires; ``width(progress)``:
-    factor on the region's size; ``off_after``: progress from which the coach never intervenes.
-    :meth:`CoachingWrapper.set_progress` (called by the trainer) moves them along.
+    factor on the region's size (box and ellipsoid only); ``off_after``: progress from which the
+    coach never intervenes. :meth:`CoachingWrapper.set_progress` (called by the trainer) moves them.
 
 No coach
     ``spec=None`` gives a pass-through that only keeps the accounts (the uncoached condition
@@ -40,22 +52,33 @@ No coach
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
+from pidlab.plant.card import ModelCard
 from pidlab.plant.model import LoadedModel, load_model
+from pidlab.plant.observation import CompiledCard
+from pidlab.region.takeover import KINDS, GridRegion, Region, region_from_bounds
 
 MODES = ("takeover", "nudge")
-REGIONS = ("box", "ellipsoid")
+REGIONS = KINDS
 REWARDS = ("agent", "total")
+TRIGGERS = ("exit", "predictive")
+"""The named triggers (a table is the growth trigger): leaving the region, or a predicted exit."""
+VIEWS = ("hidden", "penalty", "terminal")
+"""What the agent sees of a takeover."""
+COST_STEPS = 10.0
+"""The default cost of a takeover (``penalty`` view), in steps of the env's alive reward."""
 
 
 def _index(name: str, observation_names: tuple[str, ...], where: str) -> int:
@@ -66,79 +89,76 @@ def _index(name: str, observation_names: tuple[str, ...], where: str) -> int:
     return observation_names.index(name)
 
 
-class CriticalRegion:
-    """Membership test of the critical region, in observation variables.
+# ----------------------------------------------------------------- what the env pays
+
+
+def _hopper_failure(reward: float, info: dict[str, Any]) -> float:
+    # hopper_v5 / walker2d_v5: reward = (forward + is_healthy * healthy_reward) - ctrl_cost
+    return (float(info["reward_forward"]) + 0.0) + float(info["reward_ctrl"])
+
+
+def _idp_failure(reward: float, info: dict[str, Any]) -> float:
+    # inverted_double_pendulum_v5: reward = healthy_reward * int(not terminated) - dist - vel
+    return float(info["distance_penalty"]) + float(info["velocity_penalty"])
+
+
+_FAILURE: dict[str, Callable[[float, dict[str, Any]], float]] = {
+    "InvertedPendulum-v5": lambda reward, info: 0.0,  # reward = int(not terminated)
+    "InvertedDoublePendulum-v5": _idp_failure,
+    "Hopper-v5": _hopper_failure,
+    "Walker2d-v5": _hopper_failure,
+}
+
+
+def failure_reward(env_id: str, reward: float, info: dict[str, Any]) -> float:
+    """What the env would have paid for a step had that step failed (terminated).
+
+    The reward without the alive bonus, from the step's own reward terms, computed as Gymnasium's
+    v5 sources compute a failing step's reward (bit for bit): InvertedPendulum 0;
+    InvertedDoublePendulum ``-distance_penalty - velocity_penalty``; Hopper and Walker2d
+    ``forward_reward - ctrl_cost``.
 
     Parameters
     ----------
-    spec : CoachSpec
-        With a ``[bounds]`` table.
-    observation_names : tuple of str
-    kind : {"box", "ellipsoid"}
-    scale : float
-        Shrinks (< 1) or widens (> 1) the region about its centre (a width schedule sets it).
+    env_id : str
+        One of the four v5 envs with a model card.
+    reward : float
+        The step's reward.
+    info : dict
+        The step's info (its reward terms).
+
+    Raises
+    ------
+    CoachingError
+        An env whose failure reward pidlab does not know.
     """
+    fn = _FAILURE.get(env_id)
+    if fn is None:
+        raise CoachingError(
+            f"view = 'terminal' needs the failure reward of {env_id}; it is known for {', '.join(_FAILURE)}"
+        )
+    return fn(reward, info)
 
-    def __init__(self, spec: CoachSpec, observation_names: tuple[str, ...], kind: str = "box",
-                 scale: float = 1.0) -> None:  # fmt: skip
-        if kind not in REGIONS:
-            raise CoachingError(f"region {kind!r}: expected one of {', '.join(REGIONS)}")
-        b = spec.bounds or {}
-        self.kind = kind
-        self.scale = scale
-        if kind == "box":
-            box = b.get("box")
-            if not box:
-                raise CoachingError(
-                    f"{spec.name}: the spec has no [bounds.box]; run `pidlab bounds SPEC --write`"
-                )
-            self.index = np.array([_index(v, observation_names, "bounds.box") for v in box])
-            lo = np.array([v[0] for v in box.values()])
-            hi = np.array([v[1] for v in box.values()])
-            self.center = 0.5 * (lo + hi)
-            self.half = 0.5 * (hi - lo)
-            self._indices = [int(i) for i in self.index]
-            self._set_limits()
-        else:
-            e = b.get("ellipsoid")
-            if not e:
-                hint = (
-                    "its bounds come from a simulated recoverable box (contacts), which has no ellipsoid; "
-                    "use region = \"box\""
-                    if b.get("box")
-                    else "run `pidlab bounds SPEC --write`"
-                )
-                raise CoachingError(f"{spec.name}: the spec has no [bounds.ellipsoid]; {hint}")
-            self.index = np.array([_index(v, observation_names, "bounds.ellipsoid") for v in e["variables"]])
-            self.center = np.array(e["center"], dtype=float)
-            self.shape = np.array(e["shape"], dtype=float)
-            self.threshold = float(e["rho"]) * float(e["level"])
 
-    @property
-    def scale(self) -> float:
-        """Factor on the region's size about its centre."""
-        return self._scale
+def alive_reward(env: gym.Env) -> float:
+    """The env's reward per surviving step (its ``healthy_reward``; 1 for InvertedPendulum).
 
-    @scale.setter
-    def scale(self, value: float) -> None:
-        self._scale = float(value)
-        if self.kind == "box" and hasattr(self, "_indices"):
-            self._set_limits()
+    Raises
+    ------
+    CoachingError
+        An env without one (set ``cost`` explicitly).
+    """
+    u = env.unwrapped
+    value = getattr(u, "_healthy_reward", None)
+    if value is None and env.spec is not None and env.spec.id == "InvertedPendulum-v5":
+        value = 1.0
+    if value is None:
+        name = env.spec.id if env.spec is not None else type(u).__name__
+        raise CoachingError(f"{name} has no alive reward to price a takeover in; set cost explicitly")
+    return float(value)
 
-    def _set_limits(self) -> None:
-        # plain floats: the box test runs on every agent step, and for a handful of variables
-        # Python comparisons are several times faster than numpy calls on tiny arrays
-        self._limits = [
-            (i, float(c - h * self._scale), float(c + h * self._scale))
-            for i, c, h in zip(self._indices, self.center, self.half, strict=True)
-        ]
 
-    def inside(self, obs: np.ndarray) -> bool:
-        """Whether ``obs`` lies in the region (where the agent explores freely)."""
-        if self.kind == "box":
-            return all(lo <= obs[i] <= hi for i, lo, hi in self._limits)
-        y = np.asarray(obs, dtype=float)[self.index] - self.center
-        return bool(y @ self.shape @ y <= self.threshold * self._scale**2)
+# ----------------------------------------------------------------- triggers
 
 
 @dataclass(frozen=True)
@@ -182,13 +202,105 @@ class GrowthTrigger:
         return bool(sign[-1] != 0 and np.all(sign == sign[-1]) and np.all(np.diff(np.abs(v)) > 0))
 
 
+class Predictor:
+    """The observation one control period ahead, stepped on a copy of the env's MuJoCo data.
+
+    What ``env.step(action)`` would observe, bit for bit: the action goes into ``ctrl`` as
+    Gymnasium's ``MujocoEnv.do_simulation`` puts it, ``frame_skip`` MuJoCo steps follow, and the
+    model card's compiled observation reads the copy. (``do_simulation`` also calls
+    ``mj_rnePostConstraint``, which fills ``cacc`` and ``cfrc_*`` only; no card observes them.)
+    :meth:`execute` then runs the env's step with the predicted data copied in instead of
+    simulating the same control period a second time.
+
+    Parameters
+    ----------
+    env : gymnasium.Env
+        A Gymnasium MuJoCo env (``unwrapped`` has ``model``, ``data``, ``frame_skip``).
+    card : ModelCard
+        The env's model card.
+
+    Raises
+    ------
+    CoachingError
+        ``env`` is not a MuJoCo env.
+    """
+
+    def __init__(self, env: gym.Env, card: ModelCard) -> None:
+        u: Any = env.unwrapped
+        model, data, skip = (getattr(u, k, None) for k in ("model", "data", "frame_skip"))
+        mujoco_env = isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData)
+        if not mujoco_env or not isinstance(skip, int):
+            raise CoachingError("trigger 'predictive' needs a Gymnasium MuJoCo env (model, data, frame_skip)")
+        inner: Any = env
+        while isinstance(inner, gym.Wrapper):  # the prediction needs the action the env will simulate
+            if isinstance(inner, gym.ActionWrapper):
+                raise CoachingError(
+                    f"trigger 'predictive': {type(inner).__name__} changes the agent's action on its way to "
+                    "the env; put it outside the coaching wrapper"
+                )
+            inner = inner.env
+        self._env = u
+        self._model = model
+        self._copy = mujoco.MjData(model)
+        self._frame_skip = skip
+        self._card = CompiledCard(card, model)
+        # Gymnasium's MujocoEnv simulates in _step_mujoco_simulation(ctrl, n_frames); without it
+        # (another env class) the action is simulated again by the env itself
+        self._copy_back = hasattr(type(u), "_step_mujoco_simulation")
+        self._predicted = False
+        self._action: Any = None
+
+    def predict(self, action: Any) -> np.ndarray:
+        """The observation after ``action`` from the env's current state (the env is not touched)."""
+        d = self._copy
+        mujoco.mj_copyData(d, self._model, self._env.data)
+        d.ctrl[:] = action
+        mujoco.mj_step(self._model, d, nstep=self._frame_skip)
+        self._predicted = True
+        self._action = action
+        return self._card.observe(d)
+
+    def discard(self) -> None:
+        """Forget the last prediction (its action was vetoed: the env moves on without it)."""
+        self._predicted = False
+
+    def execute(self, step: Callable[[Any], tuple], action: Any) -> tuple:
+        """``step(action)`` (the env's step) on the data :meth:`predict` computed for ``action``.
+
+        The env's simulation is replaced, for this call, by copying the predicted data in and
+        completing it as ``do_simulation`` does (``mj_rnePostConstraint``): the env's data end up
+        bit for bit as if it had simulated, at the cost of a copy. Anything else (another action,
+        another number of frames) is simulated by the env as usual.
+        """
+        if not (self._copy_back and self._predicted):
+            return step(action)
+        self._env.__dict__["_step_mujoco_simulation"] = self._simulate
+        try:
+            return step(action)
+        finally:
+            del self._env.__dict__["_step_mujoco_simulation"]
+            self._predicted = False
+
+    def _simulate(self, ctrl: Any, n_frames: int) -> None:
+        u, model, d = self._env, self._model, self._copy
+        # the env passes the agent's action down unchanged (gym.make's wrappers do): the same object
+        same = ctrl is self._action or np.array_equal(d.ctrl, ctrl)
+        if not (self._predicted and n_frames == self._frame_skip and same):
+            type(u)._step_mujoco_simulation(u, ctrl, n_frames)
+            return
+        self._predicted = False
+        mujoco.mj_copyData(u.data, model, d)
+        mujoco.mj_rnePostConstraint(model, u.data)
+
+
 ProgressFn = Callable[[float], float]
 """A value as a function of training progress in [0, 1]; a :class:`pidlab.rl.schedule.Schedule` is one."""
 
 
 def _check_options(
-    mode: str, reward: str, nudge_steps: int, max_coach_steps: int, trigger: GrowthTrigger | None
-) -> None:
+    mode: str, reward: str, nudge_steps: int, max_coach_steps: int, trigger: GrowthTrigger | str | None,
+    view: str, cost: float | None, handback: float,
+) -> None:  # fmt: skip
     """Raise :class:`CoachingError` on options that cannot work together."""
     if mode not in MODES:
         raise CoachingError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
@@ -196,11 +308,85 @@ def _check_options(
         raise CoachingError(f"reward {reward!r}: expected one of {', '.join(REWARDS)}")
     if nudge_steps < 1 or max_coach_steps < 1:
         raise CoachingError("nudge_steps and max_coach_steps must be >= 1")
-    if trigger is not None and mode == "takeover":
+    if isinstance(trigger, GrowthTrigger) and mode == "takeover":
         raise CoachingError(
             "a growth trigger needs mode = nudge: takeover hands back once inside the critical "
             "region, so it is triggered by leaving it"
         )
+    if isinstance(trigger, str) and trigger not in TRIGGERS:
+        raise CoachingError(f"trigger {trigger!r}: expected one of {', '.join(TRIGGERS)} or a growth trigger")
+    if trigger == "predictive" and mode != "takeover":
+        raise CoachingError(
+            "trigger 'predictive' needs mode = takeover (the coach acts in the agent's place)"
+        )
+    if view not in VIEWS:
+        raise CoachingError(f"view {view!r}: expected one of {', '.join(VIEWS)}")
+    if cost is not None and not (math.isfinite(cost) and cost >= 0):
+        raise CoachingError(f"cost {cost!r}: expected a finite number >= 0")
+    if not (math.isfinite(handback) and 0.0 < handback <= 1.0):
+        raise CoachingError(f"handback {handback!r}: expected a fraction in (0, 1]")
+    if view == "terminal" and reward == "total":
+        raise CoachingError(
+            "reward 'total' with view 'terminal': the takeover starts after the agent's episode ended, "
+            "so its rewards are no agent's; use reward = 'agent'"
+        )
+
+
+def _constant_one(width: ProgressFn | None) -> bool:
+    from pidlab.rl.schedule import Schedule
+
+    return width is None or (isinstance(width, Schedule) and width.start == 1.0 and width.end == 1.0)
+
+
+def takeover_region(spec: CoachSpec, observation_names: tuple[str, ...], kind: str, predictive: bool,
+                    width: ProgressFn | None = None) -> Region:  # fmt: skip
+    """The region the wrapper tests, checked against the trigger that tests it.
+
+    Raises
+    ------
+    CoachingError
+        The predictive trigger without a rescue region; a rescue region derived for the predictive
+        trigger tested after the agent's step; a width schedule on a rescue region.
+    """
+    bounds = spec.bounds or {}
+    if predictive and kind != "rescue":
+        raise CoachingError(
+            f"trigger 'predictive' tests the rescue region, not {kind!r}: use region = 'rescue'"
+        )
+    if predictive and "rescue" not in bounds:
+        raise CoachingError(
+            f"{spec.name}: trigger 'predictive', but the spec has no rescue region; "
+            "run `pidlab rescue SPEC --write`"
+        )
+    region = region_from_bounds(bounds, observation_names, kind, spec.name)
+    if isinstance(region, GridRegion):
+        if region.grid.trigger == "predictive" and not predictive:
+            raise CoachingError(
+                f"{spec.name}: its rescue region was derived for the predictive trigger and leaves no room "
+                "for the agent's step; use trigger = 'predictive', or derive a reactive one "
+                "(`pidlab rescue SPEC --trigger reactive --write`)"
+            )
+        if not _constant_one(width):
+            raise CoachingError("width: a rescue region cannot be scaled; use width = 1 with region 'rescue'")
+    return region
+
+
+@dataclass(frozen=True)
+class _Run:
+    """A coach's run of steps: where it ended, its first step, and its totals."""
+
+    obs: Any
+    steps: int
+    reward: float
+    terminated: bool
+    truncated: bool
+    first_obs: Any
+    first_reward: float
+    first_info: dict[str, Any]
+
+    @property
+    def ended(self) -> bool:
+        return self.terminated or self.truncated
 
 
 class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -211,11 +397,13 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     env : gymnasium.Env
         A Gymnasium MuJoCo env (usually from ``gymnasium.make``, with its time limit).
     spec : CoachSpec or None
-        The coach, with bounds (for the ``exit`` trigger); ``None``: no coach, accounts only.
+        The coach, with bounds (the region); ``None``: no coach, accounts only.
     mode : {"takeover", "nudge"}
-    region : {"box", "ellipsoid"}
-    trigger : GrowthTrigger, optional
-        The paper's coded trigger (``nudge`` only); default: leaving the critical region.
+    region : {"box", "ellipsoid", "rescue"}
+    trigger : GrowthTrigger or {"exit", "predictive"}, optional
+        Default ``exit``: leaving the region after the agent's step. ``predictive``: an action
+        whose predicted next state leaves the (rescue) region is vetoed. A growth trigger is the
+        paper's coded one (``nudge`` only).
     nudge_steps : int
         Coach steps per intervention in ``nudge`` mode.
     max_coach_steps : int
@@ -224,13 +412,20 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     probability : callable, optional
         ``progress -> probability`` of intervening when the trigger fires (default 1).
     width : callable, optional
-        ``progress -> factor`` on the region's size (default 1).
+        ``progress -> factor`` on the region's size (default 1; box and ellipsoid only).
     off_after : float, optional
         Progress from which the coach never intervenes.
     loaded : LoadedModel, optional
         The env's model (default: loaded from the spec's env id).
     seed : int, optional
         Seed of the probability schedule's coin (default: the first ``reset`` seed).
+    view : {"hidden", "penalty", "terminal"}
+        What the agent sees of a takeover (see the module's docstring).
+    cost : float, optional
+        What a takeover costs the agent under ``penalty`` (>= 0; default :data:`COST_STEPS` times
+        the env's alive reward).
+    handback : float
+        The coach hands back once the state is in ``region.inner(handback)``, in (0, 1].
     """
 
     def __init__(
@@ -239,7 +434,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         spec: CoachSpec | None,
         mode: str = "takeover",
         region: str = "box",
-        trigger: GrowthTrigger | None = None,
+        trigger: GrowthTrigger | str | None = None,
         nudge_steps: int = 1,
         max_coach_steps: int = 1000,
         reward: str = "agent",
@@ -248,24 +443,17 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         off_after: float | None = None,
         loaded: LoadedModel | None = None,
         seed: int | None = None,
+        view: str = "hidden",
+        cost: float | None = None,
+        handback: float = 1.0,
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(
-            self,
-            spec=spec,
-            mode=mode,
-            region=region,
-            trigger=trigger,
-            nudge_steps=nudge_steps,
-            max_coach_steps=max_coach_steps,
-            reward=reward,
-            probability=probability,
-            width=width,
-            off_after=off_after,
-            loaded=loaded,
-            seed=seed,
-        )
+            self, spec=spec, mode=mode, region=region, trigger=trigger, nudge_steps=nudge_steps,
+            max_coach_steps=max_coach_steps, reward=reward, probability=probability, width=width,
+            off_after=off_after, loaded=loaded, seed=seed, view=view, cost=cost, handback=handback,
+        )  # fmt: skip
         gym.Wrapper.__init__(self, env)
-        _check_options(mode, reward, nudge_steps, max_coach_steps, trigger)
+        _check_options(mode, reward, nudge_steps, max_coach_steps, trigger, view, cost, handback)
         self.coach_spec = spec
         self.mode = mode
         self.nudge_steps = nudge_steps
@@ -274,29 +462,58 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.probability = probability
         self.width = width
         self.off_after = off_after
-        self.trigger = trigger
+        self.view = view
+        self.handback = float(handback)
+        self.predictive = trigger == "predictive"
+        self.trigger = trigger if isinstance(trigger, GrowthTrigger) else None
+        self.cost = 0.0
         self.coach: Coach | None = None
-        self.region: CriticalRegion | None = None
+        self.region: Any = None  # a Region (box, ellipsoid or rescue) with a settable scale
+        self._handback_region: Region | None = None
+        self._predictor: Predictor | None = None
+        self._env_id = spec.env_id if spec is not None else None
         if spec is not None:
-            env_id = env.spec.id if env.spec is not None else None
-            if env_id is not None and env_id != spec.env_id:
-                raise CoachingError(f"the spec is for {spec.env_id}, the env is {env_id}")
-            self.loaded = loaded if loaded is not None else load_model(spec.env_id)
-            card = self.loaded.require_card()
-            names = card.observation_names
-            self.coach = Coach(spec, self.loaded)
-            if trigger is None:
-                self.region = CriticalRegion(spec, names, region)
-            else:
-                self._trigger_index = _index(trigger.variable, names, "growth trigger")
-        self._history: deque[float] = deque(maxlen=(trigger.steps + 1) if trigger else 1)
+            self._set_coach(env, spec, region, loaded, cost)
+        self._history: deque[float] = deque(maxlen=(self.trigger.steps + 1) if self.trigger else 1)
         self.progress = 0.0
         self._rng = np.random.default_rng(seed)
         self._seeded = seed is not None
+        self._rescued: tuple[Any, dict[str, Any]] | None = None
+        self._last_obs: Any = None
         self._reset_counters()
         self.total_agent_steps = 0
         self.total_coach_steps = 0
         self.total_interventions = 0
+        self.total_vetoes = 0
+        self.total_agent_episodes = 0
+        self.total_env_episodes = 0
+        self.total_env_resets = 0
+        self.total_falls = 0
+
+    def _set_coach(self, env: gym.Env, spec: CoachSpec, region: str, loaded: LoadedModel | None,
+                   cost: float | None) -> None:  # fmt: skip
+        env_id = env.spec.id if env.spec is not None else None
+        if env_id is not None and env_id != spec.env_id:
+            raise CoachingError(f"the spec is for {spec.env_id}, the env is {env_id}")
+        self.loaded = loaded if loaded is not None else load_model(spec.env_id)
+        card = self.loaded.require_card()
+        names = card.observation_names
+        self.coach = Coach(spec, self.loaded)
+        if self.trigger is None:
+            self.region = takeover_region(spec, names, region, self.predictive, self.width)
+            self._update_handback()
+        else:
+            self._trigger_index = _index(self.trigger.variable, names, "growth trigger")
+        if self.predictive:
+            self._predictor = Predictor(env, card)
+        if self.view == "terminal" and spec.env_id not in _FAILURE:
+            failure_reward(spec.env_id, 0.0, {})  # raises: the env's failure reward is unknown
+        if self.view == "penalty":
+            self.cost = float(cost) if cost is not None else COST_STEPS * alive_reward(env)
+
+    def _update_handback(self) -> None:
+        if self.region is not None:
+            self._handback_region = self.region if self.handback == 1.0 else self.region.inner(self.handback)
 
     @property
     def coached(self) -> bool:
@@ -307,14 +524,19 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.episode_agent_steps = 0
         self.episode_coach_steps = 0
         self.episode_interventions = 0
+        self.episode_vetoes = 0
         self.episode_agent_return = 0.0
         self.episode_coach_return = 0.0
+        self.episode_paid_return = 0.0
 
     def set_progress(self, progress: float) -> None:
         """Training progress in [0, 1] (fraction of the budget spent), read by the schedules."""
         self.progress = float(min(max(progress, 0.0), 1.0))
         if self.region is not None:
-            self.region.scale = 1.0 if self.width is None else float(self.width(self.progress))
+            scale = 1.0 if self.width is None else float(self.width(self.progress))
+            if scale != self.region.scale:
+                self.region.scale = scale
+                self._update_handback()
 
     def intervention_probability(self) -> float:
         """Probability of intervening when the trigger fires, now."""
@@ -323,19 +545,35 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return 1.0 if self.probability is None else float(self.probability(self.progress))
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
-        """Reset the env and the episode's counters."""
+        """Reset the env and the episode's counters.
+
+        After a ``terminal``-view takeover whose rescue left the env's episode running, the env is
+        not reset: the rescued state starts the agent's next episode (``info["rescued"]``). A
+        reset with a seed or options always resets the env.
+        """
         if seed is not None and not self._seeded:
             self._rng = np.random.default_rng(seed)
             self._seeded = True
-        obs, info = self.env.reset(seed=seed, options=options)
+        rescued, self._rescued = self._rescued, None
+        if rescued is not None and seed is None and options is None:
+            obs, info = rescued
+        else:
+            obs, info = self.env.reset(seed=seed, options=options)
+            self.total_env_resets += 1
         self._reset_counters()
         self._history.clear()
         self._observe(obs)
         return obs, info
 
     def _observe(self, obs: np.ndarray) -> None:
+        self._last_obs = obs
         if self.trigger is not None:
             self._history.append(float(np.asarray(obs)[self._trigger_index]))
+
+    def _coin(self) -> bool:
+        """Whether a trigger that fired leads to an intervention (the probability schedule)."""
+        p = self.intervention_probability()
+        return p >= 1.0 or (p > 0.0 and self._rng.random() < p)
 
     def _triggered(self, obs: np.ndarray) -> bool:
         if self.coach is None:
@@ -343,50 +581,115 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if self.trigger is not None:
             fired = self.trigger.fires(self._history)
         elif self.region is not None:
-            fired = not self.region.inside(obs)
+            fired = not self.region.contains(obs)
         else:  # a coach always has a trigger or a region (see __init__)
             return False
-        if not fired:
+        return fired and self._coin()
+
+    def _vetoed(self, action: Any) -> bool:
+        """The predictive trigger: whether ``action`` would leave the region (and the coin says act)."""
+        if self._predictor is None or self.region is None or self.intervention_probability() <= 0.0:
             return False
-        p = self.intervention_probability()
-        return p >= 1.0 or (p > 0.0 and self._rng.random() < p)
+        return not self.region.contains(self._predictor.predict(action)) and self._coin()
+
+    def _coach_run(self, obs: Any) -> _Run:
+        """The coach acts from ``obs``: until hand-back (takeover) or ``nudge_steps``, or the episode ends."""
+        coach = self.coach
+        if coach is None:  # pragma: no cover - only called once a coach intervened
+            raise CoachingError("no coach to take over")
+        coach.reset(obs)
+        limit = self.nudge_steps if self.mode == "nudge" else self.max_coach_steps
+        handback = self._handback_region if self.mode == "takeover" else None
+        steps, total, terminated, truncated = 0, 0.0, False, False
+        first: tuple[Any, float, dict[str, Any]] = (obs, 0.0, {})
+        while steps < limit:
+            obs, r, terminated, truncated, info = self.env.step(coach.act(obs))
+            self._observe(obs)
+            steps += 1
+            total += float(r)
+            if steps == 1:
+                first = (obs, float(r), info)
+            if terminated or truncated:
+                break
+            if handback is not None and handback.contains(obs):
+                break
+        return _Run(obs, steps, total, terminated, truncated, *first)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
-        """One agent step, then the coach's steps if the trigger fired."""
-        obs, reward, terminated, truncated, info = self.env.step(action)
+        """One agent step, then the coach's steps if the trigger fired (or the coach's, if vetoed)."""
+        self._rescued = None  # a step after a terminal-view takeover without a reset: the env went on
+        if self._predictor is not None:
+            if self._vetoed(action):
+                self._predictor.discard()
+                return self._veto()
+            # the action runs on the data its prediction computed (when it was predicted)
+            obs, reward, terminated, truncated, info = self._predictor.execute(self.env.step, action)
+        else:
+            obs, reward, terminated, truncated, info = self.env.step(action)
         self._observe(obs)
         self.episode_agent_steps += 1
         self.total_agent_steps += 1
         self.episode_agent_return += float(reward)
-        coach_steps = 0
-        coach_reward = 0.0
-        coach = self.coach
-        intervened = not (terminated or truncated) and self._triggered(obs)
-        if intervened and coach is not None:  # _triggered is False without a coach
+        if self.predictive or terminated or truncated or not self._triggered(obs):
+            return self._finish(obs, float(reward), terminated, truncated, info, float(reward), None)
+        run = self._coach_run(obs)
+        if self.view == "terminal":
+            paid = failure_reward(str(self._env_id), float(reward), info)
+            return self._terminal(obs, paid, info, float(reward), run, vetoed=False)
+        paid = float(reward) + (run.reward if self.reward_mode == "total" else 0.0)
+        if self.view == "penalty":
+            paid -= self.cost
+        return self._finish(run.obs, paid, run.terminated, run.truncated, info, float(reward), run)
+
+    def _veto(self) -> tuple[Any, float, bool, bool, dict]:
+        """The agent's action is not executed: the coach takes over from the current state."""
+        run = self._coach_run(self._last_obs)
+        self.episode_vetoes += 1
+        self.total_vetoes += 1
+        if self.view == "terminal":
+            paid = failure_reward(str(self._env_id), run.first_reward, run.first_info)
+            return self._terminal(run.first_obs, paid, run.first_info, 0.0, run, vetoed=True)
+        paid = run.reward if self.reward_mode == "total" else run.first_reward
+        if self.view == "penalty":
+            paid -= self.cost
+        ended = (run.terminated, run.truncated)
+        return self._finish(run.obs, paid, *ended, run.first_info, 0.0, run, vetoed=True)
+
+    def _terminal(self, obs: Any, paid: float, info: dict[str, Any], agent_reward: float, run: _Run,
+                  vetoed: bool) -> tuple[Any, float, bool, bool, dict]:  # fmt: skip
+        """End the agent's episode as failed; the rescued state (if the env goes on) starts the next one."""
+        self._rescued = None if run.ended else (run.obs, {"rescued": True})
+        return self._finish(obs, paid, True, False, info, agent_reward, run, vetoed=vetoed,
+                            env_end=run.ended, fell=run.terminated)  # fmt: skip
+
+    def _finish(
+        self, obs: Any, paid: float, terminated: bool, truncated: bool, info: dict[str, Any],
+        agent_reward: float, run: _Run | None, vetoed: bool = False, env_end: bool | None = None,
+        fell: bool | None = None,
+    ) -> tuple[Any, float, bool, bool, dict]:  # fmt: skip
+        """Keep the accounts of one agent step and report them in ``info``."""
+        coach_steps, coach_reward = (run.steps, run.reward) if run is not None else (0, 0.0)
+        if run is not None:
             self.episode_interventions += 1
             self.total_interventions += 1
-            coach.reset(obs)
-            limit = self.nudge_steps if self.mode == "nudge" else self.max_coach_steps
-            while coach_steps < limit:
-                obs, r, terminated, truncated, _ = self.env.step(coach.act(obs))
-                self._observe(obs)
-                coach_steps += 1
-                coach_reward += float(r)
-                if terminated or truncated:
-                    break
-                if self.mode == "takeover" and self.region is not None and self.region.inside(obs):
-                    break
         self.episode_coach_steps += coach_steps
         self.total_coach_steps += coach_steps
         self.episode_coach_return += coach_reward
+        self.episode_paid_return += paid
+        env_end = bool(terminated or truncated) if env_end is None else env_end
+        fell = bool(terminated) if fell is None else fell
+        self.total_falls += int(fell)
         info = dict(info)
         # per step, and the episode so far (deterministic given the reset); lifetime totals are
-        # attributes: total_agent_steps, total_coach_steps, total_interventions
+        # attributes: total_agent_steps, total_coach_steps, total_interventions, ...
         info.update({
-            "agent_reward": float(reward),
+            "agent_reward": agent_reward,
             "coach_reward": coach_reward,
             "coach_steps": coach_steps,
-            "intervened": bool(intervened),
+            "intervened": run is not None,
+            "vetoed": vetoed,
+            "env_ended": env_end,
+            "fell": fell,
             "episode_agent_steps": self.episode_agent_steps,
             "episode_coach_steps": self.episode_coach_steps,
             "episode_env_steps": self.episode_agent_steps + self.episode_coach_steps,
@@ -395,15 +698,24 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             "episode_total_return": self.episode_agent_return + self.episode_coach_return,
         })  # fmt: skip
         if terminated or truncated:
-            info["coaching_episode"] = {
-                "agent_steps": self.episode_agent_steps,
-                "coach_steps": self.episode_coach_steps,
-                "env_steps": self.episode_agent_steps + self.episode_coach_steps,
-                "interventions": self.episode_interventions,
-                "agent_return": self.episode_agent_return,
-                "coach_return": self.episode_coach_return,
-                "total_return": self.episode_agent_return + self.episode_coach_return,
-                "terminated": bool(terminated),
-            }
-        out_reward = float(reward) + (coach_reward if self.reward_mode == "total" else 0.0)
-        return obs, out_reward, terminated, truncated, info
+            info["coaching_episode"] = self._episode_record(terminated, env_end, fell)
+        return obs, paid, terminated, truncated, info
+
+    def _episode_record(self, terminated: bool, env_end: bool, fell: bool) -> dict[str, Any]:
+        """The ended agent episode's summary (``info["coaching_episode"]``)."""
+        self.total_agent_episodes += 1
+        self.total_env_episodes += int(env_end)
+        return {
+            "agent_steps": self.episode_agent_steps,
+            "coach_steps": self.episode_coach_steps,
+            "env_steps": self.episode_agent_steps + self.episode_coach_steps,
+            "interventions": self.episode_interventions,
+            "vetoes": self.episode_vetoes,
+            "agent_return": self.episode_agent_return,
+            "coach_return": self.episode_coach_return,
+            "total_return": self.episode_agent_return + self.episode_coach_return,
+            "paid_return": self.episode_paid_return,
+            "terminated": bool(terminated),
+            "env_end": bool(env_end),
+            "fell": bool(fell),
+        }

@@ -36,14 +36,21 @@ Schema ``pidlab.recipe/1``::
 
     [coaching]                   # used when --coach is a spec; ignored with --coach none
     mode = "takeover"            # takeover | nudge
-    region = "box"               # box | ellipsoid (from the spec's [bounds])
+    region = "box"               # box | ellipsoid | rescue (from the spec's [bounds]); default
+                                 # rescue with trigger = "predictive", else box
+    trigger = "exit"             # exit (leaving the region after the agent's step) | predictive
+                                 # (the agent's action is vetoed when its predicted state leaves
+                                 # the rescue region; takeover only) | a growth-trigger table:
+    # trigger = { variable = "hinge_vel", low = 0.0, high = 0.3, steps = 2 }   # nudge only
+    handback = 1.0               # the coach hands back inside region.inner(handback), in (0, 1]
+    view = "hidden"              # what the agent sees of a takeover: hidden | penalty | terminal
+    cost = 10.0                  # penalty view: a takeover's cost (>= 0; default 10 alive rewards)
     nudge_steps = 1
     max_coach_steps = 1000
-    reward = "agent"             # agent | total
+    reward = "agent"             # agent | total (not with view = "terminal")
     off_after = 1.0              # optional: progress from which the coach never intervenes
     probability = { shape = "linear", start = 1.0, end = 0.0, begin = 0.0, finish = 0.5 }
-    width = 1.0                  # a number (constant) or a schedule table
-    # trigger = { variable = "hinge_vel", low = 0.0, high = 0.3, steps = 2 }   # nudge only
+    width = 1.0                  # a number (constant) or a schedule table (not with region rescue)
 
     [ppo]                        # keyword arguments of stable_baselines3.PPO
     source = "where the values come from"
@@ -90,7 +97,7 @@ from pidlab.controller.rollout import MAX_EPISODES
 from pidlab.data import coach_dir
 from pidlab.errors import PidlabError, RecipeError, ScheduleError
 from pidlab.files import read_toml
-from pidlab.rl.coaching import MODES, REGIONS, REWARDS, GrowthTrigger
+from pidlab.rl.coaching import MODES, REGIONS, REWARDS, TRIGGERS, VIEWS, GrowthTrigger
 from pidlab.rl.schedule import Schedule, parse_schedule, schedule_to_dict
 
 RECIPE_SCHEMA = "pidlab.recipe/1"
@@ -144,7 +151,11 @@ class Evaluation:
 
 @dataclass(frozen=True)
 class Coaching:
-    """How the coach intervenes (see :class:`pidlab.rl.coaching.CoachingWrapper`)."""
+    """How the coach intervenes (see :class:`pidlab.rl.coaching.CoachingWrapper`).
+
+    ``trigger``: ``None`` is the ``exit`` trigger, ``"predictive"`` the predictive one, a
+    :class:`GrowthTrigger` the paper's. ``cost``: ``None`` is the default (10 alive rewards).
+    """
 
     mode: str = "takeover"
     region: str = "box"
@@ -154,7 +165,10 @@ class Coaching:
     probability: Schedule = field(default_factory=lambda: Schedule("constant", 1.0, 1.0))
     width: Schedule = field(default_factory=lambda: Schedule("constant", 1.0, 1.0))
     off_after: float | None = None
-    trigger: GrowthTrigger | None = None
+    trigger: GrowthTrigger | str | None = None
+    view: str = "hidden"
+    cost: float | None = None
+    handback: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -462,14 +476,12 @@ def check_rollout(kwargs: dict[str, Any], n_envs: int, where: str, param: str | 
         fail(batch, f"{where}.batch_size", "an integer >= 2 (or normalize_advantage = false)", RecipeError)
 
 
+_COACHING = {"mode", "region", "nudge_steps", "max_coach_steps", "reward", "probability", "width",
+             "off_after", "trigger", "view", "cost", "handback"}  # fmt: skip
+
+
 def _coaching(data: dict[str, Any], where: str) -> Coaching:
-    c = _table(
-        data,
-        "coaching",
-        where,
-        {"mode", "region", "nudge_steps", "max_coach_steps", "reward", "probability", "width", "off_after",
-         "trigger"},
-    )  # fmt: skip
+    c = _table(data, "coaching", where, _COACHING)
     w = f"{where}.coaching"
     try:
         probability = parse_schedule(c.get("probability", 1.0), f"{w}.probability")
@@ -487,25 +499,73 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
         off_after = _num(c, "off_after", w, low=0.0, high=1.0)
     trigger = _trigger(c, w) if "trigger" in c else None
     mode = _choice(c, "mode", w, MODES, "takeover")
-    if trigger is not None and mode != "nudge":
+    if isinstance(trigger, GrowthTrigger) and mode != "nudge":
         raise RecipeError(
             f"{w}.trigger: a growth trigger needs mode = 'nudge' (takeover is triggered by the region)"
         )
+    region = _region(c, w, trigger, mode, width)
+    reward = _choice(c, "reward", w, REWARDS, "agent")
+    view = _choice(c, "view", w, VIEWS, "hidden")
+    if view == "terminal" and reward == "total":
+        raise RecipeError(
+            f"{w}.reward = 'total' with view = 'terminal': the takeover starts after the agent's episode "
+            "ended, so its rewards are no agent's; use reward = 'agent'"
+        )
     return Coaching(
         mode=mode,
-        region=_choice(c, "region", w, REGIONS, "box"),
+        region=region,
         nudge_steps=_int(c, "nudge_steps", w, 1, low=1, high=10**6),
         max_coach_steps=_int(c, "max_coach_steps", w, 1000, low=1, high=10**9),
-        reward=_choice(c, "reward", w, REWARDS, "agent"),
+        reward=reward,
         probability=probability,
         width=width,
         off_after=off_after,
         trigger=trigger,
+        view=view,
+        cost=_num(c, "cost", w, low=0.0) if "cost" in c else None,
+        handback=_num(c, "handback", w, 1.0, low=0.0, low_open=True, high=1.0),
     )
 
 
-def _trigger(c: dict[str, Any], w: str) -> GrowthTrigger:
-    """``[coaching] trigger``: a variable, a band ``0 <= low <= high`` and ``steps`` in [1, 10000]."""
+def _region(
+    c: dict[str, Any], w: str, trigger: GrowthTrigger | str | None, mode: str, width: Schedule
+) -> str:
+    """``[coaching] region``, checked against the trigger (predictive: rescue) and the width schedule."""
+    predictive = trigger == "predictive"
+    if predictive and mode != "takeover":
+        raise RecipeError(
+            f"{w}.trigger = 'predictive' needs mode = 'takeover' (the coach acts in the agent's place)"
+        )
+    region = _choice(c, "region", w, REGIONS, "rescue" if predictive else "box")
+    if predictive and region != "rescue":
+        raise RecipeError(
+            f"{w}.trigger = 'predictive' tests the spec's rescue region; expected region = 'rescue'"
+        )
+    if region == "rescue" and not (width.start == 1.0 and width.end == 1.0):
+        raise RecipeError(
+            f"{w}.width: a rescue region (a lookup grid) cannot be scaled; "
+            "expected width = 1 with region = 'rescue'"
+        )
+    return region
+
+
+def _trigger(c: dict[str, Any], w: str) -> GrowthTrigger | str | None:
+    """``[coaching] trigger``: ``exit`` (None), ``predictive``, or a growth-trigger table.
+
+    A growth trigger has a variable, a band ``0 <= low <= high`` and ``steps`` in [1, 10000].
+    """
+    value = c["trigger"]
+    if isinstance(value, str):
+        if value not in TRIGGERS:
+            raise RecipeError(
+                f"{w}.trigger = {shown(value)}: expected one of {', '.join(TRIGGERS)}, or a growth-trigger "
+                "table { variable, low, high, steps }"
+            )
+        return None if value == "exit" else value
+    if not isinstance(value, dict):
+        raise RecipeError(
+            f"{w}.trigger = {shown(value)}: expected one of {', '.join(TRIGGERS)}, or a growth-trigger table"
+        )
     t = _table(c, "trigger", w, {"variable", "low", "high", "steps"})
     if not isinstance(t.get("variable"), str) or not t["variable"]:
         raise RecipeError(f"{w}.trigger.variable: expected an observation variable name")
@@ -785,9 +845,19 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
     }
     if c.off_after is not None:
         coaching["off_after"] = c.off_after
-    if c.trigger is not None:
+    if isinstance(c.trigger, GrowthTrigger):
         t = c.trigger
         coaching["trigger"] = {"variable": t.variable, "low": t.low, "high": t.high, "steps": t.steps}
+    elif c.trigger is not None:
+        coaching["trigger"] = c.trigger
+    # written only when they differ from the defaults, so a run's settings (and their digest) read
+    # as before for the recipes that do not use them
+    if c.handback != 1.0:
+        coaching["handback"] = c.handback
+    if c.view != "hidden":
+        coaching["view"] = c.view
+    if c.cost is not None:
+        coaching["cost"] = c.cost
     out: dict[str, Any] = {
         "schema": RECIPE_SCHEMA,
         "env_id": recipe.env_id,
@@ -824,8 +894,8 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
 def check_coaching(value: Any, where: str) -> None:
     """Check fields meant to replace a recipe's ``[coaching]`` fields (a condition's ``coaching``).
 
-    Each field is checked for its type and range as :func:`parse_recipe` checks it; a
-    ``trigger`` without a ``mode`` is checked as for ``mode = "nudge"`` (the recipe may set it).
+    Each field is checked for its type and range as :func:`parse_recipe` checks it; a growth
+    ``trigger`` (a table) without a ``mode`` is checked as for ``mode = "nudge"`` (the recipe may set it).
 
     Raises
     ------
@@ -833,6 +903,6 @@ def check_coaching(value: Any, where: str) -> None:
         Naming ``where.coaching.FIELD``.
     """
     fields = as_table(value, f"{where}.coaching", RecipeError, "a table of [coaching] fields of a recipe")
-    if "trigger" in fields and "mode" not in fields:
+    if isinstance(fields.get("trigger"), dict) and "mode" not in fields:
         fields = {**fields, "mode": "nudge"}
     _coaching({"coaching": fields}, where)

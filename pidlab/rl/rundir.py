@@ -47,7 +47,17 @@ EPISODE_COLUMNS = (
     "total_return",
     "terminated",
     "env_index",
+    "env_end",
+    "fell",
 )
+"""One row per ended *agent* episode. ``terminated``: the agent's episode ended as terminated (a
+fall, or a ``terminal``-view takeover); ``env_end``: the env's episode ended with it (0: a
+``terminal``-view rescue handed the running env to the next agent episode); ``fell``: the env
+terminated (a fall, whoever was acting)."""
+LEGACY_EPISODE_COLUMNS = EPISODE_COLUMNS[:-2]
+"""``episodes.csv`` as pidlab wrote it before agent and env episodes were told apart: every episode
+ended the env's, and ``terminated`` was the env's. Such a log is read with ``env_end = 1`` and
+``fell = terminated`` (a resume rewrites it so)."""
 EVALUATION_COLUMNS = (
     "env_steps_so_far",
     "agent_steps_so_far",
@@ -92,10 +102,18 @@ def _row_problem(row: list[str], columns: tuple[str, ...], index: int) -> str | 
     return None
 
 
+def _upgrade_legacy(rows: list[list[str]]) -> list[list[str]]:
+    """Rows of a legacy ``episodes.csv`` with ``env_end = 1`` and ``fell = terminated`` added."""
+    terminated = LEGACY_EPISODE_COLUMNS.index("terminated")
+    return [[*row, "1", row[terminated]] for row in rows]
+
+
 def check_log(path: Path, columns: tuple[str, ...], keep: int) -> list[list[str]]:
     """The first ``keep`` rows of a run's CSV log, checked: what a checkpoint recorded is there.
 
-    Rows after the first ``keep`` are not read (a row cut by a kill is harmless there).
+    Rows after the first ``keep`` are not read (a row cut by a kill is harmless there). An
+    ``episodes.csv`` with the legacy header (:data:`LEGACY_EPISODE_COLUMNS`) is read and its rows
+    returned in today's columns.
 
     Raises
     ------
@@ -112,22 +130,26 @@ def check_log(path: Path, columns: tuple[str, ...], keep: int) -> list[list[str]
         parsed = list(csv.reader(lines[: keep + 1]))
     except csv.Error as exc:
         raise CheckpointError(f"{path}: damaged ({exc})") from None
-    if not parsed or tuple(parsed[0]) != columns:
+    legacy = columns == EPISODE_COLUMNS and bool(parsed) and tuple(parsed[0]) == LEGACY_EPISODE_COLUMNS
+    written = LEGACY_EPISODE_COLUMNS if legacy else columns
+    if not parsed or tuple(parsed[0]) != written:
         raise CheckpointError(f"{path}: damaged (its first line is not the header {','.join(columns)})")
     rows = parsed[1:]
     for i, row in enumerate(rows):
-        problem = _row_problem(row, columns, i)
+        problem = _row_problem(row, written, i)
         if problem is not None:
             raise CheckpointError(
                 f"{path}: row {i + 1} is damaged ({problem}); the checkpoint recorded {keep}"
             )
     if len(rows) < keep:
         raise CheckpointError(f"{path}: holds {len(rows)} complete rows, the checkpoint recorded {keep}")
-    return rows
+    return _upgrade_legacy(rows) if legacy else rows
 
 
 def truncate_csv(path: Path, columns: tuple[str, ...], keep: int) -> None:
     """Keep the header and the first ``keep`` rows of a run's CSV file (checked; written atomically).
+
+    A legacy ``episodes.csv`` is rewritten in today's columns (see :data:`LEGACY_EPISODE_COLUMNS`).
 
     Raises
     ------
@@ -193,8 +215,11 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 
 
 STATE_KEYS = ("env_steps", "agent_steps", "coach_steps", "interventions", "episodes", "evaluations",
-              "next_evaluation", "next_checkpoint", "resumes", "num_timesteps", "policy_updates")  # fmt: skip
+              "next_evaluation", "next_checkpoint", "resumes", "num_timesteps", "policy_updates",
+              "env_episodes", "env_resets", "falls")  # fmt: skip
 """The counters a checkpoint's ``state.json`` holds (``pidlab.rl.train.Counters`` and SB3's)."""
+LATER_KEYS = ("policy_updates", "env_episodes", "env_resets", "falls")
+"""Counters that checkpoints written by earlier versions of pidlab lack (the trainer derives them)."""
 
 
 def read_state(checkpoint: Path) -> dict[str, int]:
@@ -213,8 +238,8 @@ def read_state(checkpoint: Path) -> dict[str, int]:
         raise CheckpointError(f"{path}: damaged (not a JSON object)")
     state: dict[str, int] = {}
     for key in STATE_KEYS:
-        if key == "policy_updates" and key not in data:
-            continue  # a checkpoint from before pidlab counted them: the trainer falls back on SB3's count
+        if key in LATER_KEYS and key not in data:
+            continue  # a checkpoint from before pidlab counted them: the trainer derives them
         value = data.get(key, 0)
         if type(value) is not int or value < 0:
             raise CheckpointError(f"{path}: damaged ({key} = {value!r}, expected an integer >= 0)")

@@ -10,7 +10,7 @@ A run directory holds::
     config.toml          the resolved recipe (overrides applied) and which coach
     coach.toml           the coach spec used (absent for --coach none)
     run.json             seed, command, package versions, git SHA, start and resume times
-    episodes.csv         one row per finished training episode
+    episodes.csv         one row per finished agent episode (whether the env's episode ended too, a fall)
     evaluations.csv      one row per agent-alone evaluation (coach off, fixed seeds)
     tb/                  TensorBoard: pidlab's scalars (x = env steps), tb/sb3: SB3's (x = agent steps)
     checkpoints/<env steps>/   the latest two: model.zip, vecnormalize.pkl, replay_buffer.pkl (SAC),
@@ -69,6 +69,7 @@ from pidlab.rl.rundir import (
     is_checkpoint_name,
     load_run_config,
     prepare_run_dir,
+    read_csv_rows,
     read_state,
     record_resume,
     truncate_csv,
@@ -86,7 +87,14 @@ ACTIVATION_CLASSES = {
 
 @dataclass
 class Counters:
-    """Running totals of a training run (what a checkpoint records)."""
+    """Running totals of a training run (what a checkpoint records).
+
+    ``agent_steps`` are the env steps the agent's actions ran (a vetoed action runs none);
+    ``episodes`` are agent episodes, ``env_episodes`` the env's ended episodes (fewer when a
+    ``terminal``-view rescue hands the running env to the next agent episode); ``env_resets``
+    count every real reset of a training env (each env's first of every session included);
+    ``falls`` the env's terminations, whoever was acting.
+    """
 
     env_steps: int = 0
     agent_steps: int = 0
@@ -98,6 +106,9 @@ class Counters:
     next_checkpoint: int = 0
     resumes: int = 0
     policy_updates: int = 0
+    env_episodes: int = 0
+    env_resets: int = 0
+    falls: int = 0
 
     def to_dict(self) -> dict[str, int]:
         """Plain dict for JSON."""
@@ -112,11 +123,14 @@ class TrainResult:
     ----------
     run_dir : Path
     env_steps, agent_steps, coach_steps, interventions, episodes : int
+        ``episodes``: agent episodes.
     completed : bool
         The budget was spent (False: stopped by a signal, resumable).
     final_evaluation : AgentEvaluation or None
     wall_s : float
         Seconds spent in this call.
+    env_episodes, env_resets, falls : int
+        Ended env episodes, real env resets, terminations of the env (see :class:`Counters`).
     """
 
     run_dir: Path
@@ -128,6 +142,9 @@ class TrainResult:
     completed: bool
     final_evaluation: AgentEvaluation | None
     wall_s: float
+    env_episodes: int = 0
+    env_resets: int = 0
+    falls: int = 0
 
 
 @dataclass(frozen=True)
@@ -156,6 +173,9 @@ class EnvFactory:
             probability=c.probability,
             width=c.width,
             off_after=c.off_after,
+            view=c.view,
+            cost=c.cost,
+            handback=c.handback,
         )
         return Monitor(wrapped)
 
@@ -465,6 +485,8 @@ class _Trainer:
 
     # -- SB3 hooks
     def on_start(self) -> None:
+        # SB3 resets every training env when learning starts (a new run, or new envs on resume)
+        self.counters.env_resets += self.recipe.n_envs
         if self.counters.evaluations == 0:
             self.evaluate()
         self._set_progress(force=True)
@@ -474,10 +496,15 @@ class _Trainer:
         c = self.counters
         for i, info in enumerate(infos):
             coach_steps = int(info.get("coach_steps", 0))
-            c.agent_steps += 1
+            agent = 0 if info.get("vetoed", False) else 1  # a vetoed action ran no env step
+            c.agent_steps += agent
             c.coach_steps += coach_steps
-            c.env_steps += 1 + coach_steps
+            c.env_steps += agent + coach_steps
             c.interventions += int(bool(info.get("intervened", False)))
+            c.falls += int(bool(info.get("fell", False)))
+            if info.get("env_ended", False):  # the VecEnv resets this env at once, for real
+                c.env_episodes += 1
+                c.env_resets += 1
             episode = info.get("coaching_episode")
             if episode is not None:
                 self.log_episode(i, episode)
@@ -503,6 +530,8 @@ class _Trainer:
             float(ep["total_return"]),
             bool(ep["terminated"]),
             env_index,
+            bool(ep.get("env_end", True)),
+            bool(ep.get("fell", ep["terminated"])),
         ]
         self.episodes_log.write(row)
         c.episodes += 1
@@ -616,6 +645,7 @@ def _run_summary(trainer: _Trainer, completed: bool, wall_s: float) -> dict[str,
         "completed": completed,
         "budget_env_steps": trainer.recipe.steps,
         **c.to_dict(),
+        "agent_episodes": c.episodes,
         "coach_step_fraction": c.coach_steps / max(c.env_steps, 1),
         "final_evaluation": None
         if ev is None
@@ -812,7 +842,7 @@ def _run(
         write_json(run_dir / "summary.json", _run_summary(trainer, completed, wall))
         return TrainResult(
             run_dir, c.env_steps, c.agent_steps, c.coach_steps, c.interventions, c.episodes, completed,
-            trainer.last_evaluation, wall,
+            trainer.last_evaluation, wall, c.env_episodes, c.env_resets, c.falls,
         )  # fmt: skip
     finally:
         trainer.close()
@@ -857,11 +887,26 @@ def _set_counters(trainer: _Trainer, state: dict[str, int] | None) -> None:
         setattr(c, key, int(state.get(key, 0)))
     if "policy_updates" not in state:
         c.policy_updates = sb3_update_count(trainer.model)
+    if "env_episodes" not in state:
+        _derive_env_counters(trainer, state)
     c.resumes += 1
     trainer.model._last_obs = None  # the envs are new: start fresh episodes
     # a resumed run is reproducible too: its seed depends on where it resumed
     trainer.model.set_random_seed(recipe.seed + 7919 * c.resumes + c.agent_steps)
     trainer.open_logs(purge_env_step=c.env_steps, purge_agent_step=int(state["num_timesteps"]))
+
+
+def _derive_env_counters(trainer: _Trainer, state: dict[str, int]) -> None:
+    """The env counters of a checkpoint written before pidlab kept them, from its ``episodes.csv``.
+
+    Such a run had no ``terminal`` view: every episode ended the env's too, and a terminated one
+    was a fall. Each of its sessions (the first and one per resume) reset every env once.
+    """
+    c = trainer.counters
+    kept = read_csv_rows(trainer.run_dir / "episodes.csv")[: state["episodes"]]
+    c.env_episodes = sum(int(r["env_end"]) for r in kept)
+    c.falls = sum(int(r["fell"]) for r in kept)
+    c.env_resets = c.env_episodes + trainer.recipe.n_envs * (int(state.get("resumes", 0)) + 1)
 
 
 def _learn(trainer: _Trainer, resumed: bool) -> bool:
@@ -913,5 +958,6 @@ def _result_from_summary(run_dir: Path, s: dict[str, Any]) -> TrainResult:
         final = AgentEvaluation(tuple(ev["seeds"]), tuple(ev["returns"]), tuple(ev["lengths"]))
     return TrainResult(
         run_dir, int(s["env_steps"]), int(s["agent_steps"]), int(s["coach_steps"]), int(s["interventions"]),
-        int(s["episodes"]), bool(s["completed"]), final, 0.0,
+        int(s["episodes"]), bool(s["completed"]), final, 0.0, int(s.get("env_episodes", s["episodes"])),
+        int(s.get("env_resets", 0)), int(s.get("falls", 0)),
     )  # fmt: skip
