@@ -265,8 +265,17 @@ Same rollout size per update (`n_steps * n_envs` equal), so the learning updates
 |---|---|---:|---:|
 {chr(10).join(lines_v)}
 """
-    atomic_write_text(args.out, text)
+    atomic_write_text(args.out, text + _kept_section(Path(args.out)))
     print(f"wrote {args.out}")
+
+
+def _kept_section(page: Path) -> str:
+    """The page's predictive-trigger section (benchmarks/predictive_overhead.py writes it), kept as it is."""
+    start, end = "<!-- predictive-overhead: start -->", "<!-- predictive-overhead: end -->"
+    old = page.read_text() if page.exists() else ""
+    if start not in old or end not in old:
+        return ""
+    return "\n" + old[old.index(start) : old.index(end) + len(end)] + "\n"
 
 
 if __name__ == "__main__":

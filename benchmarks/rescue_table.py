@@ -50,7 +50,7 @@ def table() -> str:
     head = (
         "| env | coach preset | lookup grid | guard variables | cells marked | validation: states / "
         "failures | rescuable states (coverage draw) | coverage: rescue region | certified core | "
-        "former takeover box | time (s) |\n|---|---|---|---|---|---|---|---|---|---|---|"
+        "former takeover box | estimate time (s, 2 workers) |\n|---|---|---|---|---|---|---|---|---|---|---|"
     )
     return "\n".join([head, *(row(env) for env in ENVS)])
 
