@@ -304,3 +304,13 @@ def test_an_experiment_whose_predictive_condition_has_no_rescue_region_starts_no
     )  # fmt: skip
     assert code == 2 and not out.exists()
     assert "condition 'bad' on InvertedPendulum-v5" in err and "has no rescue region" in err
+
+
+def test_a_rescue_region_naming_an_unknown_variable_is_refused_with_the_spec(tmp_path: Path) -> None:
+    text = ROOM.read_text()
+    start = text.index("[bounds.rescue]")
+    bad = text[:start] + text[start:].replace('"hinge_pos"', '"hinge_angle"', 1)
+    spec = tmp_path / "bad.toml"
+    spec.write_text(bad)
+    code, err = cli_in_process("analyze", str(spec))
+    assert code == 2 and "'hinge_angle' is not an observation variable of InvertedPendulum-v5" in err

@@ -19,7 +19,9 @@ from pidlab.controller.spec import load_spec
 from pidlab.errors import CoachingError
 from pidlab.lookup import LookupGrid
 from pidlab.plant.model import load_model
-from pidlab.rl.coaching import CoachingWrapper, Predictor, failure_reward
+from pidlab.rl.coaching import CoachingWrapper
+from pidlab.rl.predict import Predictor
+from pidlab.rl.rewards import failure_reward
 from tests.helpers import PAPER_ENVS, TUNING
 
 IP, HOPPER = "InvertedPendulum-v5", "Hopper-v5"

@@ -408,6 +408,8 @@ def bound_variables(spec: CoachSpec) -> list[str]:
         return []
     names = list(spec.bounds.get("ellipsoid", {}).get("variables", []))
     names += [n for n in spec.bounds.get("box", {}) if n not in names]
+    rescue = spec.bounds.get("rescue", {})
+    names += [n for n in (*rescue.get("variables", []), *rescue.get("guard", {})) if n not in names]
     return names
 
 

@@ -36,10 +36,11 @@ recorded.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import itertools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -53,6 +54,7 @@ from pidlab.checks import seed as check_seed
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import RegionError
+from pidlab.linear.linearize import Linearization
 from pidlab.lookup import TRIGGERS, LookupGrid
 from pidlab.parallel import resolve_workers
 from pidlab.plant.card import ModelCard
@@ -60,7 +62,7 @@ from pidlab.plant.model import LoadedModel
 from pidlab.region.bounds import MAX_VERTICES, _action_vertices
 from pidlab.region.shrink import halving_bisect
 from pidlab.region.simulate import SimulationPool, Simulator, horizon_steps
-from pidlab.region.takeover import EllipsoidRegion, region_from_bounds
+from pidlab.region.takeover import EllipsoidRegion, GridRegion, region_from_bounds
 
 Progress = Callable[[str, "float | None"], None]
 
@@ -104,7 +106,7 @@ class RescueSettings:
     guard: dict[str, float] = field(default_factory=dict, compare=False, hash=False)
     trigger: str = "predictive"
     action_fraction: float | None = None
-    probes: int = 3
+    probes: int = 2
     horizon_s: float = 3.0
     validation: int = 2000
     coverage: int = 2000
@@ -418,21 +420,14 @@ def _coverage(est: _Estimate, grid: LookupGrid, spec: CoachSpec, card: ModelCard
     pts = est.rng.uniform(d.lower, d.upper, (n, len(d.grid_vars)))
     ok, obs = est.rescued(np.hstack([pts, est.guard_values(n)]), f"coverage: {n:,} fresh states")
     names = card.observation_names
-    regions: dict[str, Any] = {"rescue": grid}
+    regions: dict[str, Any] = {"rescue": GridRegion(grid, names)}  # the object the wrapper asks
     b = spec.bounds or {}
     if "ellipsoid" in b:
         regions["core"] = EllipsoidRegion(b["ellipsoid"], names, certified=True)
         regions["takeover ellipsoid"] = EllipsoidRegion(b["ellipsoid"], names)
     if "box" in b:
         regions["takeover box"] = region_from_bounds(b, names, "box")
-    col = [names.index(v) for v in d.grid_vars]
-    inside: dict[str, np.ndarray] = {}
-    for name, r in regions.items():
-        if isinstance(r, LookupGrid):
-            k = r.cell_of(obs[:, col])
-            inside[name] = np.array([bool(c[0] >= 0 and r.table[tuple(c)]) for c in k])
-        else:
-            inside[name] = np.array([r.contains(o) for o in obs], dtype=bool)
+    inside = {name: np.array([r.contains(o) for o in obs], dtype=bool) for name, r in regions.items()}
     contained = {k: int(np.sum(v & ok)) for k, v in inside.items()}
     volume = {k: float(np.mean(v)) for k, v in inside.items()}
     return Coverage(n, int(ok.sum()), contained, volume)
@@ -487,6 +482,33 @@ def _check_settings(s: RescueSettings) -> None:
     check_seed(s.seed, "seed", RegionError)
 
 
+@contextlib.contextmanager
+def _estimating(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    settings: RescueSettings,
+    workers: int | None,
+    progress: Progress | None = None,
+) -> Iterator[tuple[_Estimate, Coach, Linearization]]:
+    """The simulations' setting, with its worker pool open: the estimate, the coach and its linearization.
+
+    Draws nothing: the estimate's random stream starts at ``settings.seed`` for its first user.
+    """
+    from pidlab.controller.analysis import analyze_coach
+
+    _check_settings(settings)
+    card = loaded.require_card()
+    coach = Coach(spec, loaded)
+    lin = analyze_coach(coach, loaded).linearization
+    with SimulationPool(spec, loaded, lin, resolve_workers(workers, RegionError)) as pool:
+        est = _Estimate(
+            pool, _domain(settings, card, loaded, pool.sim.y_op), settings, [None],
+            horizon_steps(settings.horizon_s, loaded.control_dt), _core(spec, card),
+            np.random.default_rng(settings.seed), progress or (lambda stage, f: None),
+        )  # fmt: skip
+        yield est, coach, lin
+
+
 def estimate_rescue(
     spec: CoachSpec,
     loaded: LoadedModel,
@@ -518,22 +540,11 @@ def estimate_rescue(
     """
     t0 = time.perf_counter()
     s = settings if settings is not None else default_settings(spec, loaded)
-    _check_settings(s)
-    from pidlab.controller.analysis import analyze_coach
-
-    card = loaded.require_card()
-    coach = Coach(spec, loaded)
-    lin = analyze_coach(coach, loaded).linearization
-    rng = np.random.default_rng(s.seed)
-    vertices = _action_vertices(coach, lin)
-    if len(vertices) > MAX_VERTICES:
-        vertices = vertices[rng.choice(len(vertices), MAX_VERTICES, replace=False)]
-    with SimulationPool(spec, loaded, lin, resolve_workers(workers, RegionError)) as pool:
-        domain = _domain(s, card, loaded, pool.sim.y_op)
-        est = _Estimate(
-            pool, domain, s, [None], horizon_steps(s.horizon_s, loaded.control_dt),
-            _core(spec, card), rng, progress or (lambda stage, f: None),
-        )  # fmt: skip
+    with _estimating(spec, loaded, s, workers, progress) as (est, coach, lin):
+        vertices = _action_vertices(coach, lin)
+        if len(vertices) > MAX_VERTICES:
+            vertices = vertices[est.rng.choice(len(vertices), MAX_VERTICES, replace=False)]
+        domain = est.domain
         guard = {v: (float(lo), float(hi)) for v, lo, hi in zip(*domain.guard_box(), strict=True)}
         blank = LookupGrid(
             domain.grid_vars, tuple(domain.lower), tuple(domain.upper), tuple(s.cells),
@@ -549,7 +560,7 @@ def estimate_rescue(
             raise RegionError(f"{spec.name}: the coach rescues no cell around the operating point")
         grid = replace(blank, table=table, action_fraction=fraction)
         grid, rounds, unmarked = _validate(est, grid, seed_cell)
-        coverage = _coverage(est, grid, spec, card)
+        coverage = _coverage(est, grid, spec, loaded.require_card())
     used = replace(s, action_fraction=fraction if s.trigger == "reactive" else 0.0)
     elapsed = time.perf_counter() - t0
     prov = _provenance(used, (s.validation, rounds, unmarked), coverage, est.simulations, elapsed)
@@ -631,19 +642,10 @@ def rescued_fraction(
     The states come from ``settings.seed`` alone, so every coach is scored on the same ones (the
     predictive reading: no agent step first). The room tuner's objective.
     """
-    from pidlab.controller.analysis import analyze_coach
-
     _check_settings(settings)
     integer(samples, "samples", RegionError, low=1, high=10**6)
-    card = loaded.require_card()
-    lin = analyze_coach(Coach(spec, loaded), loaded).linearization
-    rng = np.random.default_rng(settings.seed)
-    with SimulationPool(spec, loaded, lin, resolve_workers(workers, RegionError)) as pool:
-        domain = _domain(settings, card, loaded, pool.sim.y_op)
-        est = _Estimate(
-            pool, domain, settings, [None], horizon_steps(settings.horizon_s, loaded.control_dt),
-            _core(spec, card), rng, lambda stage, f: None,
-        )  # fmt: skip
-        pts = rng.uniform(domain.lower, domain.upper, (samples, len(domain.grid_vars)))
+    with _estimating(spec, loaded, settings, workers) as (est, _, _):
+        d = est.domain
+        pts = est.rng.uniform(d.lower, d.upper, (samples, len(d.grid_vars)))
         ok, _ = est.rescued(np.hstack([pts, est.guard_values(samples)]), "scoring")
     return float(np.mean(ok))

@@ -48,7 +48,10 @@ class Region(Protocol):
         ...
 
 
-def _indices(names: tuple[str, ...] | list[str], observation_names: tuple[str, ...], where: str) -> list[int]:
+def observation_indices(
+    names: tuple[str, ...] | list[str], observation_names: tuple[str, ...], where: str
+) -> list[int]:
+    """Columns of ``names`` in the observation; :class:`CoachingError` names an unknown one."""
     out = []
     for n in names:
         if n not in observation_names:
@@ -83,7 +86,7 @@ class BoxRegion:
         self.box = {k: (float(v[0]), float(v[1])) for k, v in box.items()}
         self.variables = tuple(self.box)
         self._obs_names = observation_names
-        idx = _indices(self.variables, observation_names, "bounds.box")
+        idx = observation_indices(self.variables, observation_names, "bounds.box")
         lo = np.array([v[0] for v in self.box.values()])
         hi = np.array([v[1] for v in self.box.values()])
         self.center, self.half = 0.5 * (lo + hi), 0.5 * (hi - lo)
@@ -136,7 +139,7 @@ class EllipsoidRegion:
         self.certified = certified
         self.variables = tuple(ellipsoid["variables"])
         self._obs_names = observation_names
-        self.index = np.array(_indices(self.variables, observation_names, "bounds.ellipsoid"))
+        self.index = np.array(observation_indices(self.variables, observation_names, "bounds.ellipsoid"))
         self.center = np.array(ellipsoid["center"], dtype=float)
         self.shape = np.array(ellipsoid["shape"], dtype=float)
         rho = 1.0 if certified else float(ellipsoid["rho"])
@@ -175,13 +178,13 @@ class GridRegion:
         self._depth = grid.depth()
         marked = self._depth > self.min_depth if self.min_depth > 0 else grid.table
         self._flat = [bool(v) for v in np.asarray(marked).ravel()]
-        idx = _indices(grid.variables, observation_names, "bounds.rescue.variables")
+        idx = observation_indices(grid.variables, observation_names, "bounds.rescue.variables")
         strides = np.cumprod((*grid.cells[1:], 1)[::-1])[::-1]
         self._axes = [
             (i, lo, hi, float(n) / (hi - lo), n, int(s))
             for i, lo, hi, n, s in zip(idx, grid.lower, grid.upper, grid.cells, strides, strict=True)
         ]
-        gidx = _indices(tuple(grid.guard), observation_names, "bounds.rescue.guard")
+        gidx = observation_indices(tuple(grid.guard), observation_names, "bounds.rescue.guard")
         self._guard = [(i, lo, hi) for i, (lo, hi) in zip(gidx, grid.guard.values(), strict=True)]
         self.scale = 1.0
 

@@ -28,9 +28,10 @@ What the agent sees of a takeover (``view``)
     the coach step that ran in place of its vetoed action) and the observation after the hand-back.
     ``penalty``: the same, with ``cost`` taken off the transition that triggered the takeover.
     ``terminal``: the agent's episode ends at the trigger as if it had failed (``terminated``,
-    the env's failure reward, :func:`failure_reward`); the coach rescues the real env (inside the
-    same ``step()``) and the next ``reset()`` returns the rescued state instead of resetting, unless
-    the rescue ended the env's episode, or the reset has a seed or options.
+    the env's failure reward, :func:`pidlab.rl.rewards.failure_reward`); the coach rescues the
+    real env (inside the same ``step()``) and the next ``reset()`` returns the rescued state
+    instead of resetting, unless the rescue ended the env's episode, or the reset has a seed or
+    options. The look-ahead of the predictive trigger is :class:`pidlab.rl.predict.Predictor`.
 
 Rewards
     By default the agent is given its own step's reward only; the coach's rewards are reported
@@ -59,16 +60,15 @@ from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
-import mujoco
 import numpy as np
 
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
-from pidlab.plant.card import ModelCard
 from pidlab.plant.model import LoadedModel, load_model
-from pidlab.plant.observation import CompiledCard
-from pidlab.region.takeover import KINDS, GridRegion, Region, region_from_bounds
+from pidlab.region.takeover import KINDS, GridRegion, Region, observation_indices, region_from_bounds
+from pidlab.rl.predict import Predictor
+from pidlab.rl.rewards import alive_reward, check_failure_reward, failure_reward
 
 MODES = ("takeover", "nudge")
 REGIONS = KINDS
@@ -79,83 +79,6 @@ VIEWS = ("hidden", "penalty", "terminal")
 """What the agent sees of a takeover."""
 COST_STEPS = 10.0
 """The default cost of a takeover (``penalty`` view), in steps of the env's alive reward."""
-
-
-def _index(name: str, observation_names: tuple[str, ...], where: str) -> int:
-    if name not in observation_names:
-        raise CoachingError(
-            f"{where}: {name!r} is not an observation variable; valid: {', '.join(observation_names)}"
-        )
-    return observation_names.index(name)
-
-
-# ----------------------------------------------------------------- what the env pays
-
-
-def _hopper_failure(reward: float, info: dict[str, Any]) -> float:
-    # hopper_v5 / walker2d_v5: reward = (forward + is_healthy * healthy_reward) - ctrl_cost
-    return (float(info["reward_forward"]) + 0.0) + float(info["reward_ctrl"])
-
-
-def _idp_failure(reward: float, info: dict[str, Any]) -> float:
-    # inverted_double_pendulum_v5: reward = healthy_reward * int(not terminated) - dist - vel
-    return float(info["distance_penalty"]) + float(info["velocity_penalty"])
-
-
-_FAILURE: dict[str, Callable[[float, dict[str, Any]], float]] = {
-    "InvertedPendulum-v5": lambda reward, info: 0.0,  # reward = int(not terminated)
-    "InvertedDoublePendulum-v5": _idp_failure,
-    "Hopper-v5": _hopper_failure,
-    "Walker2d-v5": _hopper_failure,
-}
-
-
-def failure_reward(env_id: str, reward: float, info: dict[str, Any]) -> float:
-    """What the env would have paid for a step had that step failed (terminated).
-
-    The reward without the alive bonus, from the step's own reward terms, computed as Gymnasium's
-    v5 sources compute a failing step's reward (bit for bit): InvertedPendulum 0;
-    InvertedDoublePendulum ``-distance_penalty - velocity_penalty``; Hopper and Walker2d
-    ``forward_reward - ctrl_cost``.
-
-    Parameters
-    ----------
-    env_id : str
-        One of the four v5 envs with a model card.
-    reward : float
-        The step's reward.
-    info : dict
-        The step's info (its reward terms).
-
-    Raises
-    ------
-    CoachingError
-        An env whose failure reward pidlab does not know.
-    """
-    fn = _FAILURE.get(env_id)
-    if fn is None:
-        raise CoachingError(
-            f"view = 'terminal' needs the failure reward of {env_id}; it is known for {', '.join(_FAILURE)}"
-        )
-    return fn(reward, info)
-
-
-def alive_reward(env: gym.Env) -> float:
-    """The env's reward per surviving step (its ``healthy_reward``; 1 for InvertedPendulum).
-
-    Raises
-    ------
-    CoachingError
-        An env without one (set ``cost`` explicitly).
-    """
-    u = env.unwrapped
-    value = getattr(u, "_healthy_reward", None)
-    if value is None and env.spec is not None and env.spec.id == "InvertedPendulum-v5":
-        value = 1.0
-    if value is None:
-        name = env.spec.id if env.spec is not None else type(u).__name__
-        raise CoachingError(f"{name} has no alive reward to price a takeover in; set cost explicitly")
-    return float(value)
 
 
 # ----------------------------------------------------------------- triggers
@@ -200,97 +123,6 @@ class GrowthTrigger:
             return False
         sign = np.sign(v)
         return bool(sign[-1] != 0 and np.all(sign == sign[-1]) and np.all(np.diff(np.abs(v)) > 0))
-
-
-class Predictor:
-    """The observation one control period ahead, stepped on a copy of the env's MuJoCo data.
-
-    What ``env.step(action)`` would observe, bit for bit: the action goes into ``ctrl`` as
-    Gymnasium's ``MujocoEnv.do_simulation`` puts it, ``frame_skip`` MuJoCo steps follow, and the
-    model card's compiled observation reads the copy. (``do_simulation`` also calls
-    ``mj_rnePostConstraint``, which fills ``cacc`` and ``cfrc_*`` only; no card observes them.)
-    :meth:`execute` then runs the env's step with the predicted data copied in instead of
-    simulating the same control period a second time.
-
-    Parameters
-    ----------
-    env : gymnasium.Env
-        A Gymnasium MuJoCo env (``unwrapped`` has ``model``, ``data``, ``frame_skip``).
-    card : ModelCard
-        The env's model card.
-
-    Raises
-    ------
-    CoachingError
-        ``env`` is not a MuJoCo env.
-    """
-
-    def __init__(self, env: gym.Env, card: ModelCard) -> None:
-        u: Any = env.unwrapped
-        model, data, skip = (getattr(u, k, None) for k in ("model", "data", "frame_skip"))
-        mujoco_env = isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData)
-        if not mujoco_env or not isinstance(skip, int):
-            raise CoachingError("trigger 'predictive' needs a Gymnasium MuJoCo env (model, data, frame_skip)")
-        inner: Any = env
-        while isinstance(inner, gym.Wrapper):  # the prediction needs the action the env will simulate
-            if isinstance(inner, gym.ActionWrapper):
-                raise CoachingError(
-                    f"trigger 'predictive': {type(inner).__name__} changes the agent's action on its way to "
-                    "the env; put it outside the coaching wrapper"
-                )
-            inner = inner.env
-        self._env = u
-        self._model = model
-        self._copy = mujoco.MjData(model)
-        self._frame_skip = skip
-        self._card = CompiledCard(card, model)
-        # Gymnasium's MujocoEnv simulates in _step_mujoco_simulation(ctrl, n_frames); without it
-        # (another env class) the action is simulated again by the env itself
-        self._copy_back = hasattr(type(u), "_step_mujoco_simulation")
-        self._predicted = False
-        self._action: Any = None
-
-    def predict(self, action: Any) -> np.ndarray:
-        """The observation after ``action`` from the env's current state (the env is not touched)."""
-        d = self._copy
-        mujoco.mj_copyData(d, self._model, self._env.data)
-        d.ctrl[:] = action
-        mujoco.mj_step(self._model, d, nstep=self._frame_skip)
-        self._predicted = True
-        self._action = action
-        return self._card.observe(d)
-
-    def discard(self) -> None:
-        """Forget the last prediction (its action was vetoed: the env moves on without it)."""
-        self._predicted = False
-
-    def execute(self, step: Callable[[Any], tuple], action: Any) -> tuple:
-        """``step(action)`` (the env's step) on the data :meth:`predict` computed for ``action``.
-
-        The env's simulation is replaced, for this call, by copying the predicted data in and
-        completing it as ``do_simulation`` does (``mj_rnePostConstraint``): the env's data end up
-        bit for bit as if it had simulated, at the cost of a copy. Anything else (another action,
-        another number of frames) is simulated by the env as usual.
-        """
-        if not (self._copy_back and self._predicted):
-            return step(action)
-        self._env.__dict__["_step_mujoco_simulation"] = self._simulate
-        try:
-            return step(action)
-        finally:
-            del self._env.__dict__["_step_mujoco_simulation"]
-            self._predicted = False
-
-    def _simulate(self, ctrl: Any, n_frames: int) -> None:
-        u, model, d = self._env, self._model, self._copy
-        # the env passes the agent's action down unchanged (gym.make's wrappers do): the same object
-        same = ctrl is self._action or np.array_equal(d.ctrl, ctrl)
-        if not (self._predicted and n_frames == self._frame_skip and same):
-            type(u)._step_mujoco_simulation(u, ctrl, n_frames)
-            return
-        self._predicted = False
-        mujoco.mj_copyData(u.data, model, d)
-        mujoco.mj_rnePostConstraint(model, u.data)
 
 
 ProgressFn = Callable[[float], float]
@@ -503,11 +335,11 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self.region = takeover_region(spec, names, region, self.predictive, self.width)
             self._update_handback()
         else:
-            self._trigger_index = _index(self.trigger.variable, names, "growth trigger")
+            self._trigger_index = observation_indices([self.trigger.variable], names, "growth trigger")[0]
         if self.predictive:
             self._predictor = Predictor(env, card)
-        if self.view == "terminal" and spec.env_id not in _FAILURE:
-            failure_reward(spec.env_id, 0.0, {})  # raises: the env's failure reward is unknown
+        if self.view == "terminal":
+            check_failure_reward(spec.env_id)
         if self.view == "penalty":
             self.cost = float(cost) if cost is not None else COST_STEPS * alive_reward(env)
 
