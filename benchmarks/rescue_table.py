@@ -33,7 +33,7 @@ def row(env: str) -> str:
     grid, p = parse_lookup(t), t["provenance"]
     coach = spec.provenance.get("preset", "?")
     cells = " x ".join(str(c) for c in grid.cells)
-    guard = ", ".join(grid.guard) or "none (at the operating point)"
+    guard = ", ".join(grid.guard) or "none"
     validation = (
         f"{p['validation_samples']:,} / {p['validation_failures']} ({p['validation_rounds']} draw(s))"
     )

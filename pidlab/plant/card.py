@@ -460,7 +460,7 @@ def _parse_rescue(data: dict[str, Any], path: str, names: list[str]) -> RescueDo
     variables = table.get("variables")
     if (
         not isinstance(variables, list)
-        or not 1 <= len(variables) <= 3
+        or not 1 <= len(variables) <= 4
         or not all(v in names for v in variables)
     ):
         raise ModelCardError(f"{w}.variables: {shown(variables)}; expected 1 to 4 observation names")

@@ -9,7 +9,8 @@ saturation and the env's termination rule:
    and its rate — spans a domain about the operating point. The other variables the estimate
    covers (the **guard**, e.g. the cart) are drawn uniformly from a box about the operating
    point; every remaining state variable stays at the operating point.
-2. Each cell is probed at its centre and at random points. A probe is *rescued* when, from it,
+2. Each cell is probed at its vertices (with the guard at each corner of its box) and at random
+   points. A probe is *rescued* when, from it,
    the coach brings it into the spec's **certified core** without a termination on the way: for
    a Lyapunov-certified coach, the trajectory enters the certified level set within the horizon
    (from there on recovery is certified, so the simulation stops); for a coach certified by
@@ -90,7 +91,7 @@ class RescueSettings:
         ``reactive``: the agent step's size as a fraction of the action range (``None``: the full
         range if the coach can handle it, else the largest it can). ``predictive``: unused (0).
     probes : int
-        States simulated per cell (its centre, then random points).
+        Random states simulated per cell after its vertices.
     horizon_s : float
         Simulated time per rescue.
     validation : int
@@ -328,10 +329,9 @@ class _Estimate:
         return self.rng.uniform(self.domain.guard_lo, self.domain.guard_hi, (n, len(self.domain.guard_vars)))
 
 
-def _cell_points(grid: LookupGrid, cells: np.ndarray, rng: np.random.Generator, centre: bool) -> np.ndarray:
-    """One point per row of ``cells`` (cell indices): the centre, or uniform in the cell."""
-    u = np.full(cells.shape, 0.5) if centre else rng.random(cells.shape)
-    return np.array(grid.lower) + (cells + u) * grid.widths
+def _cell_points(grid: LookupGrid, cells: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One point per row of ``cells`` (cell indices), uniform in the cell."""
+    return np.array(grid.lower) + (cells + rng.random(cells.shape)) * grid.widths
 
 
 def _connected(table: np.ndarray, seed_cell: tuple[int, ...]) -> np.ndarray:
@@ -350,32 +350,56 @@ def _guard_corners(domain: _Domain) -> list[np.ndarray | None]:
     return [np.array(c) for c in itertools.islice(corners, 16)]
 
 
+def _cell_slices(cells: tuple[int, ...], offset: tuple[int, ...]) -> tuple[slice, ...]:
+    """The vertices at ``offset`` (0 or 1 per axis) from each cell, as slices of the vertex array."""
+    return tuple(slice(o, o + c) for o, c in zip(offset, cells, strict=True))
+
+
+def _probe_vertices(
+    est: _Estimate, grid: LookupGrid, ok: np.ndarray, corner: np.ndarray | None
+) -> np.ndarray:
+    """``ok`` without the cells of which a vertex (with the guard at ``corner``) is not rescued."""
+    offsets = list(itertools.product((0, 1), repeat=len(grid.cells)))
+    need = np.zeros(tuple(c + 1 for c in grid.cells), dtype=bool)
+    for off in offsets:
+        need[_cell_slices(grid.cells, off)] |= ok
+    idx = np.argwhere(need)
+    pts = np.array(grid.lower) + idx * grid.widths
+    guard = np.tile(corner, (len(idx), 1)) if corner is not None else est.guard_values(len(idx))
+    rescued = np.zeros(need.shape, dtype=bool)
+    rescued[tuple(idx.T)] = est.rescued(np.hstack([pts, guard]), f"probing {len(idx):,} vertices")[0]
+    out = ok.copy()
+    for off in offsets:
+        out &= rescued[_cell_slices(grid.cells, off)]
+    return out
+
+
 def _probe(est: _Estimate, grid: LookupGrid) -> np.ndarray:
     """Mark the cells whose probes are all rescued.
 
-    Probes: the cell's centre with the guard at each corner of its box (where the cart is far
-    out and moving further), then ``probes`` random points with random guard values. A cell is
-    dropped at its first failed probe.
+    Probes: every vertex of the cell with the guard at each corner of its box (where the cart is
+    far out and moving further; a vertex is shared by up to ``2**k`` cells and simulated once per
+    corner), then ``probes`` random points in the cell with random guard values. A cell is dropped
+    at its first failed probe.
     """
+    ok = np.ones(grid.cells, dtype=bool)
+    for corner in _guard_corners(est.domain):
+        ok = _probe_vertices(est, grid, ok, corner)
     cells = np.argwhere(np.ones(grid.cells, dtype=bool))
-    ok = np.ones(len(cells), dtype=bool)
-    corners = _guard_corners(est.domain)
-    rounds = len(corners) + est.settings.probes
-    for p in range(rounds):
-        live = np.flatnonzero(ok)
-        corner = corners[p] if p < len(corners) else None
-        pts = _cell_points(grid, cells[live], est.rng, centre=p < len(corners))
-        guard = np.tile(corner, (len(live), 1)) if corner is not None else est.guard_values(len(live))
-        label = f"probing {len(live):,} cells ({p + 1}/{rounds})"
-        ok[live] = est.rescued(np.hstack([pts, guard]), label)[0]
-    return ok.reshape(grid.cells)
+    flat = ok.reshape(-1)
+    for p in range(est.settings.probes):
+        live = np.flatnonzero(flat)
+        pts = _cell_points(grid, cells[live], est.rng)
+        label = f"probing {len(live):,} cells ({p + 1}/{est.settings.probes})"
+        flat[live] = est.rescued(np.hstack([pts, est.guard_values(len(live))]), label)[0]
+    return flat.reshape(grid.cells)
 
 
 def _draw_inside(grid: LookupGrid, est: _Estimate, n: int) -> tuple[np.ndarray, np.ndarray]:
     """``n`` states uniform in the region: (their cells, grid then guard values)."""
     marked = np.argwhere(grid.table)
     cells = marked[est.rng.integers(0, len(marked), n)]
-    pts = _cell_points(grid, cells, est.rng, centre=False)
+    pts = _cell_points(grid, cells, est.rng)
     return cells, np.hstack([pts, est.guard_values(n)])
 
 
@@ -444,7 +468,7 @@ def _choose_fraction(
     est: _Estimate, grid: LookupGrid, vertices: np.ndarray, seed_cell: tuple[int, ...]
 ) -> float:
     """The full range if the coach rescues the operating point's cell after it, else the largest fraction."""
-    centre = _cell_points(grid, np.array([seed_cell]), est.rng, centre=True)
+    centre = np.array(grid.lower) + (np.array([seed_cell]) + 0.5) * grid.widths
     guard = np.array([(est.domain.guard_lo + est.domain.guard_hi) / 2])
 
     def handled(f: float) -> bool:
