@@ -80,6 +80,7 @@ if TYPE_CHECKING:
     from pidlab.plant.model import LoadedModel
     from pidlab.region.bounds import CriticalBounds
     from pidlab.region.roa import RegionOfAttraction
+    from pidlab.report.pipeline import Evidence
 
 PIPELINE_SCHEMA = "pidlab.pipeline/1"
 STAGES = ("linearize", "tune", "analyze", "bounds", "train", "report")
@@ -119,13 +120,15 @@ def settings_for(
     preset: str | None = None,
     roa_samples: int | None = None,
     episodes: int | None = None,
+    condition: str | None = None,
 ) -> PipelineSettings:
     """The env's pipeline settings (its recipe's ``[pipeline]`` table) with overrides applied.
 
     Raises
     ------
     PipelineError
-        An env without a recipe, or an override out of range.
+        An env without a recipe, an override out of range, or a condition that
+        ``coach/conditions.toml`` does not define.
     RecipeError
         A malformed recipe.
     """
@@ -145,8 +148,37 @@ def settings_for(
     if preset is not None and preset not in PRESETS:
         raise PipelineError(f"preset={preset!r}: expected one of {', '.join(PRESETS)}", param="preset")
     given: dict[str, Any] = {"seeds": seeds, "steps": steps, "preset": preset, "roa_samples": roa_samples,
-                             "episodes": episodes}  # fmt: skip
-    return replace(base, **{k: v for k, v in given.items() if v is not None})
+                             "episodes": episodes, "condition": condition}  # fmt: skip
+    settings = replace(base, **{k: v for k, v in given.items() if v is not None})
+    coaching_of(env_id, settings)
+    return settings
+
+
+def coaching_of(env_id: str, settings: PipelineSettings) -> tuple[dict[str, Any], str]:
+    """The ``coaching`` fields and description of the settings' condition on ``env_id``.
+
+    The pipeline trains its own coach with them (the condition's coach and bounds do not apply).
+
+    Raises
+    ------
+    PipelineError
+        The condition is not in ``coach/conditions.toml``, or trains no coach.
+    """
+    from pidlab.experiment.conditions import conditions_path, load_conditions
+
+    known = load_conditions()
+    name = settings.condition
+    if name not in known:
+        raise PipelineError(
+            f"condition={name!r}: not a condition of {conditions_path()}; expected one of {', '.join(known)}",
+            param="condition",
+        )
+    c = known[name]
+    if c.for_env(env_id).coach == "none":
+        raise PipelineError(
+            f"condition={name!r}: trains no coach; expected a coached condition", param="condition"
+        )
+    return dict(c.for_env(env_id).coaching), c.description
 
 
 def _identity(env_id: str, settings: PipelineSettings) -> dict[str, Any]:
@@ -210,7 +242,9 @@ def _stage(
     say(f"[{index}/{len(STAGES)}] {name}: {seconds:.1f} s")
 
 
-def _write_conditions(out: Path, coach_file: Path) -> Path:
+def _write_conditions(
+    out: Path, coach_file: Path, coaching: dict[str, Any], condition: str, about: str
+) -> Path:
     import tomli_w
 
     table = {
@@ -218,10 +252,11 @@ def _write_conditions(out: Path, coach_file: Path) -> Path:
         "condition": {
             "none": {"description": "No coach: the recipe's agent alone (the baseline).", "coach": "none"},
             "coached": {
-                "description": "The coach auto-tuned by this pipeline, with the critical-state bounds "
-                "derived from its certified region of attraction, intervening as the recipe's [coaching] "
-                "table says; coach steps hidden from the agent.",
+                "description": "The coach auto-tuned by this pipeline (coach.toml), with the regions "
+                f"derived from it, intervening as the condition {condition!r} of coach/conditions.toml "
+                f"says: {about}",
                 "coach": str(coach_file.resolve()),
+                "coaching": coaching,
             },
         },
     }
@@ -240,6 +275,7 @@ class _Session:
     progress_bar: bool
     say: Callable[[str], None]
     stages: list[StageRecord]
+    workers: int | None = None
 
     def stage(self, name: str, done_before: bool = False) -> AbstractContextManager[None]:
         """Time stage ``name`` (or say it was done before) and record it."""
@@ -354,7 +390,12 @@ def _tune(s: _Session, lin: Linearization) -> tuple[CoachSpec, dict[str, Any], P
                 def tick(n: int) -> None:
                     bar.update(n - bar.n)
 
-                result = tune(s.loaded, preset=s.settings.preset, lin=lin, progress=tick)
+                if s.settings.preset == "room":
+                    from pidlab.region.room import tune_for_room
+
+                    result = tune_for_room(s.loaded, lin=lin, workers=s.workers, progress=tick)
+                else:
+                    result = tune(s.loaded, preset=s.settings.preset, lin=lin, progress=tick)
             write_json(tune_json, tune_summary(result))
             save_spec(result.spec, tuned_path)
     return load_spec(tuned_path), read_json(tune_json), tuned_path
@@ -420,12 +461,39 @@ def _region(
     return region, kept, crit
 
 
+def _rescue(
+    s: _Session, spec: CoachSpec, units: dict[str, str], png: Path
+) -> tuple[CoachSpec, dict[str, Any]]:
+    """The coach with its rescue region as takeover region, the region's facts, and its figure."""
+    from tqdm.auto import tqdm
+
+    from pidlab.files import save_figure
+    from pidlab.region.rescue import default_settings, estimate_rescue, with_rescue
+    from pidlab.report.pipeline import rescue_summary
+    from pidlab.report.plots import plot_rescue_region
+
+    with tqdm(total=100, desc="rescue region", unit="%", disable=not s.progress_bar) as bar:
+
+        def progress(stage: str, fraction: float | None) -> None:
+            bar.set_description_str(f"rescue region: {stage}"[:60])
+            bar.n = int(100 * (fraction or 0.0))
+            bar.refresh()
+
+        region = estimate_rescue(spec, s.loaded, default_settings(spec, s.loaded), s.workers, progress)
+    coached = with_rescue(spec, region)
+    title = f"{spec.env_id} / {spec.name}"
+    save_figure(plot_rescue_region(region.grid, coached.bounds, units, title), png)
+    return coached, rescue_summary(region)
+
+
 def _bounds(
-    s: _Session, spec: CoachSpec, units: dict[str, str]
+    s: _Session, spec: CoachSpec, units: dict[str, str], region_kind: str
 ) -> tuple[CoachSpec, dict[str, Any], Path, Path]:
     """Stage 4: the coach with its bounds, the region's facts, the coach's file and the region figure.
 
-    Redone when the tuned coach changed since (``roa.json`` records the spec it was derived for).
+    With ``region_kind == "rescue"`` the coach's rescue region (:mod:`pidlab.region.rescue`) is
+    estimated after its certified core and becomes its takeover region (figure ``rescue.png``).
+    Redone when the tuned coach or the region kind changed since (``roa.json`` records both).
     """
     from pidlab.controller.spec import load_spec, save_spec
     from pidlab.files import save_figure
@@ -435,22 +503,31 @@ def _bounds(
     from pidlab.rl.rundir import spec_digest
 
     coach_path, roa_json = s.folder / "coach.toml", s.folder / "roa.json"
-    roa_png = s.folder / "figures" / "roa.png"
+    roa_png, rescue_png = s.folder / "figures" / "roa.png", s.folder / "figures" / "rescue.png"
     lp0 = spec.loops[0]
     pair = (lp0.signal, lp0.rate_signal or lp0.signal)
     tuned_digest = spec_digest(spec)
+    rescue = region_kind == "rescue"
     done = (
         coach_path.exists()
         and roa_png.exists()
         and roa_json.exists()
         and read_json(roa_json).get("tuned_sha256") == tuned_digest
+        and ("rescue" in read_json(roa_json)) == rescue
+        and (rescue_png.exists() or not rescue)
     )
     with s.stage("bounds", done):
         if not done:
             region, kept, crit = _region(s, spec, pair)
             save_figure(plot_roa_slice(region, pair, kept, units, bounds=crit), roa_png)
-            write_json(roa_json, {**roa_summary(region, crit, pair), "tuned_sha256": tuned_digest})
-            save_spec(with_bounds(spec, crit), coach_path)
+            coached, facts = (
+                with_bounds(spec, crit),
+                {**roa_summary(region, crit, pair), "tuned_sha256": tuned_digest},
+            )
+            if rescue:
+                coached, facts["rescue"] = _rescue(s, coached, units, rescue_png)
+            save_spec(coached, coach_path)
+            write_json(roa_json, facts)
     return load_spec(coach_path), read_json(roa_json), coach_path, roa_png
 
 
@@ -460,7 +537,8 @@ def _train(
     """Stage 5: train with and without the coach (a resumable sweep in ``experiment/``)."""
     from pidlab.experiment.sweep import plan, run_sweep
 
-    conditions = _write_conditions(s.folder, coach_path)
+    coaching, about = coaching_of(s.env_id, s.settings)
+    conditions = _write_conditions(s.folder, coach_path, coaching, s.settings.condition, about)
     sweep_plan = plan(
         [s.env_id], list(CONDITIONS), list(range(s.settings.seeds)), s.folder / "experiment",
         conditions_file=conditions, steps=s.settings.steps,
@@ -487,6 +565,29 @@ class _Made:
     units: dict[str, str]
 
 
+def published_evidence(env_id: str, condition: str) -> Evidence | None:
+    """The published experiment that compares ``condition`` with ``none`` on ``env_id``.
+
+    Read from ``docs/results/*/summary.csv`` of a source checkout: the last such folder in name
+    order, else None.
+    """
+    import csv
+
+    from pidlab.report.pipeline import EVIDENCE_METRICS, Evidence
+
+    root = source_root()
+    if root is None:
+        return None
+    found = None
+    for path in sorted((root / "docs" / "results").glob("*/summary.csv")):
+        with open(path, newline="") as f:
+            rows = {(r["condition"], r["metric"]): r for r in csv.DictReader(f) if r.get("env") == env_id}
+        if all((c, m) in rows for c in ("none", condition) for m in EVIDENCE_METRICS):
+            kept = {k: v for k, v in rows.items() if k[0] in ("none", condition) and k[1] in EVIDENCE_METRICS}
+            found = Evidence(f"docs/results/{path.parent.name}", kept)
+    return found
+
+
 def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple[Path, Path]:
     """Stage 6: the experiment's own report, the learning curves and the pipeline's report."""
     from pidlab.experiment.analysis import analyze
@@ -510,7 +611,7 @@ def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple
             env_id=env_id,
             settings=s.settings,
             record=read_json(folder / "pipeline.json"),
-            coaching=recipe_to_dict(made.recipe)["coaching"],
+            coaching={**recipe_to_dict(made.recipe)["coaching"], **coaching_of(env_id, s.settings)[0]},
             lti=made.lti,
             control_dt=float(made.lin.control_dt),
             tuning=made.tuning,
@@ -523,6 +624,7 @@ def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple
             figures=tuple(p.relative_to(folder).as_posix() for p in made.figures),
             roa_figure=made.roa_png.relative_to(folder).as_posix(),
             curves_figure=curves.relative_to(folder).as_posix() if curves.exists() else None,
+            evidence=published_evidence(env_id, s.settings.condition),
         )
         text = render_markdown(facts)
         md = atomic_write_text(folder / "report.md", text)
@@ -573,7 +675,11 @@ def run_pipeline(
         folder, old, recipe, loaded = _check(env_id, out, settings, workers)  # again, under the lock
         record = _start(folder, old, env_id, settings, argv, recipe)
         return _stages(
-            _Session(env_id, folder, settings, loaded, progress_bar, say, []), record, recipe, workers, argv
+            _Session(env_id, folder, settings, loaded, progress_bar, say, [], workers),
+            record,
+            recipe,
+            workers,
+            argv,
         )
 
 
@@ -586,7 +692,8 @@ def _stages(
     lin, lti = _linearize(s)
     spec, tuning, tuned_path = _tune(s, lin)
     analysis, figures, score = _analyze(s, spec, tuned_path)
-    coached, roa, coach_path, roa_png = _bounds(s, spec, units)
+    kind = str(coaching_of(s.env_id, s.settings)[0].get("region", recipe.coaching.region))
+    coached, roa, coach_path, roa_png = _bounds(s, spec, units, kind)
     sweep_plan, sweep = _train(s, coach_path, workers, argv)
     failed = sweep.count("failed")
     if sweep.interrupted:

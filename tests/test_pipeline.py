@@ -74,8 +74,8 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     assert f"report: {out / 'report.html'}" in done.stdout
     for name in ("pipeline.json", "linearization.json", "tuned.toml", "tune.json", "coach.toml", "roa.json",
                  "conditions.toml", "report.md", "report.html", "experiment/report.md",
-                 "figures/roa.png", "figures/learning-curves.png", "figures/bode_slide.png",
-                 "figures/responses.png"):  # fmt: skip
+                 "figures/roa.png", "figures/rescue.png", "figures/learning-curves.png",
+                 "figures/bode_slide.png", "figures/responses.png"):  # fmt: skip
         assert (out / name).is_file(), name
 
     # the coach that trained is the tuned one plus the derived bounds, and they are the report's
@@ -85,9 +85,14 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     roa = json.loads((out / "roa.json").read_text())
     assert roa["check"]["samples"] == 40
     assert {k: list(v) for k, v in coached.bounds["box"].items()} == roa["bounds"]["box"]
+    # the recipe's condition (rescue-terminal) takes over outside the coach's validated rescue region
+    assert coached.bounds["takeover"] == "rescue" and roa["rescue"]["validation"]["failures"] == 0
+    assert list(coached.bounds["rescue"]["variables"]) == roa["rescue"]["variables"]
+    assert json.loads((out / "tune.json").read_text())["preset"] == "room"
     runs = out / "experiment" / "runs" / "InvertedPendulum-v5"
     cfg = (runs / "coached" / "seed-0" / "config.toml").read_text()
     assert spec_digest(coached) in cfg
+    assert 'view = "terminal"' in cfg and 'trigger = "predictive"' in cfg
     assert 'name = "none"' in (runs / "none" / "seed-0" / "config.toml").read_text()
     for cond in ("none", "coached"):
         summary = json.loads((runs / cond / "seed-0" / "summary.json").read_text())
@@ -96,7 +101,9 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     report = (out / "report.md").read_text()
     for needle in ("## 1. The linear model", "| loop broken at | gain margin (dB) |", "phase margin (deg)", "rad/s",
                    "## 3. Region of attraction", "40 sampled initial states", "figures/roa.png",
-                   "figures/learning-curves.png", "| none |", "| coached |", "final agent-alone score"):  # fmt: skip
+                   "figures/learning-curves.png", "| none |", "| coached |", "final agent-alone score",
+                   "### Rescue region: the takeover region", "figures/rescue.png", "falls during training",
+                   "condition `rescue-terminal`", "## 5. Why this coaching"):  # fmt: skip
         assert needle in report, needle
     # the numbers are the analysis' own: the margins row of the coach, the one-step fraction
     from pidlab.controller.analysis import analyze_coach, margin_table
@@ -144,7 +151,12 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
         (["NoSuchEnv-v0"], "no recipe"),
         (["InvertedPendulum-v5", "--seeds", "0"], "--seeds 0: expected an integer in [1, 10000]"),
         (["InvertedPendulum-v5", "--steps", "-5"], "--steps -5"),
-        (["InvertedPendulum-v5", "--preset", "strong"], "--preset 'strong': expected one of robust, weak"),
+        (
+            ["InvertedPendulum-v5", "--preset", "strong"],
+            "--preset 'strong': expected one of robust, weak, room",
+        ),
+        (["InvertedPendulum-v5", "--condition", "nope"], "--condition 'nope': not a condition of"),
+        (["InvertedPendulum-v5", "--condition", "none"], "--condition 'none': trains no coach"),
         (["InvertedPendulum-v5", "--workers", "0"], "--workers 0"),
         (["InvertedPendulum-v5", "--samples", "0"], "--samples 0"),
     ],
@@ -176,7 +188,12 @@ def test_recipe_pipeline_table_defaults_and_errors(tmp_path, monkeypatch):
     base = {"schema": "pidlab.recipe/1", "env_id": "X-v0", "steps": 5000, "ppo": {}}
     s = parse_pipeline(base)
     assert (s.seeds, s.steps, s.preset, s.roa_samples, s.episodes) == (3, 5000, "robust", 1000, 10)
-    with pytest.raises(RecipeError, match=r"recipe\.pipeline\.seeds = 0: expected an integer in \[1, 10000\]"):
+    assert s.condition == "pidlab"
+    with pytest.raises(RecipeError, match=r"recipe\.pipeline\.condition"):
+        parse_pipeline({**base, "pipeline": {"condition": "../x"}})
+    with pytest.raises(
+        RecipeError, match=r"recipe\.pipeline\.seeds = 0: expected an integer in \[1, 10000\]"
+    ):
         parse_pipeline({**base, "pipeline": {"seeds": 0}})
     with pytest.raises(RecipeError, match="unknown field"):
         parse_pipeline({**base, "pipeline": {"budget": 3}})
@@ -190,3 +207,29 @@ def test_recipe_pipeline_table_defaults_and_errors(tmp_path, monkeypatch):
     monkeypatch.setenv("PIDLAB_COACH", str(tmp_path))
     code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(tmp_path / "o"))
     assert code == 2 and "pipeline.preset = 'x'" in err
+
+
+def test_the_report_says_why_with_the_published_numbers():
+    import csv
+    from types import SimpleNamespace
+
+    from pidlab.pipeline import published_evidence
+    from pidlab.report.pipeline import evidence_section
+
+    ev = published_evidence("InvertedPendulum-v5", "rescue-terminal")
+    assert ev is not None and ev.folder == "docs/results/InvertedPendulum-v5-rescue"
+    with open(ROOT / ev.folder / "summary.csv", newline="") as f:
+        falls = next(
+            r for r in csv.DictReader(f) if r["condition"] == "rescue-terminal" and r["metric"] == "falls"
+        )
+    assert ev.rows[("rescue-terminal", "falls")] == falls
+    settings = load_pipeline_settings(ROOT / "coach" / "InvertedPendulum-v5.toml")
+    facts = SimpleNamespace(env_id="InvertedPendulum-v5", evidence=ev, settings=settings)  # what it reads
+    text = "\n".join(evidence_section(facts))
+    assert f"[{ev.folder}]({ev.folder})" in text and "| rescue-terminal |" in text and "| none |" in text
+    iqm = float(falls["iqm"])
+    assert f"| rescue-terminal | {iqm:,.1f} [" in text
+    # a condition no published experiment compares with none: said plainly
+    assert published_evidence("InvertedPendulum-v5", "no-such-condition") is None
+    facts.evidence = None
+    assert "No published experiment" in "\n".join(evidence_section(facts))

@@ -148,7 +148,7 @@ def test_overrides_name_the_python_parameter(kwargs, param, message):
 
 
 def test_one_list_of_presets():
-    assert PRESETS == tuple(TUNING_PRESETS) == ("robust", "weak")
+    assert PRESETS == (*TUNING_PRESETS, "room") == ("robust", "weak", "room")
 
 
 # ---------------------------------------------------------------- SB3 arguments (issue 17, item 9)

@@ -1042,7 +1042,15 @@ def run(
         int | None, typer.Option(help="Env steps per training run (default: the recipe's pipeline table).")
     ] = None,
     preset: Annotated[
-        str | None, typer.Option(help="Auto-tuning preset, robust or weak (default: the recipe's).")
+        str | None, typer.Option(help="Auto-tuning preset, robust, weak or room (default: the recipe's).")
+    ] = None,
+    condition: Annotated[
+        str | None,
+        typer.Option(
+            metavar="NAME",
+            help="Condition of coach/conditions.toml whose coaching fields the coached runs use "
+            "(default: the recipe's pipeline table).",
+        ),
     ] = None,
     samples: Annotated[
         int | None,
@@ -1068,7 +1076,13 @@ def run(
     if workers is not None and workers < 1:
         _fail(f"--workers {workers}: expected 1 or more")
     settings = settings_for(
-        env, seeds=seeds, steps=steps, preset=preset, roa_samples=samples, episodes=episodes
+        env,
+        seeds=seeds,
+        steps=steps,
+        preset=preset,
+        roa_samples=samples,
+        episodes=episodes,
+        condition=condition,
     )
     folder = out or f"out/{env}"
     argv = ["pidlab", *sys.argv[1:]]

@@ -604,6 +604,7 @@ def _provenance(
     out: dict[str, Any] = {
         "method": "simulation: lookup grid, every probe rescued, validated on fresh states",
         "horizon_s": float(s.horizon_s),
+        "probing": "every cell vertex at every guard corner, then random points",
         "probes_per_cell": int(s.probes),
         "validation_samples": int(validation),
         "validation_failures": 0,

@@ -50,6 +50,28 @@ class PipelineFacts:
     figures: tuple[str, ...]
     roa_figure: str
     curves_figure: str | None
+    evidence: Evidence | None = None
+
+
+EVIDENCE_METRICS = ("falls", "env_steps_to_target", "final_score")
+"""What the choice of the coached condition rests on: falls during training, env steps until the
+agent alone reaches the target, and its final score."""
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """A published experiment's rows (its ``summary.csv``) for ``none`` and the pipeline's condition.
+
+    Attributes
+    ----------
+    folder : str
+        The experiment's folder, as the report links it.
+    rows : dict
+        ``(condition, metric) -> summary.csv row`` for :data:`EVIDENCE_METRICS`.
+    """
+
+    folder: str
+    rows: dict[tuple[str, str], dict[str, str]]
 
 
 def tune_summary(result: Any) -> dict[str, Any]:
@@ -101,6 +123,25 @@ def roa_summary(region: Any, bounds: Any, pair: tuple[str, str]) -> dict[str, An
     }
 
 
+def rescue_summary(region: Any) -> dict[str, Any]:
+    """A rescue region (:class:`pidlab.region.rescue.RescueRegion`) as JSON: its grid, checks and coverage."""
+    g, cov = region.grid, region.coverage
+    return {
+        "variables": list(g.variables),
+        "lower": [float(v) for v in g.lower],
+        "upper": [float(v) for v in g.upper],
+        "cells": list(g.cells),
+        "guard": {k: [float(lo), float(hi)] for k, (lo, hi) in g.guard.items()},
+        "trigger": g.trigger,
+        "fraction_marked": g.fraction_marked(),
+        "validation": {"samples": region.validation[0], "failures": region.validation[1],
+                       "rounds": region.rounds, "failure_bound_95": region.failure_bound_95},
+        "coverage": {"rescuable": cov.rescuable, "samples": cov.samples,
+                     **{k: cov.fraction(k) for k in cov.contained}},
+        "elapsed_s": region.elapsed_s,
+    }  # fmt: skip
+
+
 def _num(x: float | None, fmt: str = ".4g") -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "-"
@@ -124,7 +165,8 @@ def _header(f: PipelineFacts) -> list[str]:
     settings = (
         f"Settings (the recipe's `[pipeline]` table and the command's overrides): {_count(s.seeds, 'seed')} "
         f"per condition, {s.steps:,} env steps per run, preset {s.preset}, {s.roa_samples} simulated states "
-        f"certifying the region, {_count(s.episodes, 'coach-alone episode')}."
+        f"certifying the region, {_count(s.episodes, 'coach-alone episode')}; coached runs intervene as the "
+        f"condition `{s.condition}` of coach/conditions.toml."
     )
     lines = report_header(
         f"pidlab run: {f.env_id}", f.record, notes=[settings], default_command=f"pidlab run {f.env_id}"
@@ -275,22 +317,72 @@ def _region(f: PipelineFacts) -> list[str]:
     lines += [
         "",
         f"The critical box (this run's coaching rule: mode {f.coaching.get('mode')}, region "
-        f"{f.coaching.get('region')}; with region box the coach takes over when the state leaves it). "
-        "It is the largest box inside the projection of the takeover set on these variables; it does "
+        f"{f.coaching.get('region')}; "
+        + (
+            "the coach takes over when the state leaves this box). "
+            if f.coaching.get("region") == "box"
+            else "not the takeover region of this run). "
+        )
+        + "It is the largest box inside the projection of the takeover set on these variables; it does "
         "not constrain the others, so in the slice below it can reach beyond the drawn ellipse:",
         "",
     ]
     rows = [[k, f.units.get(k, ""), _num(lo), _num(hi)] for k, (lo, hi) in b["box"].items()]
     lines += [markdown_table(["variable", "unit", "low", "high"], rows), ""]
     lines += [f"![Region of attraction, the slice through {' and '.join(r['slice'])}]({f.roa_figure})", ""]
+    if "rescue" in r:
+        lines += _rescue(f, r["rescue"])
     return lines
+
+
+def _rescue(f: PipelineFacts, r: dict[str, Any]) -> list[str]:
+    """The rescue region's paragraph and figure (section 3)."""
+    cov, val = r["coverage"], r["validation"]
+    grid = (
+        " x ".join(str(c) for c in r["cells"])
+        + " cells over "
+        + ", ".join(
+            f"{v} {_num(lo)}..{_num(hi)} {f.units.get(v, '')}".rstrip()
+            for v, lo, hi in zip(r["variables"], r["lower"], r["upper"], strict=True)
+        )
+    )
+    guard = "; guard " + ", ".join(f"{k} {_num(lo)}..{_num(hi)}" for k, (lo, hi) in r["guard"].items())
+    return [
+        "### Rescue region: the takeover region",
+        "",
+        "This run's coach takes over outside its **rescue region** "
+        f"(`pidlab rescue`, {r['trigger']} trigger): the states from which the coach brings the system "
+        "into its certified core without a termination, "
+        f"found by simulation in MuJoCo on a lookup grid ({grid}{guard if r['guard'] else ''}); "
+        f"{100 * r['fraction_marked']:.1f} % of the cells are marked. Validation: {val['samples']:,} fresh "
+        f"states drawn inside it, {val['failures']} failed (after {_count(val['rounds'], 'draw')}; failure "
+        f"rate below {100 * val['failure_bound_95']:.2g} % at 95 % confidence). Coverage: of "
+        f"{cov['samples']:,} fresh states over the grid's domain, {cov['rescuable']:,} are rescuable; the "
+        f"rescue region holds {100 * cov['rescue']:.1f} % of them, the certified core "
+        f"{100 * cov.get('core', float('nan')):.1f} %, the critical box "
+        f"{100 * cov.get('takeover box', float('nan')):.1f} %.",
+        "",
+        "![The rescue region, the certified core and the box](figures/rescue.png)",
+        "",
+    ]
 
 
 def _training(f: PipelineFacts) -> list[str]:
     a = f.results
     env = f.env_id
     budget = a.budgets.get(env, f.settings.steps)
-    rule = f"mode {f.coaching.get('mode')}, region {f.coaching.get('region')}"
+    c = f.coaching
+    rule = f"mode {c.get('mode')}, region {c.get('region')}"
+    if c.get("region") == "rescue":
+        rule += f", trigger {c.get('trigger', 'exit')}, hand-back {c.get('handback', 1.0)}"
+    view = c.get("view", "hidden")
+    seen = {
+        "hidden": "its steps are hidden from the agent",
+        "penalty": "its steps are hidden from the agent, and the agent's transition that triggered it pays "
+        f"a cost of {c.get('cost', 'ten alive rewards')}",
+        "terminal": "a takeover ends the agent's episode as a failure; the env runs on under the coach "
+        "and the agent's next episode starts from the rescued state",
+    }.get(view, view)
     recipe = f.record.get("recipe", f"coach/{env}.toml")
     lines = [
         "## 4. Training with and without the coach",
@@ -298,8 +390,8 @@ def _training(f: PipelineFacts) -> list[str]:
         f"The recipe's agent ({recipe}), {_count(f.settings.seeds, 'seed')} per condition, "
         f"{budget:,} env steps per run (agent and coach steps both count; "
         f"{budget_share(a, env) or 'no shipped recipe'}). "
-        "`coached`: the coach above takes over as the recipe's coaching rule says "
-        f"({rule}); its steps are hidden from the agent. "
+        f"`coached`: the coach above intervenes as the condition `{f.settings.condition}` of "
+        f"coach/conditions.toml says ({rule}, view {view}): {seen}. "
         f"Target {a.targets.get(env, 0):g}.",
         "",
     ]
@@ -349,8 +441,8 @@ def agent_alone(a: Analysis, env: str) -> list[str]:
             holm = "-" if c.p_holm is None else p_text(c.p_holm)
         rows.append(
             [cond, cell_metric(cell, "final_score"), per_seed, cell_metric(cell, "env_steps_to_target"),
-             cell_metric(cell, "intervention_rate"), f"{cell.coach_dependent}/{len(cell.runs)}", p, exact,
-             holm]
+             cell_metric(cell, "intervention_rate"), cell_metric(cell, "falls"),
+             f"{cell.coach_dependent}/{len(cell.runs)}", p, exact, holm]
         )  # fmt: skip
     lines += [
         markdown_table(
@@ -360,6 +452,7 @@ def agent_alone(a: Analysis, env: str) -> list[str]:
                 "per seed",
                 "env steps to target, reached and kept (agent alone)",
                 "coach's share of env steps",
+                "falls during training",
                 "coach-dependent",
                 "P(higher final score)",
                 "exact p",
@@ -376,7 +469,75 @@ def agent_alone(a: Analysis, env: str) -> list[str]:
     return lines
 
 
+def _estimate(row: dict[str, str] | None) -> str:
+    """A summary.csv row as ``IQM [low, high] (reached/runs)``."""
+    if row is None:
+        return "-"
+    if not row["iqm"]:
+        return f"not reached ({row['reached']}/{row['runs']})"
+    text = f"{float(row['iqm']):,.1f} [{float(row['ci_low']):,.1f}, {float(row['ci_high']):,.1f}]"
+    return text + (f" ({row['reached']}/{row['runs']})" if row["metric"] == "env_steps_to_target" else "")
+
+
+def evidence_section(f: PipelineFacts) -> list[str]:
+    """Why the coached runs intervene as they do: the published experiment behind the choice."""
+    cond = f.settings.condition
+    head = ["## 5. Why this coaching", ""]
+    ev = f.evidence
+    if ev is None:
+        return [
+            *head,
+            f"No published experiment in docs/results compares the condition `{cond}` with `none` on "
+            f"{f.env_id}: the choice is the recipe's, not the evidence's.",
+            "",
+        ]
+    rows = [[c] + [_estimate(ev.rows.get((c, m))) for m in EVIDENCE_METRICS] for c in (BASELINE, cond)]
+    header = ["condition", "falls during training", "env steps to target (agent alone)",
+              "final agent-alone score"]  # fmt: skip
+    return [
+        *head,
+        f"The coached runs intervene as the condition `{cond}` (the recipe's `[pipeline]` table). The "
+        f"published experiment `{ev.folder}` (in pidlab's source tree) measured it against `none` on "
+        f"{f.env_id} (IQM over its seeds with 95 % intervals):",
+        "",
+        markdown_table(header, rows),
+        "",
+        evidence_reading(ev, cond),
+        "",
+    ]
+
+
+def evidence_reading(ev: Evidence, cond: str) -> str:
+    """One plain sentence: what ``cond`` beat ``none`` on there, and what the coach bought."""
+    names = {"falls": "falls during training", "env_steps_to_target": "env steps until the agent alone "
+             "keeps the target", "final_score": "the final agent-alone score"}  # fmt: skip
+
+    def verdict(m: str) -> str:
+        return ev.rows.get((cond, m), {}).get("verdict", "") or "not tested"
+
+    alone = ("env_steps_to_target", "final_score")
+    better = [names[m] for m in alone if verdict(m) == "better"]
+    worse = [names[m] for m in alone if verdict(m) == "worse"]
+    if better:
+        text = f"It beats `none` on {' and '.join(better)}"
+    else:
+        text = "Nothing beats `none` on the agent-alone measures there"
+    text += " (" + "; ".join(f"{names[m]}: {verdict(m)}" for m in alone) + ")"
+    if worse:
+        text += f", and it is worse on {' and '.join(worse)}"
+    falls = ev.rows.get((cond, "falls"))
+    base = ev.rows.get((BASELINE, "falls"))
+    if falls is not None and base is not None and verdict("falls") == "better":
+        text += (
+            f". What the coach buys: fewer falls during training, IQM {float(falls['iqm']):,.1f} against "
+            f"{float(base['iqm']):,.1f} without a coach (Holm p = {p_text(float(falls['p_holm']))})"
+        )
+    else:
+        text += f". Falls during training: {verdict('falls')}"
+    return text + "."
+
+
 def render_markdown(f: PipelineFacts) -> str:
     """The pipeline's report as Markdown."""
-    lines = _header(f) + _linear_model(f) + _coach(f) + _region(f) + _training(f)
+    lines = _header(f) + _linear_model(f) + _coach(f) + _region(f) + _training(f) + evidence_section(f)
     return "\n".join(lines).rstrip() + "\n"

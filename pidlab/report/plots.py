@@ -249,9 +249,13 @@ def _draw_bounds(ax: Axes, bounds: Any, variables: tuple[str, str]) -> None:
 
 
 def _draw_rescue(ax: Axes, grid: Any, label: str) -> None:
-    """The marked cells of a rescue grid in the plane of its first two variables (any cell of the rest)."""
+    """The marked cells of a rescue grid in the plane of its first two variables.
+
+    With more variables: the slice through the cells that hold the domain's centre (the operating
+    point) in the others.
+    """
     table = np.asarray(grid.table)
-    plane = table.reshape(table.shape[0], table.shape[1], -1).any(axis=2) if table.ndim > 2 else table
+    plane = table[(slice(None), slice(None), *(n // 2 for n in table.shape[2:]))] if table.ndim > 2 else table
     if table.ndim == 1:
         plane = table[:, None]
     x = np.linspace(grid.lower[0], grid.upper[0], plane.shape[0] + 1)
@@ -269,7 +273,8 @@ def plot_rescue_region(
     Parameters
     ----------
     grid : pidlab.lookup.LookupGrid
-        The region (with more than two variables: the cells marked for any value of the rest).
+        The region (with more than two variables: its slice through the operating point's cells
+        of the rest).
     bounds : dict, optional
         The spec's ``[bounds]`` table: its certified core (``ellipsoid`` at ``level``), the
         ellipsoid shrunk to ``rho * level`` and the ``box`` are drawn where they span the plane.

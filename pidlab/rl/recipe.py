@@ -580,9 +580,10 @@ def _trigger(c: dict[str, Any], w: str) -> GrowthTrigger | str | None:
 
 _TOP = {"schema", "env_id", "description", "algo", "steps", "n_envs", "vec_env", "seed", "threads",
         "normalize", "win", "evaluation", "checkpoint", "coaching", "pipeline", *ALGOS}  # fmt: skip
-PRESETS = ("robust", "weak")
+PRESETS = ("robust", "weak", "room")
 """Auto-tuning presets a ``[pipeline]`` table may name: those of :mod:`pidlab.controller.autotune`
-(named here so that training does not import the tuner and python-control; a test checks they agree)."""
+and ``room`` (:mod:`pidlab.region.room`, pendulums only). Named here so that training does not import
+the tuner and python-control; a test checks they agree."""
 
 
 @dataclass(frozen=True)
@@ -595,12 +596,16 @@ class PipelineSettings:
         Seeds per condition; the pipeline trains the recipe's agent with and without the coach.
     steps : int
         Budget of each run, env steps (agent + coach).
-    preset : {"robust", "weak"}
+    preset : {"robust", "weak", "room"}
         Auto-tuning preset.
     roa_samples : int
         Simulated initial states in the final certification of the region of attraction.
     episodes : int
         Coach-alone episodes on the real env.
+    condition : str
+        The condition of ``coach/conditions.toml`` whose ``coaching`` fields the coached runs use
+        (with the pipeline's own coach): how the coach intervenes and what the agent sees of it.
+        When its region is ``rescue``, the bounds stage also estimates the coach's rescue region.
     """
 
     seeds: int
@@ -608,9 +613,10 @@ class PipelineSettings:
     preset: str
     roa_samples: int
     episodes: int
+    condition: str = "pidlab"
 
 
-_PIPELINE = {"seeds", "steps", "preset", "roa_samples", "episodes"}
+_PIPELINE = {"seeds", "steps", "preset", "roa_samples", "episodes", "condition"}
 
 
 def parse_pipeline(data: dict[str, Any], where: str = "recipe") -> PipelineSettings:
@@ -634,6 +640,7 @@ def parse_pipeline(data: dict[str, Any], where: str = "recipe") -> PipelineSetti
         preset=_choice(table, "preset", w, PRESETS, "robust"),
         roa_samples=_int(table, "roa_samples", w, 1000, low=1, high=MAX_SAMPLES),
         episodes=_int(table, "episodes", w, 10, low=0, high=MAX_EPISODES),
+        condition=check_name(table.get("condition", "pidlab"), f"{w}.condition", RecipeError),
     )  # fmt: skip
 
 
