@@ -13,8 +13,9 @@ Two tables:
    its own resets, and among the validation's fresh states drawn inside the region.
 2. **Hand-back fraction** (0.25, 0.5, 1.0) for the ``hidden`` and ``terminal`` views with the
    room coach's rescue region and the predictive trigger: a ``pidlab experiment`` of ``--seeds``
-   seeds at ``--steps`` env steps each (results/room-choices-ENV, resumable). Per choice, the
-   median over seeds of: the coach's share of env steps, the agent's average uninterrupted run
+   seeds at ``--steps`` env steps each (results/room-choices-ENV, resumable; its report and runs'
+   logs are copied to docs/results/room-choices-ENV, where benchmarks/recompute.py checks them).
+   Per choice, the median over seeds of: the coach's share of env steps, the agent's average uninterrupted run
    (agent steps per takeover: how long the agent acts before its next vetoed action), the falls
    during training and the agent-alone score at the end.
 """
@@ -24,7 +25,9 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import re
+import shutil
 import statistics
 import subprocess
 import sys
@@ -36,6 +39,7 @@ from pidlab.errors import RegionError
 from pidlab.files import atomic_write_text
 from pidlab.plant.model import load_model
 from pidlab.region.rescue import default_settings, estimate_rescue
+from pidlab.region.takeover import load_region
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "rescue.md"
@@ -97,6 +101,17 @@ def run_choices(env_id: str, seeds: int, steps: int) -> Path:
     return out
 
 
+def publish(out: Path, env_id: str) -> Path:
+    """Copy the experiment's report, tables, record and runs' logs to docs/results/room-choices-ENV."""
+    dst = ROOT / "docs" / "results" / f"room-choices-{env_id}"
+    dst.mkdir(parents=True, exist_ok=True)
+    for name in ("report.md", "report.html", "metrics.csv", "summary.csv", "experiment.json"):
+        shutil.copy2(out / name, dst / name)
+    shutil.copytree(out / "figures", dst / "figures", dirs_exist_ok=True)
+    subprocess.run(["bash", str(ROOT / "benchmarks" / "copy_runs.sh"), str(out), str(dst)], check=True)
+    return dst
+
+
 def choice_rows(out: Path, env_id: str) -> list[str]:
     """One row per hand-back choice: medians over seeds, read from the runs' summaries and metrics."""
     metrics: dict[str, list[dict[str, str]]] = {}
@@ -122,6 +137,18 @@ def choice_rows(out: Path, env_id: str) -> list[str]:
     return rows
 
 
+def depth_note(env_id: str) -> str:
+    """How the hand-back fractions map to the shipped region's cell depths."""
+    region = load_region(load_spec(ROOT / "tuning" / f"{env_id}.pidlab-rescue.toml"))
+    d = region.max_depth
+    picks = ", ".join(f"{h}: depth > {math.floor((1 - h) * d)}" for h in HANDBACKS)
+    return (
+        f"The shipped region's deepest cell lies {d} cells from its edge (chessboard distance), and a "
+        f"hand-back fraction f hands back in the cells deeper than floor((1 - f) {d}) ({picks}); "
+        "fractions that give the same depth are the same rule."
+    )
+
+
 def section(env_id: str, args: argparse.Namespace, presets: list[str], choices: list[str]) -> str:
     """The markdown section."""
     cmd = (f".venv/bin/python benchmarks/room_choices.py --env {env_id} --seeds {args.seeds} "
@@ -136,12 +163,14 @@ def section(env_id: str, args: argparse.Namespace, presets: list[str], choices: 
         *presets,
         "",
         f"Hand-back choices, room coach, predictive trigger: medians over {args.seeds} seeds of "
-        f"{args.steps:,} env steps.",
+        f"{args.steps:,} env steps (the experiment's report and runs: docs/results/room-choices-{env_id}).",
         "",
         "| view | hand-back fraction | coach share of env steps | agent steps per takeover | "
         "falls during training | agent-alone score at the end | runs |",
         "|---|---|---|---|---|---|---|",
         *choices,
+        "",
+        depth_note(env_id),
         END,
     ])  # fmt: skip
 
@@ -154,7 +183,9 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=10)
     args = p.parse_args()
     presets = preset_rows(args.env, args.episodes)
-    choices = choice_rows(run_choices(args.env, args.seeds, args.steps), args.env)
+    out = run_choices(args.env, args.seeds, args.steps)
+    choices = choice_rows(out, args.env)
+    publish(out, args.env)
     text = section(args.env, args, presets, choices)
     print(text)
     doc = DOC.read_text()
