@@ -90,13 +90,12 @@ def conditions_file(path: Path) -> None:
 def run_choices(env_id: str, seeds: int, steps: int) -> Path:
     """Run (or resume) the hand-back experiment; its folder."""
     out = ROOT / "results" / f"room-choices-{env_id}"
-    cond = ROOT / "results" / f"room-choices-{env_id}.conditions.toml"
-    cond.parent.mkdir(parents=True, exist_ok=True)
+    cond = ROOT / "benchmarks" / "room_choices.conditions.toml"  # committed: the command names it
     conditions_file(cond)
     names = ",".join(f"{v}-h{int(h * 100)}" for v in VIEWS for h in HANDBACKS)
     cmd = [str(ROOT / ".venv" / "bin" / "pidlab"), "experiment", "--envs", env_id, "--conditions", names,
-           "--seeds", str(seeds), "--steps", str(steps), "--out", str(out), "--conditions-file", str(cond),
-           "--workers", "2", "--no-progress"]  # fmt: skip
+           "--seeds", str(seeds), "--steps", str(steps), "--out", str(out.relative_to(ROOT)),
+           "--conditions-file", str(cond.relative_to(ROOT)), "--workers", "2", "--no-progress"]  # fmt: skip
     subprocess.run(cmd, check=True, cwd=ROOT)
     return out
 

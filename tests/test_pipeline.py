@@ -201,7 +201,7 @@ def test_recipe_pipeline_table_defaults_and_errors(tmp_path, monkeypatch):
         assert load_pipeline_settings(ROOT / "coach" / f"{env}.toml").seeds >= 1
     # a bad [pipeline] in the recipe of the env asked for: one line, exit 2
     text = (
-        (ROOT / "coach" / "InvertedPendulum-v5.toml").read_text().replace('preset = "robust"', 'preset = "x"')
+        (ROOT / "coach" / "InvertedPendulum-v5.toml").read_text().replace('preset = "room"', 'preset = "x"')
     )
     (tmp_path / "InvertedPendulum-v5.toml").write_text(text)
     monkeypatch.setenv("PIDLAB_COACH", str(tmp_path))
@@ -226,7 +226,7 @@ def test_the_report_says_why_with_the_published_numbers():
     settings = load_pipeline_settings(ROOT / "coach" / "InvertedPendulum-v5.toml")
     facts = SimpleNamespace(env_id="InvertedPendulum-v5", evidence=ev, settings=settings)  # what it reads
     text = "\n".join(evidence_section(facts))
-    assert f"[{ev.folder}]({ev.folder})" in text and "| rescue-terminal |" in text and "| none |" in text
+    assert f"`{ev.folder}`" in text and "| rescue-terminal |" in text and "| none |" in text
     iqm = float(falls["iqm"])
     assert f"| rescue-terminal | {iqm:,.1f} [" in text
     # a condition no published experiment compares with none: said plainly
