@@ -461,6 +461,14 @@ def _region(
     return region, kept, crit
 
 
+def _coached_recipe(s: _Session, recipe: Recipe) -> Recipe:
+    """The recipe as the coached runs train it: its ``[coaching]`` with the settings' condition's fields."""
+    from pidlab.experiment.conditions import with_coaching
+
+    fields = coaching_of(s.env_id, s.settings)[0]
+    return with_coaching(recipe, fields, f"condition {s.settings.condition} on {s.env_id}")
+
+
 def _rescue(
     s: _Session, spec: CoachSpec, units: dict[str, str], png: Path
 ) -> tuple[CoachSpec, dict[str, Any]]:
@@ -508,12 +516,12 @@ def _bounds(
     pair = (lp0.signal, lp0.rate_signal or lp0.signal)
     tuned_digest = spec_digest(spec)
     rescue = region_kind == "rescue"
+    facts = read_json(roa_json) if roa_json.exists() else {}
     done = (
         coach_path.exists()
         and roa_png.exists()
-        and roa_json.exists()
-        and read_json(roa_json).get("tuned_sha256") == tuned_digest
-        and ("rescue" in read_json(roa_json)) == rescue
+        and facts.get("tuned_sha256") == tuned_digest
+        and ("rescue" in facts) == rescue
         and (rescue_png.exists() or not rescue)
     )
     with s.stage("bounds", done):
@@ -611,7 +619,7 @@ def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple
             env_id=env_id,
             settings=s.settings,
             record=read_json(folder / "pipeline.json"),
-            coaching={**recipe_to_dict(made.recipe)["coaching"], **coaching_of(env_id, s.settings)[0]},
+            coaching=recipe_to_dict(_coached_recipe(s, made.recipe))["coaching"],
             lti=made.lti,
             control_dt=float(made.lin.control_dt),
             tuning=made.tuning,
@@ -692,8 +700,7 @@ def _stages(
     lin, lti = _linearize(s)
     spec, tuning, tuned_path = _tune(s, lin)
     analysis, figures, score = _analyze(s, spec, tuned_path)
-    kind = str(coaching_of(s.env_id, s.settings)[0].get("region", recipe.coaching.region))
-    coached, roa, coach_path, roa_png = _bounds(s, spec, units, kind)
+    coached, roa, coach_path, roa_png = _bounds(s, spec, units, _coached_recipe(s, recipe).coaching.region)
     sweep_plan, sweep = _train(s, coach_path, workers, argv)
     failed = sweep.count("failed")
     if sweep.interrupted:

@@ -215,6 +215,29 @@ def spec_path(env_id: str, coach: str) -> Path:
     return path_under(tuning_dir(), f"{env_id}.{coach}.toml", error=ConditionError, param="coach")
 
 
+def with_coaching(recipe: Recipe, fields: dict[str, Any], where: str) -> Recipe:
+    """``recipe`` with ``fields`` replacing its ``[coaching]`` fields, as a condition applies them.
+
+    Raises
+    ------
+    ConditionError
+        Coaching fields a recipe rejects (the message starts with ``where``).
+    """
+    table = recipe_to_dict(recipe)
+    coaching = {**table["coaching"], **fields}
+    if (
+        coaching.get("mode") != "nudge"
+        and isinstance(coaching.get("trigger"), dict)
+        and "trigger" not in fields
+    ):
+        coaching.pop("trigger", None)  # the recipe's growth trigger (nudge only) does not apply
+    table["coaching"] = coaching
+    try:
+        return replace(parse_recipe(table, where), path=recipe.path)
+    except RecipeError as exc:
+        raise ConditionError(str(exc)) from None
+
+
 def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | None, str | None]:
     """The recipe, coach spec and spec source that ``condition`` gives on ``recipe``'s env.
 
@@ -227,19 +250,7 @@ def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | N
     env_id = recipe.env_id
     c = condition.for_env(env_id)
     where = f"condition {condition.name} on {env_id}"
-    table = recipe_to_dict(recipe)
-    coaching = {**table["coaching"], **c.coaching}
-    if (
-        coaching.get("mode") != "nudge"
-        and isinstance(coaching.get("trigger"), dict)
-        and "trigger" not in c.coaching
-    ):
-        coaching.pop("trigger", None)  # the recipe's growth trigger (nudge only) does not apply
-    table["coaching"] = coaching
-    try:
-        resolved = replace(parse_recipe(table, where), path=recipe.path)
-    except RecipeError as exc:
-        raise ConditionError(str(exc)) from None
+    resolved = with_coaching(recipe, c.coaching, where)
     if c.coach == "none":
         return resolved, None, None
     path = spec_path(env_id, c.coach)
