@@ -105,6 +105,20 @@ def test_inner_keeps_only_the_deep_cells() -> None:
         region.inner(0.0)
 
 
+def test_inner_always_holds_the_operating_point_s_cell() -> None:
+    # a 9 x 9 grid, full except a hole next to the centre: the centre cell is 1 deep, the corners'
+    # blocks 2 or more; asking for the deep half must not leave out the operating point
+    table = np.ones((9, 9), dtype=int)
+    table[3, 3] = 0
+    region = GridRegion(_grid(table.tolist()), NAMES)
+    centre = np.array([0, 0.0, 0, 0.0])
+    assert region.centre_depth == 1 and region.max_depth >= 3
+    for fraction in (0.25, 0.5, 1.0):
+        assert region.inner(fraction).contains(centre)
+    # the cap: the centre is only 1 deep, so the hand-back region is the whole region
+    assert region.inner(0.5).contains(np.array([0, -0.19, 0, 0.0]))
+
+
 def test_load_region_gives_the_spec_s_takeover_region() -> None:
     path = TUNING / f"{IP}.pidlab-robust.toml"
     box = load_region(path)

@@ -193,6 +193,13 @@ class GridRegion:
         """The deepest cell's depth."""
         return int(self._depth.max(initial=0))
 
+    @property
+    def centre_depth(self) -> int:
+        """The depth of the cell holding the grid's centre (the operating point; 0 if unmarked)."""
+        g = self.grid
+        centre = (np.array(g.lower) + np.array(g.upper)) / 2.0
+        return int(self._depth[tuple(g.cell_of(centre[None, :])[0])])
+
     def contains(self, obs: np.ndarray) -> bool:
         """Whether ``obs`` lies in the guard box and in a marked cell."""
         for i, lo, hi in self._guard:
@@ -207,9 +214,13 @@ class GridRegion:
         return self._flat[flat]
 
     def inner(self, fraction: float) -> GridRegion:
-        """The cells deeper than ``(1 - fraction)`` of the deepest cell's depth."""
+        """The cells deeper than ``(1 - fraction)`` of the deepest cell's depth.
+
+        The depth asked is capped so that the operating point's own cell stays in: a coach that
+        settles at its operating point always hands back, however thin the region is there.
+        """
         f = _check_fraction(fraction, "hand-back")
-        depth = int(np.floor((1.0 - f) * self.max_depth))
+        depth = min(int(np.floor((1.0 - f) * self.max_depth)), max(self.centre_depth - 1, 0))
         return GridRegion(self.grid, self._obs_names, max(depth, self.min_depth))
 
 
