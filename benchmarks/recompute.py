@@ -119,10 +119,16 @@ def check_readme() -> list[str]:
     import results_table
 
     text = (RESULTS / "README.md").read_text()
-    a, b = text.index(results_table.BEGIN) + len(results_table.BEGIN), text.index(results_table.END)
-    if text[a:b].strip() == results_table.tables().strip():
-        return []
-    return ["docs/results/README.md: its tables differ from benchmarks/results_table.py's; run that script"]
+    problems = []
+    for block in results_table.BLOCKS:
+        if block.begin not in text or block.end not in text:
+            problems.append(f"docs/results/README.md: no {block.begin} ... {block.end} block")
+            continue
+        a, b = text.index(block.begin) + len(block.begin), text.index(block.end)
+        if text[a:b].strip() != results_table.tables(block).strip():
+            problems.append(f"docs/results/README.md: the tables after {block.begin} differ from "
+                            "benchmarks/results_table.py's; run that script")  # fmt: skip
+    return problems
 
 
 def main(argv: list[str]) -> int:

@@ -1,15 +1,19 @@
 """Write the tables of docs/results/README.md from the committed experiment reports.
 
-Reads docs/results/ENV/summary.csv and experiment.json (copied there by benchmarks/experiments.sh)
-and the paper's published numbers from the model cards (models/ENV.toml, ``[paper]``), and replaces
-the text between the markers in docs/results/README.md, so the numbers there are never typed by
-hand. Run: .venv/bin/python benchmarks/results_table.py
+Two blocks, each between its own markers: the evidence at budgets where the uncoached agent reaches
+the target (:data:`EVIDENCE`: the folders benchmarks/evidence.sh publishes, with `none`, `paper` and
+the coached condition chosen for it) and the early-phase results (:data:`EARLY`: the folders
+benchmarks/experiments.sh publishes). Reads each folder's summary.csv and experiment.json and the
+paper's published numbers from the model cards (models/ENV.toml, ``[paper]``), and replaces the text
+between the markers, so the numbers there are never typed by hand.
+Run: .venv/bin/python benchmarks/results_table.py
 """
 
 from __future__ import annotations
 
 import csv
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 from pidlab.experiment.analysis import recipes_of_runs
@@ -32,6 +36,40 @@ BEGIN = "<!-- tables: begin (benchmarks/results_table.py) -->"
 END = "<!-- tables: end -->"
 
 
+@dataclass(frozen=True)
+class Block:
+    """One marked block of tables: which published folders, which conditions, under which headings."""
+
+    begin: str
+    end: str
+    folders: tuple[tuple[str, str], ...]  # (env, folder under docs/results)
+    conditions: tuple[str, ...]
+    headings: tuple[str, str, str]  # Table II, honest measures, how each was run
+    falls: bool  # the honest table shows the falls during training and their comparison
+
+
+EARLY = Block(
+    BEGIN, END, tuple((env, env) for env in ENVS), CONDITIONS,
+    ("The paper's Table II beside ours (training episodes; IQM [95 % CI] (runs that reached it))",
+     "The honest measures", "How each was run"),
+    falls=False,
+)  # fmt: skip
+"""The early-phase sweeps (cut budgets on three envs) with the issue-9 conditions."""
+EVIDENCE = Block(
+    "<!-- evidence: begin (benchmarks/results_table.py) -->", "<!-- evidence: end -->",
+    (("InvertedPendulum-v5", "InvertedPendulum-v5-rescue"),
+     ("InvertedDoublePendulum-v5", "InvertedDoublePendulum-v5-rescue"),
+     ("Hopper-v5", "Hopper-v5-300k"), ("Walker2d-v5", "Walker2d-v5-evidence")),
+    ("none", "paper", "rescue-terminal"),
+    ("Table II at these budgets (training episodes; IQM [95 % CI] (runs that reached it))",
+     "The honest measures at these budgets", "How the evidence was run"),
+    falls=True,
+)  # fmt: skip
+"""The evidence: budgets where the uncoached agent reaches the target; a folder not yet published is
+left out."""
+BLOCKS = (EVIDENCE, EARLY)
+
+
 def _num(text: str) -> float:
     return float(text) if text not in ("", "inf") else math.inf
 
@@ -45,8 +83,8 @@ def _cell(row: dict[str, str] | None, to_target: bool = True) -> str:
     return text
 
 
-def _load(env: str) -> tuple[dict[tuple[str, str], dict[str, str]], dict] | None:
-    folder = RESULTS / env
+def _load(name: str) -> tuple[dict[tuple[str, str], dict[str, str]], dict] | None:
+    folder = RESULTS / name
     if not (folder / "summary.csv").exists():
         return None
     with open(folder / "summary.csv", newline="") as fh:
@@ -65,76 +103,85 @@ def _verdict(row: dict[str, str]) -> str:
     return f"{p}; {tests}; {row['verdict']}"
 
 
-def _table2(env: str, rows: dict[tuple[str, str], dict[str, str]]) -> list[str]:
+def _table2(env: str, rows: dict[tuple[str, str], dict[str, str]], conditions: tuple[str, ...]) -> list[str]:
     paper = paper_numbers(env)
     if paper is None:
         raise SystemExit(f"models/{env}.toml has no [paper] table: the paper's numbers come from there")
     published = published_numbers(env)
     out = []
     for metric, label in PAPER_ROWS:
-        cells = [*published.get(metric, ("", "", "")), *(_cell(rows.get((c, metric))) for c in CONDITIONS)]
+        cells = [*published.get(metric, ("", "", "")), *(_cell(rows.get((c, metric))) for c in conditions)]
         out.append(f"| {env} ({paper.win_target:g}) | {label} | " + " | ".join(cells) + " |")
     return out
 
 
-def _honest(env: str, rows: dict[tuple[str, str], dict[str, str]], share: str) -> list[str]:
+def _honest(env: str, rows: dict[tuple[str, str], dict[str, str]], share: str, block: Block) -> list[str]:
     out = []
-    for c in CONDITIONS:
+    for c in block.conditions:
         if (c, "final_score") not in rows:
             continue
         dep, never = rows[(c, "coach_dependent")], rows[(c, "never_trained")]
-        cells = [env, share, c, _cell(rows[(c, "env_steps_to_target")]),
+        falls = [_cell(rows[(c, "falls")], False)] if block.falls else []
+        cells = [env, share, c, *falls, _cell(rows[(c, "env_steps_to_target")]),
                  _cell(rows[(c, "final_score")], False), f"{dep['iqm']}/{dep['runs']}",
                  f"{never['iqm']}/{never['runs']}",
                  _cell(rows[(c, "intervention_rate")], False), _verdict(rows[(c, "env_steps_to_target")]),
                  _verdict(rows[(c, "final_score")])]  # fmt: skip
-        out.append("| " + " | ".join(cells) + " |")
+        out.append("| " + " | ".join(cells + ([_verdict(rows[(c, "falls")])] if block.falls else [])) + " |")
     return out
 
 
-def _share(env: str, record: dict) -> str:
+def _share(env: str, name: str, record: dict) -> str:
     """The run budget (the recipe its runs recorded) and its share of the shipped recipe's budget."""
-    steps = recipes_of_runs(RESULTS / env, record["identity"])[env].steps
+    steps = recipes_of_runs(RESULTS / name, record["identity"])[env].steps
     full = recipe_budget(env)
     return f"{steps:,} ({100 * steps / full:.3g} % of {full:,})" if full else f"{steps:,}"
 
 
-def tables() -> str:
-    """The Markdown tables."""
+def _honest_head(block: Block) -> list[str]:
+    falls = ["falls during training"] if block.falls else []
+    return ["env", "budget, env steps (share of the recipe's)", "condition", *falls,
+            "env steps to target, reached and kept (agent alone)", "final agent-alone score",
+            "coach-dependent", "never trained", "intervention rate",
+            "fewer env steps to target than none: P [CI]; exact p; verdict",
+            "higher final score than none: P [CI]; exact p; verdict",
+            *(["fewer falls than none: P [CI]; exact p; verdict"] if block.falls else [])]  # fmt: skip
+
+
+def tables(block: Block = EARLY) -> str:
+    """The Markdown tables of ``block``."""
     head = ["env (target)", "measure", "paper: with coach", "paper: without", "paper: saving (as printed)",
-            *(f"ours: {c}" for c in CONDITIONS)]  # fmt: skip
+            *(f"ours: {c}" for c in block.conditions)]  # fmt: skip
     t2 = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    honest_head = ["env", "budget, env steps (share of the recipe's)", "condition",
-                   "env steps to target, reached and kept (agent alone)", "final agent-alone score",
-                   "coach-dependent", "never trained", "intervention rate",
-                   "fewer env steps to target than none: P [CI]; exact p; verdict",
-                   "higher final score than none: P [CI]; exact p; verdict"]  # fmt: skip
+    honest_head = _honest_head(block)
     t3 = ["| " + " | ".join(honest_head) + " |", "|" + "---|" * len(honest_head)]
     budgets = []
-    for env in ENVS:
-        loaded = _load(env)
+    for env, name in block.folders:
+        loaded = _load(name)
         if loaded is None:
             continue
         rows, record = loaded
         ident = record["identity"]
-        share = _share(env, record)
+        share = _share(env, name, record)
         budgets.append(f"- **{env}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} conditions, "
                        f"{share} env steps per run; `{' '.join(record['command'])}`")  # fmt: skip
-        t2 += _table2(env, rows)
-        t3 += _honest(env, rows, share)
+        t2 += _table2(env, rows, block.conditions)
+        t3 += _honest(env, rows, share, block)
+    table2, honest, how = block.headings
     return "\n".join([
-        "### The paper's Table II beside ours (training episodes; IQM [95 % CI] (runs that reached it))", "",
-        *t2, "", "### The honest measures", "", *t3, "", "### How each was run", "", *budgets,
+        f"### {table2}", "", *t2, "", f"### {honest}", "", *t3, "", f"### {how}", "", *budgets,
     ])  # fmt: skip
 
 
 def main() -> None:
-    """Replace the marked block of docs/results/README.md."""
+    """Replace the marked blocks of docs/results/README.md."""
     readme = RESULTS / "README.md"
     text = readme.read_text()
-    a, b = text.index(BEGIN) + len(BEGIN), text.index(END)
-    atomic_write_text(readme, text[:a] + "\n\n" + tables() + "\n\n" + text[b:])
-    print(tables())
+    for block in BLOCKS:
+        a, b = text.index(block.begin) + len(block.begin), text.index(block.end)
+        text = text[:a] + "\n\n" + tables(block) + "\n\n" + text[b:]
+        print(tables(block), end="\n\n")
+    atomic_write_text(readme, text)
 
 
 if __name__ == "__main__":

@@ -259,6 +259,9 @@ def test_sweep_killed_and_restarted_loses_no_finished_run(tmp_path):
     assert record["resumes"][0]["command"] == record["command"] and record["resumes"][0]["versions"]
     assert info["resumes"][0]["at"] and "started" not in info
     assert (out / "report.md").exists() and (out / "report.html").exists()
+    walls = [read_json(p)["wall_s_total"] for p in (out / "runs").glob("*/*/*/summary.json")]
+    hours = f"{sum(walls) / 3600:.1f} h summed over the runs"  # the report sums what the runs recorded
+    assert len(walls) == 4 and f"Training wall time: {hours}" in (out / "report.md").read_text()
 
 
 def test_sweep_on_a_local_ray_instance_matches_the_process_pool(tmp_path):

@@ -300,6 +300,9 @@ def test_sigterm_stops_with_a_checkpoint_and_resumes(tmp_path):
     shutil.copytree(run, twin)
     result = resume(run, progress_bar=False)
     assert result.completed and result.env_steps >= 8000
+    resumed = json.loads((run / "summary.json").read_text())  # the wall time adds up over the sessions
+    assert summary["wall_s_total"] == summary["wall_s_last_session"] > 0
+    assert resumed["wall_s_total"] == summary["wall_s_total"] + resumed["wall_s_last_session"]
     again = resume(twin, progress_bar=False)  # the same checkpoint resumed twice: the same continuation
     for name in ("episodes.csv", "evaluations.csv"):
         assert (run / name).read_bytes() == (twin / name).read_bytes()

@@ -33,7 +33,11 @@ BASELINE = "none"
 
 @dataclass(frozen=True)
 class RunData:
-    """One finished run's logs and metrics."""
+    """One finished run's logs and metrics.
+
+    ``wall_s`` is the training wall time over the run's sessions, seconds (None: its summary
+    predates the record).
+    """
 
     env_id: str
     condition: str
@@ -48,6 +52,7 @@ class RunData:
     budget: int
     completed: bool
     metrics: RunMetrics
+    wall_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -177,7 +182,18 @@ def _run_data(run_dir: Path, s: Any, env_id: str, condition: str, seed: int, rul
         budget=int(s.get("budget_env_steps", s["env_steps"])),
         completed=bool(s["completed"]),
         metrics=run_metrics(logs, rule),
+        wall_s=_wall_s(s),
     )
+
+
+def _wall_s(summary: Any) -> float | None:
+    """The run's training wall time over its sessions (``wall_s_total``); None when not recorded."""
+    value = summary.get("wall_s_total")
+    if value is None:
+        return None
+    if type(value) not in (int, float) or not np.isfinite(value) or value < 0:
+        raise ValueError(f"wall_s_total = {value!r}, expected a number of seconds >= 0")
+    return float(value)
 
 
 def _updates(summary: Any) -> int | None:

@@ -14,6 +14,7 @@ import csv
 import functools
 import html
 import io
+import statistics
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -339,13 +340,26 @@ HOW_TO_READ = (
 FIGURE_TITLES = ("Learning curves", "Table II as bars", "Coach dependence and interventions")
 
 
+def _wall_time(a: Analysis) -> str:
+    """The finished runs' training time (a sentence with a leading space), or "" when one lacks it."""
+    walls = [r.wall_s for c in a.cells.values() for r in c.runs]
+    seconds = [w for w in walls if w is not None]
+    if not seconds or len(seconds) < len(walls):
+        return ""
+    return (
+        f" Training wall time: {sum(seconds) / 3600:.1f} h summed over the runs (a run: median "
+        f"{statistics.median(seconds) / 60:.1f} min, longest {max(seconds) / 60:.1f} min; a session "
+        "that ended without a summary, such as a SIGKILL, is not counted)."
+    )
+
+
 def _front_matter(a: Analysis, record: Mapping[str, Any]) -> list[str]:
     """The header, the runs counted, the conditions and how to read the numbers."""
     seeds = record["identity"]["seeds"]
     scope = f"Seeds {seeds[0]}..{seeds[-1]} ({len(seeds)}); conditions {', '.join(a.conditions)}"
     lines = report_header(f"Coaching experiment: {', '.join(a.envs)}", record, scope=scope)
     total = sum(len(c.runs) for c in a.cells.values())
-    lines.append(f"Finished runs: {total} of {total + len(a.missing)}.")
+    lines.append(f"Finished runs: {total} of {total + len(a.missing)}.{_wall_time(a)}")
     if a.missing:
         lines.append(f" Not finished (not counted): {', '.join(a.missing)}.")
     lines += ["", "## Conditions", ""]

@@ -16,7 +16,7 @@ A run directory holds::
     checkpoints/<env steps>/   the latest two: model.zip, vecnormalize.pkl, replay_buffer.pkl (SAC),
                                state.json (written last: a folder without it is incomplete)
     final_model.zip      (and final_vecnormalize.pkl) when the budget is spent
-    summary.json         totals, final evaluation, wall time
+    summary.json         totals, final evaluation, wall time (this session's and the run's total)
 
 :mod:`pidlab.rl.rundir` writes and reads these files. :func:`resume` continues from the newest
 checkpoint that loads (:func:`load_checkpoint` checks every file of it): the CSV files are cut
@@ -50,7 +50,7 @@ import tomli_w
 
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CheckpointError
-from pidlab.files import atomic_write_bytes, atomic_write_text, check_output_folder, write_json
+from pidlab.files import atomic_write_bytes, atomic_write_text, check_output_folder, read_json, write_json
 from pidlab.provenance import hold_lock, read_record
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, evaluation_envs, sb3_policy
@@ -638,7 +638,21 @@ class _Trainer:
         self.bar.update(min(c.env_steps, self.recipe.steps) - self.bar.n)
 
 
-def _run_summary(trainer: _Trainer, completed: bool, wall_s: float) -> dict[str, Any]:
+def _earlier_wall_s(run_dir: Path) -> float:
+    """Seconds the run's earlier sessions spent, by the ``summary.json`` the last of them wrote.
+
+    0 for a new run. A session that ended without writing one (SIGKILL, power loss) is not counted,
+    and neither are sessions before the one whose summary predates ``wall_s_total``.
+    """
+    try:
+        earlier = read_json(run_dir / "summary.json")
+        value = float(earlier.get("wall_s_total", earlier.get("wall_s_last_session", 0.0)))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return 0.0
+    return value if np.isfinite(value) and value > 0 else 0.0
+
+
+def _run_summary(trainer: _Trainer, completed: bool, wall_s: float, earlier_s: float) -> dict[str, Any]:
     c = trainer.counters
     ev = trainer.last_evaluation
     return {
@@ -657,6 +671,7 @@ def _run_summary(trainer: _Trainer, completed: bool, wall_s: float) -> dict[str,
             "seeds": list(ev.seeds),
         },
         "wall_s_last_session": wall_s,
+        "wall_s_total": earlier_s + wall_s,
     }
 
 
@@ -821,6 +836,7 @@ def _run(
     import torch
 
     started = time.perf_counter()
+    earlier_s = _earlier_wall_s(Path(run_dir))
     torch.set_num_threads(recipe.threads)
     trainer = _Trainer(recipe, spec, run_dir, progress_bar)
     c = trainer.counters
@@ -839,7 +855,7 @@ def _run(
             _save_final(trainer)
         trainer.checkpoint()
         wall = time.perf_counter() - started
-        write_json(run_dir / "summary.json", _run_summary(trainer, completed, wall))
+        write_json(run_dir / "summary.json", _run_summary(trainer, completed, wall, earlier_s))
         return TrainResult(
             run_dir, c.env_steps, c.agent_steps, c.coach_steps, c.interventions, c.episodes, completed,
             trainer.last_evaluation, wall, c.env_episodes, c.env_resets, c.falls,
