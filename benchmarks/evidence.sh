@@ -11,6 +11,12 @@
 #   bash benchmarks/evidence.sh Hopper-v5 -- --backend ray --address HOST:6379   # on a Ray cluster
 #
 # On a Ray cluster every node needs pidlab installed and must see results/ at the same path.
+#
+# A sweep longer than a session is split over sessions: stop it with `kill -TERM` on its
+# `pidlab experiment` process (its runs checkpoint, the script then publishes the runs that finished,
+# marks the sweep "in progress" in docs/results/README.md and exits 130), and run the same command
+# later. When results/FOLDER is gone (a new machine), the published logs in docs/results/FOLDER are
+# restored first, so the finished runs are skipped and only the unfinished ones train again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 envs=() extra=()
@@ -37,12 +43,27 @@ export PATH="$PWD/.venv/bin:$PATH"
 for env in "${envs[@]}"; do
     read -r folder conditions steps <<< "$(design "$env")"
     out="results/$folder" dst="docs/results/$folder"
-    pidlab experiment --envs "$env" --conditions "$conditions" --seeds 10 --steps "$steps" --out "$out" \
-        ${extra[@]+"${extra[@]}"}
+    if [ ! -e "$out/experiment.json" ] && [ -e "$dst/experiment.json" ]; then   # a new machine
+        echo "evidence.sh: restoring the finished runs of $folder from $dst"
+        mkdir -p "$out" && cp "$dst/experiment.json" "$out/" && cp -r "$dst/runs" "$out/"
+    fi
+    args=(--envs "$env" --conditions "$conditions" --seeds 10 --steps "$steps" --out "$out")
+    status=0
+    pidlab experiment "${args[@]}" ${extra[@]+"${extra[@]}"} || status=$?
+    if [ "$status" -ne 0 ]; then
+        [ -e "$out/experiment.json" ] || exit "$status"   # stopped before any run: nothing to publish
+        pidlab experiment "${args[@]}" --report-only --no-progress
+    fi
     mkdir -p "$dst"
     cp -r "$out/report.md" "$out/report.html" "$out/metrics.csv" "$out/summary.csv" "$out/figures" \
         "$out/experiment.json" "$dst/"
     bash benchmarks/copy_runs.sh "$out" "$dst"
     .venv/bin/python benchmarks/recompute.py "$dst"
+    if [ "$status" -ne 0 ]; then
+        .venv/bin/python benchmarks/results_table.py > /dev/null
+        echo "evidence.sh: the sweep stopped (exit $status); its finished runs are published in $dst;" \
+            "run the same command to go on" >&2
+        exit "$status"
+    fi
 done
 .venv/bin/python benchmarks/results_table.py > /dev/null   # the README's tables, from the summaries
