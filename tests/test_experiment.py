@@ -19,7 +19,7 @@ import pytest
 import tomli_w
 
 from pidlab.experiment.conditions import ConditionError, load_conditions, parse_conditions, resolve
-from pidlab.experiment.sweep import ExperimentError, parse_seeds, plan, run_sweep
+from pidlab.experiment.sweep import ExperimentError, dispatch_order, parse_seeds, plan, run_sweep
 from pidlab.files import read_json
 from pidlab.report.experiment import write_report
 from pidlab.rl.recipe import load_recipe
@@ -138,6 +138,15 @@ def test_plan_lists_every_run_with_shared_agent_settings(tmp_path):
     assert not (tmp_path / "exp").exists()  # planning writes nothing
 
 
+
+def test_runs_start_seed_by_seed_so_a_stopped_sweep_compares_like_with_like(tmp_path):
+    p = plan([IP], ["none", "paper", "pidlab"], [3, 0, 1], tmp_path / "exp")
+    assert [(t.condition, t.seed) for t in p.tasks][:3] == [("none", 3), ("none", 0), ("none", 1)]
+    assert [(t.condition, t.seed) for t in dispatch_order(p.tasks)] == [
+        (c, s) for s in (3, 0, 1) for c in ("none", "paper", "pidlab")
+    ]
+    assert dispatch_order(p.tasks[1:2]) == [p.tasks[1]]
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -226,7 +235,7 @@ def test_sweep_killed_and_restarted_loses_no_finished_run(tmp_path):
            str(recipe), "--out", str(out), "--workers", "1", "--no-progress"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     first = out / "runs" / IP / "none" / "seed-0"
-    second = out / "runs" / IP / "none" / "seed-1"
+    second = out / "runs" / IP / "pidlab" / "seed-0"  # runs start seed by seed
     deadline = time.time() + 240
     while time.time() < deadline:
         if (first / "summary.json").exists() and list((second / "checkpoints").glob("*/state.json")):

@@ -359,6 +359,19 @@ def write_experiment_record(p: Plan, argv: Sequence[str], backend: str) -> Recor
     return record
 
 
+def dispatch_order(tasks: Sequence[RunTask]) -> list[RunTask]:
+    """The order runs start in: seed by seed, every env and condition of a seed before the next seed.
+
+    A sweep stopped part-way (a session that ends, see benchmarks/evidence.sh) then holds every
+    condition at the same seeds, so its finished runs compare like with like. The plan's order
+    (env, condition, seed), which the record and the report use, is unchanged.
+    """
+    rank: dict[int, int] = {}
+    for t in tasks:
+        rank.setdefault(t.seed, len(rank))
+    return sorted(tasks, key=lambda t: rank[t.seed])  # stable: env and condition order kept
+
+
 def finished(run_dir: Path, budget: int) -> bool:
     """A run whose ``summary.json`` says it completed its budget (a damaged one says nothing)."""
     try:
@@ -664,7 +677,7 @@ def run_sweep(
         check_out_folder(p)  # again, now that no other command can change it
         write_experiment_record(p, argv, backend)
         (p.out / STOP_FILE).unlink(missing_ok=True)
-        todo = [t for t in p.tasks if not finished(Path(t.run_dir), int(t.recipe["steps"]))]
+        todo = dispatch_order([t for t in p.tasks if not finished(Path(t.run_dir), int(t.recipe["steps"]))])
         tally = _Tally(p.tasks, todo, progress_bar)
         interrupted = _dispatch(todo, backend, workers or os.cpu_count() or 1, address, tally, p.out)
     return SweepResult(tally.ordered(p.tasks), interrupted)
