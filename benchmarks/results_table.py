@@ -138,6 +138,17 @@ def _share(env: str, name: str, record: dict) -> str:
     return f"{steps:,} ({100 * steps / full:.3g} % of {full:,})" if full else f"{steps:,}"
 
 
+def _progress(name: str, record: dict) -> str:
+    """What the "how it was run" line adds while a sweep split over sessions is still under way."""
+    runs = record["identity"]["runs"]
+    done = 0
+    for key in runs:
+        env, condition, seed = key.split("/")
+        summary = RESULTS / name / "runs" / env / condition / f"seed-{seed}" / "summary.json"
+        done += summary.exists() and read_json(summary).get("completed") is True
+    return "" if done == len(runs) else f"; **in progress: {done} of {len(runs)} runs finished**"
+
+
 def _honest_head(block: Block) -> list[str]:
     falls = ["falls during training"] if block.falls else []
     return ["env", "budget, env steps (share of the recipe's)", "condition", *falls,
@@ -163,8 +174,9 @@ def tables(block: Block = EARLY) -> str:
         rows, record = loaded
         ident = record["identity"]
         share = _share(env, name, record)
+        command, progress = " ".join(record["command"]), _progress(name, record)
         budgets.append(f"- **{env}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} conditions, "
-                       f"{share} env steps per run; `{' '.join(record['command'])}`")  # fmt: skip
+                       f"{share} env steps per run; `{command}`{progress}")  # fmt: skip
         t2 += _table2(env, rows, block.conditions)
         t3 += _honest(env, rows, share, block)
     table2, honest, how = block.headings
