@@ -50,8 +50,11 @@ for env in "${envs[@]}"; do
     args=(--envs "$env" --conditions "$conditions" --seeds 10 --steps "$steps" --out "$out")
     status=0
     pidlab experiment "${args[@]}" ${extra[@]+"${extra[@]}"} || status=$?
-    if [ "$status" -ne 0 ]; then
-        [ -e "$out/experiment.json" ] || exit "$status"   # stopped before any run: nothing to publish
+    # 2: bad input, refused before any run (its one line said what). 130: interrupted; 1: a run failed
+    # (the others went on). Either way the finished runs are published.
+    if [ "$status" -eq 2 ] || { [ "$status" -ne 0 ] && [ ! -e "$out/experiment.json" ]; }; then
+        exit "$status"
+    elif [ "$status" -ne 0 ]; then
         pidlab experiment "${args[@]}" --report-only --no-progress
     fi
     mkdir -p "$dst"

@@ -35,9 +35,13 @@ SWEEP = ["--envs", "InvertedPendulum-v5", "--conditions", "none,rescue-terminal"
 LOGS = ("episodes.csv", "evaluations.csv")
 
 
+AUTH = {**os.environ, "RAY_AUTH_MODE": "token"}
+"""Ray's token authentication for the cluster and the sweep that joins it (the token: ~/.ray/auth_token)."""
+
+
 def _timed(cmd: list[str]) -> tuple[subprocess.CompletedProcess[str], float]:
     started = time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=AUTH)
     return done, time.perf_counter() - started
 
 
@@ -66,6 +70,10 @@ def main(argv: list[str]) -> int:
     out = ROOT / parser.parse_args(argv).out
     head = [str(BIN / "ray"), "start", "--head", f"--port={PORT}", "--num-cpus=2",
             "--include-dashboard=false", "--disable-usage-stats"]  # fmt: skip
+    token = [str(BIN / "ray"), "get-auth-token", "--generate"]  # creates ~/.ray/auth_token if missing
+    if (made := subprocess.run(token, capture_output=True, text=True, cwd=ROOT)).returncode != 0:
+        print(f"ray_cluster: `{_shown(token)}` failed: {made.stderr.strip()[-300:]}", file=sys.stderr)
+        return 2
     started, start_s = _timed(head)
     if started.returncode != 0:
         why = (started.stderr.strip().splitlines() or ["no message"])[-1]
@@ -99,6 +107,9 @@ def _page(head: list[str], start_s: float, on_ray: tuple, on_pool: tuple, stop_c
         "Written by `.venv/bin/python benchmarks/ray_cluster.py` (Ray " + ray.__version__ + "). It starts a "
         "one-node cluster the way a cluster's head node is started, runs a small sweep on it through "
         "`--address`, runs the same sweep on the local process pool, and compares the runs' logs.", "",
+        "Both run with `RAY_AUTH_MODE=token` (Ray's token authentication; the token is "
+        "`~/.ray/auth_token`, made by `ray get-auth-token --generate` when missing): a driver without "
+        "the token is refused by a cluster that has one.", "",
         "| step | command | exit | wall time |", "|---|---|---|---|",
         f"| start the cluster | `{_shown(head)}` | 0 | {start_s:.1f} s |",
         f"| sweep on the cluster | `{_shown(on_ray[0])}` | {on_ray[1].returncode} | {on_ray[2]:.1f} s |",
@@ -108,9 +119,10 @@ def _page(head: list[str], start_s: float, on_ray: tuple, on_pool: tuple, stop_c
         "", f"Logs of the two sweeps: {verdict}.", "",
         "The full design of [the results](README.md) on a cluster: start Ray on the head node "
         "(`ray start --head --port=6379`) and on every worker node (`ray start --address=HEAD:6379`), "
-        "with pidlab installed on each node (`bash scripts/setup.sh`) and the clone on a file system "
-        "every node sees at the same path; then, on the head node:", "",
-        "    bash benchmarks/evidence.sh -- --backend ray --address HEAD:6379", "",
+        "each with `RAY_AUTH_MODE=token` and the same token (copy `~/.ray/auth_token`, or set "
+        "`RAY_AUTH_TOKEN`), with pidlab installed on each node (`bash scripts/setup.sh`) and the clone on "
+        "a file system every node sees at the same path; then, on the head node:", "",
+        "    RAY_AUTH_MODE=token bash benchmarks/evidence.sh -- --backend ray --address HEAD:6379", "",
         "Each run is one Ray task with one CPU and writes its own run directory under `results/`; a sweep "
         "that is stopped resumes from its runs' checkpoints when the same command is run again.", "",
     ])  # fmt: skip

@@ -323,3 +323,18 @@ def test_report_tables_and_figures(tmp_path):
         env_steps, coach = int(row["env_steps"]), int(row["coach_steps"])
         assert float(row["intervention_rate"]) == pytest.approx(coach / env_steps)
         assert (coach == 0) == (row["condition"] == "none")
+
+
+def test_a_ray_address_where_no_cluster_answers_is_one_line_and_exit_2(tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cmd = [PIDLAB, "experiment", "--envs", IP, "--conditions", "none", "--seeds", "1", "--steps", "2000",
+           "--out", str(tmp_path / "exp"), "--backend", "ray", "--address", f"127.0.0.1:{port}",
+           "--no-progress"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"--address 127.0.0.1:{port}: no Ray cluster answers there" in lines[0]

@@ -72,3 +72,15 @@ def test_a_sweep_split_over_sessions_is_marked_in_progress_until_every_run_finis
     summary(keys[1], True)
     summary(keys[2], True)
     assert results_table._progress("sweep", record) == ""
+
+
+def test_the_evidence_script_refuses_an_env_without_a_design_before_any_work():
+    import subprocess
+
+    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), "CartPole-v1"],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        "evidence.sh: CartPole-v1: no evidence design (expected one of the paper's four v5 envs)"
+    ]
+    assert done.stdout == ""

@@ -30,6 +30,7 @@ import importlib.util
 import os
 import shutil
 import signal
+import socket
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -507,6 +508,34 @@ def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, 
     pool.shutdown(wait=True)
 
 
+def _join_ray(ray: Any, address: str) -> None:
+    """Join the running cluster at ``address``.
+
+    Raises
+    ------
+    ExperimentError
+        No cluster answers there, or it refuses this driver (token authentication).
+    """
+    host, _, port = address.rpartition(":")
+    if address != "auto":  # Ray waits for a cluster that is not there for minutes: ask first
+        try:
+            socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
+        except (OSError, ValueError) as exc:
+            raise ExperimentError(
+                f"--address {address}: no Ray cluster answers there ({exc}); expected HOST:PORT of a "
+                "running cluster's head node (`ray start --head` prints it), or auto"
+            ) from None
+    try:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    except (ConnectionError, ray.exceptions.AuthenticationError) as exc:
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ExperimentError(
+            f"--address {address}: cannot join the Ray cluster ({why}); expected a running cluster "
+            "(`ray start --head` on its head node); one with token authentication also needs "
+            "RAY_AUTH_MODE=token and its token (~/.ray/auth_token or RAY_AUTH_TOKEN) here"
+        ) from None
+
+
 def _run_ray(
     tasks: Sequence[RunTask], workers: int, report: Progress, out: Path, address: str | None
 ) -> None:
@@ -515,7 +544,7 @@ def _run_ray(
     started_here = not ray.is_initialized()
     if started_here:
         if address:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+            _join_ray(ray, address)
         else:
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
     remote = ray.remote(num_cpus=1, max_retries=0)(execute)
