@@ -18,6 +18,7 @@ from pathlib import Path
 
 from pidlab.experiment.analysis import recipes_of_runs
 from pidlab.experiment.stats import Estimate
+from pidlab.experiment.sweep import finished
 from pidlab.files import atomic_write_text, read_json
 from pidlab.report.experiment import (
     PAPER_ROWS,
@@ -131,22 +132,24 @@ def _honest(env: str, rows: dict[tuple[str, str], dict[str, str]], share: str, b
     return out
 
 
+def _budget(env: str, name: str, record: dict) -> int:
+    """The run budget in env steps: the recipe its runs recorded."""
+    return recipes_of_runs(RESULTS / name, record["identity"])[env].steps
+
+
 def _share(env: str, name: str, record: dict) -> str:
-    """The run budget (the recipe its runs recorded) and its share of the shipped recipe's budget."""
-    steps = recipes_of_runs(RESULTS / name, record["identity"])[env].steps
+    """The run budget and its share of the shipped recipe's budget."""
+    steps = _budget(env, name, record)
     full = recipe_budget(env)
     return f"{steps:,} ({100 * steps / full:.3g} % of {full:,})" if full else f"{steps:,}"
 
 
-def _progress(name: str, record: dict) -> str:
+def _progress(name: str, record: dict, budget: int) -> str:
     """What the "how it was run" line adds while a sweep split over sessions is still under way."""
-    runs = record["identity"]["runs"]
-    done = 0
-    for key in runs:
-        env, condition, seed = key.split("/")
-        summary = RESULTS / name / "runs" / env / condition / f"seed-{seed}" / "summary.json"
-        done += summary.exists() and read_json(summary).get("completed") is True
-    return "" if done == len(runs) else f"; **in progress: {done} of {len(runs)} runs finished**"
+    dirs = [RESULTS / name / "runs" / env / cond / f"seed-{seed}"
+            for env, cond, seed in (key.split("/") for key in record["identity"]["runs"])]  # fmt: skip
+    done = sum(finished(d, budget) for d in dirs)
+    return "" if done == len(dirs) else f"; **in progress: {done} of {len(dirs)} runs finished**"
 
 
 def _honest_head(block: Block) -> list[str]:
@@ -174,7 +177,8 @@ def tables(block: Block = EARLY) -> str:
         rows, record = loaded
         ident = record["identity"]
         share = _share(env, name, record)
-        command, progress = " ".join(record["command"]), _progress(name, record)
+        progress = _progress(name, record, _budget(env, name, record))
+        command = " ".join(record["command"])
         budgets.append(f"- **{env}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} conditions, "
                        f"{share} env steps per run; `{command}`{progress}")  # fmt: skip
         t2 += _table2(env, rows, block.conditions)

@@ -138,7 +138,6 @@ def test_plan_lists_every_run_with_shared_agent_settings(tmp_path):
     assert not (tmp_path / "exp").exists()  # planning writes nothing
 
 
-
 def test_runs_start_seed_by_seed_so_a_stopped_sweep_compares_like_with_like(tmp_path):
     p = plan([IP], ["none", "paper", "pidlab"], [3, 0, 1], tmp_path / "exp")
     assert [(t.condition, t.seed) for t in p.tasks][:3] == [("none", 3), ("none", 0), ("none", 1)]
@@ -146,6 +145,7 @@ def test_runs_start_seed_by_seed_so_a_stopped_sweep_compares_like_with_like(tmp_
         (c, s) for s in (3, 0, 1) for c in ("none", "paper", "pidlab")
     ]
     assert dispatch_order(p.tasks[1:2]) == [p.tasks[1]]
+
 
 @pytest.mark.parametrize(
     ("args", "message"),

@@ -53,7 +53,6 @@ def test_the_vectorization_page_comes_from_its_runs():
         assert (ROOT / "docs" / "images" / name).is_file()
 
 
-
 def test_a_sweep_split_over_sessions_is_marked_in_progress_until_every_run_finished(tmp_path, monkeypatch):
     import results_table
 
@@ -61,17 +60,17 @@ def test_a_sweep_split_over_sessions_is_marked_in_progress_until_every_run_finis
         env, condition, seed = key.split("/")
         run = tmp_path / "sweep" / "runs" / env / condition / f"seed-{seed}"
         run.mkdir(parents=True, exist_ok=True)
-        (run / "summary.json").write_text(f'{{"completed": {str(completed).lower()}}}')
+        (run / "summary.json").write_text(f'{{"completed": {str(completed).lower()}, "env_steps": 1000}}')
 
     monkeypatch.setattr(results_table, "RESULTS", tmp_path)
     keys = ["Walker2d-v5/none/0", "Walker2d-v5/none/1", "Walker2d-v5/paper/0"]
     record = {"identity": {"runs": {k: {} for k in keys}}}
     summary(keys[0], True)
     summary(keys[1], False)  # stopped with a checkpoint; keys[2] never started
-    assert results_table._progress("sweep", record) == "; **in progress: 1 of 3 runs finished**"
+    assert results_table._progress("sweep", record, 1000) == "; **in progress: 1 of 3 runs finished**"
     summary(keys[1], True)
     summary(keys[2], True)
-    assert results_table._progress("sweep", record) == ""
+    assert results_table._progress("sweep", record, 1000) == ""
 
 
 def test_the_evidence_script_refuses_an_env_without_a_design_before_any_work():

@@ -517,7 +517,7 @@ def _join_ray(ray: Any, address: str) -> None:
         No cluster answers there, or it refuses this driver (token authentication).
     """
     host, _, port = address.rpartition(":")
-    if address != "auto":  # Ray waits for a cluster that is not there for minutes: ask first
+    if address != "auto" and "://" not in address:  # Ray waits minutes for a missing cluster: ask first
         try:
             socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
         except (OSError, ValueError) as exc:
