@@ -311,6 +311,13 @@ def test_the_three_callers_keep_their_messages(tmp_path):
         check_out_folder(other)
     assert "holds another experiment (its seeds [0] (asked: [0, 1]))" in str(info.value)
     assert cli_message(info.value).startswith(f"--out {tmp_path / 'exp'}: holds another experiment")
+    argv = ["pidlab", "experiment", "--steps", "2048"]
+    write_experiment_record(plan([IP], ["none"], [0], tmp_path / "budget", steps=2048), argv, "process")
+    with pytest.raises(ExperimentError) as info:  # same envs, conditions and seeds, another budget
+        check_out_folder(plan([IP], ["none"], [0], tmp_path / "budget", steps=4096))
+    assert f"other settings for 1 of its 1 runs, e.g. {IP}/none/0: budget" in str(info.value)
+    assert str(info.value).endswith("it was made by: pidlab experiment --steps 2048); nothing was changed. "
+                                    "Choose another folder, or repeat that experiment's own command to resume it")
 
     identity = _identity(IP, settings_for(IP, seeds=1, steps=1024))
     write_json(tmp_path / "pipe" / "pipeline.json", old_pipeline_json())

@@ -486,6 +486,14 @@ def test_a_damaged_finished_run_is_one_line_in_the_report(tmp_path):
     (run / "summary.json").write_text(json.dumps(summary))
     with pytest.raises(ExperimentError, match="no evaluation of the finished run"):
         load_run(run, "InvertedPendulum-v5", "none", 0, rule)
+    header = "env_steps_so_far,agent_steps_so_far,mean_return,mean_length,returns\n"
+    (run / "evaluations.csv").write_text(header + "10,10,5.0,5.0,5.0\n")
+    (run / "summary.json").write_text(json.dumps({**summary, "episodes": 3, "evaluations": 1}))
+    with pytest.raises(ExperimentError, match="episodes.csv holds 0 of the 3 episodes summary.json records"):
+        load_run(run, "InvertedPendulum-v5", "none", 0, rule)  # a log cut short: numbers would be wrong
+    (run / "summary.json").write_text(json.dumps({**summary, "episodes": 0, "evaluations": 2}))
+    with pytest.raises(ExperimentError, match="evaluations.csv holds 1 of the 2 evaluations summary.json records"):
+        load_run(run, "InvertedPendulum-v5", "none", 0, rule)
     (run / "summary.json").write_text(json.dumps({**summary, "completed": False}))  # stopped early: not counted
     assert not load_run(run, "InvertedPendulum-v5", "none", 0, rule).completed
     (run / "summary.json").write_text('{"env_steps": 1')

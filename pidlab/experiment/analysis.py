@@ -255,6 +255,10 @@ def read_logs(run_dir: Path, summary: Any) -> RunLogs:
     evals = read_csv_rows(run_dir / "evaluations.csv")
     if not evals and summary.get("completed"):
         raise ValueError("evaluations.csv holds no evaluation of the finished run")
+    for name, rows in (("episodes", episodes), ("evaluations", evals)):
+        recorded = summary.get(name)
+        if summary.get("completed") and type(recorded) is int and recorded != len(rows):
+            raise ValueError(f"{name}.csv holds {len(rows)} of the {recorded} {name} summary.json records")
     return RunLogs(
         returns=np.array([float(r["agent_return"]) for r in episodes]),
         coached_returns=np.array([float(r["total_return"]) for r in episodes]),

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import shlex
 import shutil
 import signal
 import socket
@@ -302,11 +303,19 @@ def plan(
     )
 
 
-def _describe_difference(old: dict[str, Any], new: dict[str, Any]) -> str:
+def _describe_difference(old: Record, new: dict[str, Any]) -> str:
+    """What differs between the folder's experiment and the one asked for, in a few words."""
+    recorded = old.identity or {}
     for key in ("envs", "conditions", "seeds"):
-        if old.get(key) != new.get(key):
-            return f"{key} {old.get(key)} (asked: {new.get(key)})"
-    return "the settings of its runs (recipes, coach specs or conditions changed)"
+        if recorded.get(key) != new.get(key):
+            return f"its {key} {recorded.get(key)} (asked: {new.get(key)})"
+    runs = recorded.get("runs") or {}
+    changed = [name for name, digest in new["runs"].items() if runs.get(name) != digest]
+    where = f"{len(changed)} of its {len(new['runs'])} runs, e.g. {changed[0]}" if changed else "its runs"
+    return (
+        f"other settings for {where}: budget, algorithm, recipe, coach spec or condition; "
+        f"it was made by: {shlex.join(old.command)}"
+    )
 
 
 def check_out_folder(p: Plan) -> Record | None:
@@ -322,9 +331,8 @@ def check_out_folder(p: Plan) -> Record | None:
     out, identity = p.out, p.identity()
 
     def another(old: Record) -> str:
-        what = _describe_difference(old.identity or {}, identity)
         return (
-            f"out={out}: holds another experiment (its {what}); "
+            f"out={out}: holds another experiment ({_describe_difference(old, identity)}); "
             "nothing was changed. Choose another folder, or repeat that experiment's own command to resume it"
         )
 
