@@ -197,6 +197,8 @@ def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
         (["--ui", "--port", "0"], "--port 0"),
         (["--ui", "--animation", "vr"], "--animation"),
         (["--ui", "--bounds-samples", "0"], "--bounds-samples"),
+        (["--ui", "--bandwidth", "3"], "--bandwidth: a setting of --auto"),
+        (["--ui", "-o", "x.toml"], "--output: a setting of --auto"),
     ],
 )
 def test_tune_ui_bad_input(args, words):

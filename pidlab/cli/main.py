@@ -159,7 +159,8 @@ def _fail(message: str) -> NoReturn:
 
 
 FLAGS = {"env_id": "ENV", "roa_samples": "--samples", "conditions_file": "--conditions-file",
-         "recipe_files": "--recipe", "condition_names": "--conditions", "horizon_s": "--horizon"}  # fmt: skip
+         "recipe_files": "--recipe", "condition_names": "--conditions", "horizon_s": "--horizon",
+         "slice_vars": "--slice"}  # fmt: skip
 """Python parameter -> the flag that sets it, where the flag is not ``--`` + the name with dashes."""
 
 
@@ -171,6 +172,14 @@ def cli_message(exc: PidlabError) -> str:
         flag = FLAGS.get(param, "--" + param.replace("_", "-"))
         message = f"{flag} {message[len(param) + 1 :]}"
     return message
+
+
+def _refuse_unused(ctx: typer.Context, names: Sequence[str], why: str) -> None:
+    """One line and exit 2 when the command line set one of ``names``, options this call would ignore."""
+    for name in names:
+        source = ctx.get_parameter_source(name)
+        if getattr(source, "name", None) == "COMMANDLINE":
+            _fail(f"{FLAGS.get(name, '--' + name.replace('_', '-'))}: {why}")
 
 
 def friendly_errors(func: F) -> F:
@@ -367,9 +376,16 @@ def _operating_point(
     return op
 
 
+AUTO_ONLY = ("bandwidth", "phase_margin", "preset", "output", "name", "workers")
+"""``tune`` options that only ``--auto`` uses."""
+UI_ONLY = ("spec", "port", "tuning_dir", "animation", "bounds_samples", "allow_host")
+"""``tune`` options that only ``--ui`` uses."""
+
+
 @app.command()
 @friendly_errors
 def tune(
+    ctx: typer.Context,
     env: Annotated[str, typer.Argument(metavar="ENV", help="A paper env id, e.g. InvertedPendulum-v5.")],
     auto: Annotated[bool, typer.Option("--auto", help="Tune automatically and write the spec.")] = False,
     ui: Annotated[bool, typer.Option("--ui", help="Serve the interactive tuner in the browser.")] = False,
@@ -420,10 +436,15 @@ def tune(
     if auto == ui:
         _fail("give exactly one of --auto (write a tuned spec) or --ui (interactive tuner in the browser)")
     if ui:
+        _refuse_unused(ctx, AUTO_ONLY, "a setting of --auto; the tuner in the browser (--ui) does not use it")
         _tune_ui(env, spec, port, tuning_dir, (animation, bounds_samples, allow_host or []))
         return
+    _refuse_unused(ctx, UI_ONLY, "a setting of the tuner in the browser (--ui); --auto does not use it")
     if preset not in (*PRESETS, "room"):
         _fail(f"--preset {preset!r}: expected {', '.join(PRESETS)} or room")
+    if preset == "room":
+        why = "--preset room chooses the gains with the largest rescue region, not by a crossover or margin"
+        _refuse_unused(ctx, ("bandwidth", "phase_margin"), why + " target; expected no target with it")
     from pidlab.checks import check_name
 
     spec_name = check_name(name, "--name", PidlabError) if name is not None else f"pidlab-{preset}"
@@ -572,6 +593,7 @@ def analyze(
 @app.command()
 @friendly_errors
 def roa(
+    ctx: typer.Context,
     spec_file: Annotated[str, typer.Argument(metavar="SPEC", help="A coach spec (TOML).")],
     samples: Annotated[int, typer.Option(help="Simulated initial states in the final check (N).")] = 1000,
     seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
@@ -601,6 +623,8 @@ def roa(
         from pidlab.files import check_output_folder
 
         check_output_folder(plots, "plots")
+    else:
+        _refuse_unused(ctx, ("slice_vars",), "names the plots' two variables; expected --plots DIR with it")
     spec = load_spec(spec_file)
     loaded = load_model(spec.env_id)
     units = {v.name: v.unit for v in loaded.require_card().observation}
