@@ -214,6 +214,10 @@ def test_a_folder_of_another_experiment_is_refused_untouched(tmp_path):
         code, stderr = cli_in_process(*other[1:])
         assert code == 2 and "holds another experiment" in stderr, stderr
         assert tree_digest(out) == before
+    # the sweep's own command (--workers included) with --report-only: the report again, nothing trained
+    code, stderr = cli_in_process(*cmd[1:], "--report-only")
+    assert code == 0 and (out / "report.md").is_file(), stderr
+    assert read_json(out / "runs" / IP / "none" / "seed-0" / "summary.json")["resumes"] == 0
     # a non-empty folder that is no experiment
     stranger = tmp_path / "stranger"
     stranger.mkdir()
