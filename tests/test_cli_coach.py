@@ -54,8 +54,10 @@ def test_tune_writes_a_spec_that_analyzes_stable(tmp_path):
         (["tune", "InvertedPendulum-v5", "--auto", "--preset", "strong"], "expected robust, weak or room"),
         (["tune", "Ant-v5", "--auto"], "no tuning template for Ant-v5"),
         (["tune", "InvertedPendulum-v5", "--auto", "--bandwidth", "-3"], "positive frequency"),
-        (["tune", "InvertedPendulum-v5", "--auto", "--port", "7000"], "--port: a setting of the tuner in the browser"),
-        (["tune", "InvertedPendulum-v5", "--auto", "--preset", "room", "--bandwidth", "3"],
+        # -o into read-only /proc: were the option not refused, nothing would be tuned or written
+        (["tune", "InvertedPendulum-v5", "--auto", "--port", "7000", "-o", "/proc/no/ip.toml"],
+         "--port: a setting of the tuner in the browser"),
+        (["tune", "InvertedPendulum-v5", "--auto", "--preset", "room", "--bandwidth", "3", "-o", "/proc/no/ip.toml"],
          "--bandwidth: --preset room chooses the gains"),
         (["roa", str(TUNING / "InvertedPendulum-v5.paper.toml"), "--slice", "foo,bar"],
          "--slice: names the plots' two variables; expected --plots DIR"),
