@@ -426,25 +426,16 @@ def tune(
     """Tune a PID coach for ENV: automatically (--auto) or interactively in the browser (--ui)."""
     from rich.progress import Progress
 
-    from pidlab.controller.autotune import PRESETS
     from pidlab.controller.autotune import tune as run_tune
     from pidlab.controller.spec import save_spec
     from pidlab.files import check_output_file
     from pidlab.plant.model import load_model
     from pidlab.report.console import wide_console
 
-    if auto == ui:
-        _fail("give exactly one of --auto (write a tuned spec) or --ui (interactive tuner in the browser)")
+    _check_tune_mode(ctx, auto, ui, preset)
     if ui:
-        _refuse_unused(ctx, AUTO_ONLY, "a setting of --auto; the tuner in the browser (--ui) does not use it")
         _tune_ui(env, spec, port, tuning_dir, (animation, bounds_samples, allow_host or []))
         return
-    _refuse_unused(ctx, UI_ONLY, "a setting of the tuner in the browser (--ui); --auto does not use it")
-    if preset not in (*PRESETS, "room"):
-        _fail(f"--preset {preset!r}: expected {', '.join(PRESETS)} or room")
-    if preset == "room":
-        why = "--preset room chooses the gains with the largest rescue region, not by a crossover or margin"
-        _refuse_unused(ctx, ("bandwidth", "phase_margin"), why + " target; expected no target with it")
     from pidlab.checks import check_name
 
     spec_name = check_name(name, "--name", PidlabError) if name is not None else f"pidlab-{preset}"
@@ -470,6 +461,23 @@ def tune(
     path = save_spec(dataclasses.replace(result.spec, name=spec_name), out)
     _print_tuned(env, preset, result)
     wide_console().print(f"wrote {path}")
+
+
+def _check_tune_mode(ctx: typer.Context, auto: bool, ui: bool, preset: str) -> None:
+    """``tune``: exactly one of ``--auto`` and ``--ui``, and no option the chosen one would ignore."""
+    from pidlab.controller.autotune import PRESETS
+
+    if auto == ui:
+        _fail("give exactly one of --auto (write a tuned spec) or --ui (interactive tuner in the browser)")
+    if ui:
+        _refuse_unused(ctx, AUTO_ONLY, "a setting of --auto; the tuner in the browser (--ui) does not use it")
+        return
+    _refuse_unused(ctx, UI_ONLY, "a setting of the tuner in the browser (--ui); --auto does not use it")
+    if preset not in (*PRESETS, "room"):
+        _fail(f"--preset {preset!r}: expected {', '.join(PRESETS)} or room")
+    if preset == "room":
+        why = "--preset room chooses the gains with the largest rescue region, not by a crossover or margin"
+        _refuse_unused(ctx, ("bandwidth", "phase_margin"), why + " target; expected no target with it")
 
 
 def _print_tuned(env: str, preset: str, result: Any) -> None:
