@@ -137,9 +137,8 @@ def _budget(env: str, name: str, record: dict) -> int:
     return recipes_of_runs(RESULTS / name, record["identity"])[env].steps
 
 
-def _share(env: str, name: str, record: dict) -> str:
+def _share(env: str, steps: int) -> str:
     """The run budget and its share of the shipped recipe's budget."""
-    steps = _budget(env, name, record)
     full = recipe_budget(env)
     return f"{steps:,} ({100 * steps / full:.3g} % of {full:,})" if full else f"{steps:,}"
 
@@ -176,8 +175,8 @@ def tables(block: Block = EARLY) -> str:
             continue
         rows, record = loaded
         ident = record["identity"]
-        share = _share(env, name, record)
-        progress = _progress(name, record, _budget(env, name, record))
+        budget = _budget(env, name, record)  # read once from the runs' recipes
+        share, progress = _share(env, budget), _progress(name, record, budget)
         command = " ".join(record["command"])
         budgets.append(f"- **{env}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} conditions, "
                        f"{share} env steps per run; `{command}`{progress}")  # fmt: skip
