@@ -14,7 +14,7 @@ for env in "${envs[@]}"; do
     start=$(date +%s)
     case "$env" in
         InvertedPendulum-v5|InvertedDoublePendulum-v5)
-            .venv/bin/pidlab tune "$env" --auto --preset room --name pidlab-rescue --workers 2 --output "$spec"
+            .venv/bin/pidlab tune "$env" --auto --preset room --name pidlab-rescue --workers 2 --force --output "$spec"
             .venv/bin/pidlab bounds "$spec" --write --workers 2 ;;
         *)
             .venv/bin/python -c "import sys, dataclasses; from pidlab.controller.spec import load_spec, save_spec

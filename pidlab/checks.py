@@ -28,9 +28,9 @@ import numbers
 import os
 import re
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, NoReturn, TypeVar
 
-from pidlab.errors import PidlabError
+from pidlab.errors import ArgumentError, PidlabError
 
 NAME_RULE = "1-64 letters, digits, '.', '_' or '-', starting with a letter or digit"
 """What a name that becomes part of a path may be (the web tuner's rule for spec names)."""
@@ -331,34 +331,176 @@ def is_file(path: str | Path) -> bool:
         return False
 
 
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+"""A number as text: ASCII digits only (``float()`` also takes ``'١'`` and ``'１０'``, pidlab does not)."""
+
+
+def float_text(text: str) -> float:
+    """The number ``text`` writes with ASCII digits (``"1.5"``, ``"-2e-3"``), else NaN.
+
+    Unlike ``float()``, it reads no Unicode digits (``"١"``), no ``"inf"``/``"nan"`` words and no
+    underscores: the one reading of a number given as text (:func:`parse_vector`, recipes).
+    """
+    return float(text) if isinstance(text, str) and _NUMBER.fullmatch(text.strip()) else math.nan
+
+
+def check_ascii_digits(
+    value: str, where: str, error: type[PidlabError] = PidlabError, *, param: str | None = None
+) -> str:
+    """``value`` when every digit in it is one of ``0-9`` (the one rule for numbers given as text).
+
+    Python's ``int()`` and ``float()`` read Arabic-Indic (``'١'``), full-width (``'１０'``) and other
+    Unicode digits; pidlab reads only ASCII digits, everywhere a number comes as text.
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``, naming the character.
+    """
+    for ch in value:
+        if ch.isdigit() and not ch.isascii():
+            fail(value, where, f"numbers written with the digits 0-9 ({ch!r} is not one)", error, param)
+    return value
+
+
+def split_list(
+    value: str, param: str, error: type[PidlabError] = PidlabError, *, what: str = "names", sep: str = ","
+) -> list[str]:
+    """The parts of comma-separated text such as ``--variables a,b``, stripped; an empty part is refused.
+
+    ``"a,,b"``, ``"a,"`` and ``""`` are refused (an empty part would silently vanish).
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``, with ``param``.
+    ArgumentError
+        ``value`` is not a string (a ``TypeError`` too).
+    """
+    if not isinstance(value, str):
+        fail(value, param, "a str", ArgumentError, param)
+    parts = [part.strip() for part in value.split(sep)]
+    if not all(parts):
+        fail(value, param, f"comma-separated {what}, none of them empty", error, param)
+    return parts
+
+
 def parse_vector(
     value: str, param: str, error: type[PidlabError] = PidlabError, *, length: int | None = None
 ) -> list[float]:
     """Finite numbers from comma- (or semicolon-) separated text, as ``--qpos 0,0.1`` gives them.
+
+    Every part must be a number written with ASCII digits (``1.5``, ``-2e-3``); an empty part
+    (``0,,0``) is refused, not skipped.
 
     Raises
     ------
     PidlabError
         Of class ``error``, with ``param``: a part that is not a finite number, or (when
         ``length`` is given) the wrong number of parts.
-    TypeError
-        ``value`` is not a string.
+    ArgumentError
+        ``value`` is not a string (a ``TypeError`` too).
     """
     if not isinstance(value, str):
-        raise TypeError(f"{param}: expected a str, got {type(value).__name__}")
+        fail(value, param, "a str", ArgumentError, param)
+    check_ascii_digits(value, param, error, param=param)
     out = []
-    for part in value.replace(";", ",").split(","):
-        if not part.strip():
-            continue
-        try:
-            x = float(part)
-        except ValueError:
-            x = math.nan
+    for part in split_list(value.replace(";", ","), param, error, what="numbers (e.g. 0,0.1)"):
+        x = float_text(part)
         if not math.isfinite(x):
-            bad = shown(part.strip(), 20)
+            bad = shown(part, 20)
             expected = f"comma-separated numbers, e.g. 0,0.1; {bad} is not a finite number"
             fail(value, param, expected, error, param)
         out.append(x)
     if length is not None and len(out) != length:
         fail(value, param, f"{length} comma-separated numbers, got {len(out)}", error, param)
     return out
+
+
+def path_argument(
+    value: Any, param: str, error: type[PidlabError] = PidlabError, *, what: str = "a path"
+) -> Path:
+    """``value`` as a :class:`~pathlib.Path`: a ``str`` or path-like object, not empty or blank.
+
+    ``Path("")`` is ``.``, the current folder: an empty string is refused here instead of being
+    read as "here".
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``, with ``param``.
+    """
+    if not isinstance(value, (str, os.PathLike)):
+        fail(value, param, f"{what} (a str or pathlib.Path)", error, param)
+    raw = os.fspath(value)
+    if not isinstance(raw, str) or not raw.strip():
+        fail(value, param, f"{what} (a str or pathlib.Path), not an empty one", error, param)
+    return Path(raw)
+
+
+def boolean(value: Any, param: str, error: type[PidlabError] = PidlabError) -> bool:
+    """``value`` when it is ``True`` or ``False`` (a Python argument; not 0, 1 or a string).
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``, with ``param``.
+    """
+    if not isinstance(value, bool):
+        fail(value, param, "True or False", error, param)
+    return value
+
+
+def strings(
+    value: Any,
+    param: str,
+    error: type[PidlabError] = PidlabError,
+    *,
+    what: str = "strings",
+    empty: bool = True,
+) -> list[str]:
+    """``value`` as a list of non-empty strings: a list or tuple, never one string (its characters).
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error``, with ``param``: one string where a list is expected (``envs="Hopper-v5"``
+        instead of ``["Hopper-v5"]``), another type, an entry that is not a non-empty string, or
+        (unless ``empty``) no entry at all.
+    """
+    if isinstance(value, str):
+        fail(value, param, f"a list of {what}, e.g. [{value!r}], not one string", error, param)
+    if not isinstance(value, (list, tuple)):
+        fail(value, param, f"a list of {what}", error, param)
+    if not empty and not value:
+        fail(value, param, f"a list of at least one of {what}", error, param)
+    for item in value:
+        if not isinstance(item, str) or not item.strip():
+            expected = f"a list of {what} (each a non-empty str; {shown(item, 20)} is not)"
+            fail(value, param, expected, error, param)
+    return list(value)
+
+
+T = TypeVar("T")
+
+_LOADERS = {"CoachSpec": "pidlab.load_spec(path)", "LoadedModel": "pidlab.load_model(env_id)",
+            "Recipe": "pidlab.load_recipe(path)"}  # fmt: skip
+"""What reads each object from a file or name, for the hint when a path or name is given instead."""
+
+
+def instance(value: Any, kind: type[T], param: str, error: type[PidlabError] = ArgumentError) -> T:
+    """``value`` when it is a ``kind`` (a function's argument); else ``error`` naming ``param``.
+
+    A path or name given where a loaded object is expected gets a hint: ``spec='a.toml': expected
+    a CoachSpec; read it with pidlab.load_spec(path)``.
+
+    Raises
+    ------
+    PidlabError
+        Of class ``error`` (default :class:`~pidlab.errors.ArgumentError`, a ``TypeError`` too).
+    """
+    if not isinstance(value, kind):
+        loader = _LOADERS.get(kind.__name__)
+        hint = f"; read it with {loader}" if loader and isinstance(value, (str, os.PathLike)) else ""
+        fail(value, param, f"a {kind.__name__}{hint}", error, param)
+    return value

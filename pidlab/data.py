@@ -73,3 +73,34 @@ def source_root() -> Path | None:
     """Pidlab's source tree when it runs from a checkout, else None (an installed copy)."""
     root = _PACKAGE.parent
     return root if (root / "pyproject.toml").is_file() and (root / "pidlab").is_dir() else None
+
+
+def portable_name(path: str | Path) -> str:
+    """How a record names a data file, the same on every machine: never the writer's absolute path.
+
+    A file inside one of the data folders is named relative to it (``tuning/Hopper-v5.paper.toml``),
+    a file of the source tree relative to its root; any other file by its name alone (the record
+    identifies it by its digest). An empty path stays empty.
+
+    Parameters
+    ----------
+    path : path
+        The file (absolute or relative to the working directory).
+
+    Returns
+    -------
+    str
+        A POSIX path relative to a data folder or to the source tree, or the file's name.
+    """
+    if str(path) == "":
+        return ""
+    p = Path(path).resolve()
+    roots = [(name, data_dir(name)) for name in FOLDERS]
+    tree = source_root()
+    for name, root in [*roots, *([("", tree)] if tree is not None else [])]:
+        try:
+            rel = p.relative_to(root.resolve()).as_posix()
+        except ValueError:
+            continue
+        return f"{name}/{rel}" if name else rel
+    return p.name

@@ -27,6 +27,10 @@ class PidlabError(Exception):
         self.param = param
 
 
+class ArgumentError(PidlabError, TypeError):
+    """A Python argument of the wrong kind: ``None`` or a file's path where a loaded object is expected."""
+
+
 class UnknownEnvError(PidlabError, KeyError):
     """A Gymnasium env id that is not registered (and is not an existing MJCF file)."""
 

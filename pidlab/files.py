@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pidlab.checks import NAME_MAX_BYTES, clip
+from pidlab.checks import NAME_MAX_BYTES, clip, path_argument
 from pidlab.errors import OutputError, PidlabError
 
 if TYPE_CHECKING:
@@ -39,6 +39,9 @@ def _writable(path: Path) -> bool:
         return False
     return os.access(path, os.W_OK) and bool(mode & 0o222)
 
+
+BOM = "\ufeff"
+"""The byte order mark some editors put at the start of a UTF-8 file; pidlab reads past it."""
 
 PATH_MAX_BYTES = 4096
 """Linux's limit on a whole path, in bytes (with its final NUL)."""
@@ -104,7 +107,7 @@ def check_output_folder(folder: str | Path, param: str | None = None) -> Path:
         ``folder`` (or a part of its path) is a file, or the folder where it would be created
         is read-only.
     """
-    folder = Path(folder)
+    folder = path_argument(folder, param or "folder", OutputError, what="a folder's path")
     problem = _folder_problem(folder)
     if problem is not None:
         raise _refusal(folder, f"cannot write there: {problem}", param)
@@ -126,7 +129,7 @@ def check_output_file(path: str | Path, param: str | None = None) -> Path:
     OutputError
         ``path`` is a folder, a read-only file, or lies where no file can be created.
     """
-    path = Path(path)
+    path = path_argument(path, param or "path", OutputError, what="a file's path")
     problem = _name_problem(path)
     if problem is not None:
         raise _refusal(path, f"cannot write there: {problem}", param)
@@ -183,10 +186,39 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
         os.replace(tmp, path)
         replaced = True
     except OSError as exc:
-        raise _refusal(path, f"cannot write the file: {exc.strerror or exc}", None) from None
+        refusal = _refusal(path, f"cannot write the file: {exc.strerror or exc}", None)
+        refusal.errno = exc.errno  # a full disk stays recognizable (ENOSPC) to the callers that resume
+        raise refusal from None
     finally:
         if not replaced:
             tmp.unlink(missing_ok=True)
+    return path
+
+
+def atomic_create_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` to ``path`` atomically, only if no file is there: never replaces one.
+
+    The text is written to a temporary file, then hard-linked to ``path``, which fails when a file
+    appeared there in the meantime (another command's).
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` exists (nothing was written).
+    OutputError
+        As :func:`atomic_write_bytes`.
+    """
+    path = check_output_file(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.new")
+    atomic_write_text(tmp, text)
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise
+    except OSError as exc:  # a file system without hard links, a full directory, ...
+        raise _refusal(path, f"cannot write the file: {exc.strerror or exc}", None) from None
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -208,19 +240,23 @@ def read_json(path: str | Path) -> Any:
 def read_text(path: str | Path, what: str, error: type[PidlabError]) -> str:
     """The UTF-8 text of ``path`` (a ``what``, e.g. "recipe"), or ``error`` in one line naming the file.
 
+    A UTF-8 byte order mark at the start (as some Windows editors write) is dropped.
+
     Raises
     ------
     PidlabError
-        Of class ``error``: the file cannot be read (missing, a folder, no permission) or is not
+        Of class ``error``: ``path`` is no path (``None``, an empty string: ``param`` is
+        ``"path"``, the parameter of every ``load_*`` function that reads a file), the file
+        cannot be read (missing, a folder, no permission, a loop of symbolic links) or is not
         UTF-8 text (binary, UTF-16, a stray latin-1 byte).
     """
-    path = Path(path)
+    path = path_argument(path, "path", error, what=f"the path of a {what} file")
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise error(f"cannot read {what} {clip(str(path), 200)!r}: {exc.strerror or exc}") from None
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8").removeprefix(BOM)
     except UnicodeDecodeError as exc:
         raise error(
             f"{clip(str(path), 200)}: the {what} is not UTF-8 text "
@@ -269,12 +305,13 @@ def parse_toml(text: str, where: str, error: type[PidlabError]) -> dict[str, Any
     """Parse TOML ``text``; invalid TOML raises ``error`` naming ``where``.
 
     The one TOML parser of pidlab: a syntax error, a NUL or control character, or nesting deep
-    enough to exhaust Python's recursion limit all become one line.
+    enough to exhaust Python's recursion limit all become one line. A leading byte order mark
+    (U+FEFF, which TOML does not allow) is dropped.
     """
     if not isinstance(text, str):
         raise TypeError(f"text: expected str, got {type(text).__name__}")
     try:
-        return tomllib.loads(text)
+        return tomllib.loads(text.removeprefix(BOM))
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{where}: not valid TOML: {exc}") from None
     except RecursionError:

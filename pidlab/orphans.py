@@ -4,11 +4,20 @@ A pool worker whose parent was killed (SIGKILL, or SIGTERM without cleanup) is r
 would otherwise go on: take the next task queued in its pipe, hold its files, keep the pool's
 resource tracker alive. :func:`stop_with_parent` makes it stop within seconds instead;
 :func:`watch_parent` is the portable, polling part of it.
+
+A parent's death is handled once. The kernel's death signal (``prctl(PR_SET_PDEATHSIG)``) is
+sent whenever the *thread* that started the worker ends, and again each time the worker is
+handed to another thread of the dying parent: a worker of a multi-threaded parent killed with
+SIGKILL gets it several times, milliseconds apart. So the kernel sends
+:data:`PARENT_DEATH_SIGNAL`, not the worker's stop signal, and its handler (like the polling
+thread) asks the work to stop only the first time: a busy worker stops with a checkpoint and
+is not interrupted again by the same death ("a second signal stops at once" stays a user's).
 """
 
 from __future__ import annotations
 
 import ctypes
+import itertools
 import os
 import signal
 import sys
@@ -21,6 +30,15 @@ PR_SET_PDEATHSIG = 1
 
 ORPHAN_GRACE_S = 3.0
 """How long an orphaned worker may go on (to finish a quick checkpoint) before it exits."""
+
+PARENT_DEATH_SIGNAL = signal.SIGUSR1
+"""The signal the kernel sends a worker of :func:`stop_with_parent` when its parent dies (maybe
+several times); its handler turns the first into one call of ``on_orphan``. Its default action
+ends the process, so a process that lost the handler still does not outlive its parent."""
+
+_PARENT_GONE = [False]
+"""Set (once) in a worker of :func:`stop_with_parent` when its parent died (a plain flag: a
+signal handler must not wait on a lock its own thread may hold)."""
 
 
 def watch_parent(on_orphan: Callable[[], None], period_s: float = 1.0) -> None:
@@ -57,6 +75,19 @@ def signal_on_parent_death(signum: int) -> bool:
         return False
 
 
+class _Once:
+    """``on_orphan`` called at most once, from the signal handler or the polling thread."""
+
+    def __init__(self, on_orphan: Callable[[], None]) -> None:
+        self._on_orphan = on_orphan
+        self._calls = itertools.count()  # next() is atomic: no lock a nested handler could wait on
+
+    def __call__(self, *_: object) -> None:
+        _PARENT_GONE[0] = True
+        if next(self._calls) == 0:
+            self._on_orphan()
+
+
 def stop_with_parent(
     parent: int,
     on_orphan: Callable[[], None],
@@ -64,11 +95,11 @@ def stop_with_parent(
     grace_s: float = ORPHAN_GRACE_S,
     period_s: float = 0.25,
 ) -> None:
-    """Make this worker stop when ``parent`` (the pid that started it) dies.
+    """Make this worker stop when ``parent`` (the pid that started it) dies: ``on_orphan`` once.
 
-    On Linux the kernel sends SIGTERM at once (the worker's SIGTERM handler decides: an idle
-    worker exits, a busy one stops its work with a quick checkpoint); elsewhere a thread that
-    polls every ``period_s`` calls ``on_orphan`` instead. Either way the process exits
+    On Linux the kernel signals the death at once (:data:`PARENT_DEATH_SIGNAL`, from the main
+    thread's handler); elsewhere a thread that polls every ``period_s`` notices. Either way
+    ``on_orphan`` is called once, however often the kernel signals, and the process exits
     ``grace_s`` seconds after the parent is gone, whatever it is doing.
 
     Parameters
@@ -77,19 +108,27 @@ def stop_with_parent(
         The pid of the process that started this one (``os.getpid()`` there, passed along: by
         the time this runs, the parent may already be gone).
     on_orphan : callable
-        Asks the work in progress to stop (e.g. ``os.kill(os.getpid(), signal.SIGTERM)``).
+        Asks the work in progress to stop (e.g. ``os.kill(os.getpid(), signal.SIGTERM)``: a busy
+        worker stops with a checkpoint, an idle one exits).
     grace_s, period_s : float
+
+    Notes
+    -----
+    Call it from the main thread (the signal handler is installed there; from another thread
+    only the polling thread watches). The "parent" of the kernel's signal is the thread that
+    started this process: start workers from a thread that lives as long as its process.
     """
-    by_kernel = signal_on_parent_death(signal.SIGTERM)
+    once = _Once(on_orphan)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(PARENT_DEATH_SIGNAL, once)
+        signal_on_parent_death(PARENT_DEATH_SIGNAL)
     if os.getppid() != parent:  # gone before prctl: no signal will come
-        on_orphan()
-        by_kernel = True
+        once()
 
     def watch() -> None:
         while os.getppid() == parent:
             time.sleep(period_s)
-        if not by_kernel:
-            on_orphan()
+        once()  # a no-op when the kernel's signal came first
         time.sleep(grace_s)
         os._exit(1)
 
@@ -97,5 +136,9 @@ def stop_with_parent(
 
 
 def orphaned(parent: int | None) -> bool:
-    """Whether this process was started by ``parent`` and ``parent`` is gone (False for None)."""
-    return parent is not None and os.getppid() != parent
+    """Whether this process was started by ``parent`` and ``parent`` is gone (False for None).
+
+    True from the parent's death on: its death signal may come while the dying parent's last
+    threads still adopt this process (``os.getppid()`` then still names it).
+    """
+    return parent is not None and (_PARENT_GONE[0] or os.getppid() != parent)

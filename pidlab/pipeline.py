@@ -35,6 +35,7 @@ OUT (:func:`pidlab.provenance.hold_lock`) from start to end: a second command in
 
 from __future__ import annotations
 
+import shlex
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import AbstractContextManager, contextmanager
@@ -42,7 +43,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pidlab.checks import MAX_SAMPLES, MAX_SEEDS, integer
+from pidlab.checks import MAX_SAMPLES, MAX_SEEDS, integer, path_argument
 from pidlab.controller.rollout import MAX_EPISODES
 from pidlab.data import source_root
 from pidlab.errors import PidlabError, PipelineError
@@ -150,8 +151,47 @@ def settings_for(
     given: dict[str, Any] = {"seeds": seeds, "steps": steps, "preset": preset, "roa_samples": roa_samples,
                              "episodes": episodes, "condition": condition}  # fmt: skip
     settings = replace(base, **{k: v for k, v in given.items() if v is not None})
-    coaching_of(env_id, settings)
+    check_settings(env_id, settings)
     return settings
+
+
+def _preset_problem(env_id: str, preset: Any) -> str | None:
+    """Why ``preset`` cannot tune a coach for ``env_id`` (its model card says), or None."""
+    from pidlab.plant.card import find_card
+    from pidlab.region.room import has_room_design
+
+    card = find_card(env_id)
+    if preset == "room" and card is not None and not has_room_design(card):
+        return f"{env_id} has no linear design that measures its state (its coach is refined on the env)"
+    return None
+
+
+def check_settings(env_id: str, settings: PipelineSettings) -> None:
+    """The settings can run on ``env_id``: its preset tunes a coach for it, its condition coaches.
+
+    Checked before a pipeline writes anything, so a refusal leaves no folder behind that only
+    these settings could resume.
+
+    Raises
+    ------
+    PipelineError
+        The preset does not apply to the env (``room`` on a contact-rich env), or the condition
+        is unknown, trains no coach, or has coaching fields the env's recipe rejects.
+    ModelCardError
+        The env's model card cannot be read.
+    """
+    from pidlab.experiment.conditions import ConditionError
+
+    problem = _preset_problem(env_id, settings.preset)
+    if problem is not None:
+        others = ", ".join(p for p in PRESETS if _preset_problem(env_id, p) is None)
+        message = f"preset={settings.preset!r}: {problem}; expected one of {others}"
+        raise PipelineError(message, param="preset")
+    coaching_of(env_id, settings)
+    try:
+        _coached_recipe(env_id, settings, load_recipe(default_recipe_path(env_id)))
+    except ConditionError as exc:
+        raise PipelineError(f"condition={settings.condition!r}: {exc}", param="condition") from None
 
 
 def coaching_of(env_id: str, settings: PipelineSettings) -> tuple[dict[str, Any], str]:
@@ -204,6 +244,31 @@ def _differences(old: Record, identity: dict[str, Any]) -> str:
     return ", ".join(diffs)
 
 
+def _own_command(old: Record) -> str | None:
+    """The command that made the pipeline ``old``, when it would resume it (else None)."""
+    was = old.identity or {}
+    kept = was.get("settings")
+    settings: dict[str, Any] = kept if isinstance(kept, dict) else {}
+    try:
+        refused = _preset_problem(str(was.get("env_id")), settings.get("preset")) is not None
+    except PidlabError:  # no card to say
+        refused = True
+    if refused or not old.command or old.schema != PIPELINE_SCHEMA:
+        return None
+    return shlex.join(old.command)
+
+
+def _another(out: Path, old: Record, identity: dict[str, Any]) -> str:
+    """The refusal of a folder that holds another pipeline: what differs, and commands that work."""
+    own = _own_command(old)
+    resume = f"Resume it with its own command ({own}), choose" if own else "Choose"
+    return (
+        f"out={out}: holds a pipeline run with other settings ({_differences(old, identity)}); nothing was "
+        f"changed. {resume} another folder (--out), or remove this one (rm -r {shlex.quote(str(out))}) and "
+        "run this command again"
+    )
+
+
 def check_out_folder(out: Path, identity: dict[str, Any]) -> Record | None:
     """The folder's existing record, if it holds this pipeline (nothing is written).
 
@@ -211,15 +276,13 @@ def check_out_folder(out: Path, identity: dict[str, Any]) -> Record | None:
     ------
     PipelineError
         The folder holds something else: another pipeline, or files that are not a pipeline's.
+        The message names commands that work (another folder, or this one removed).
     """
     refusals = Refusals(
         not_a_folder=f"out={out}: exists and is not a folder",
         not_a_record=f"out={out}: pipeline.json is not a pipeline record; use another folder",
         not_ours=f"out={out}: not empty and holds no pipeline.json; choose another folder",
-        another=lambda old: (
-            f"out={out}: holds a pipeline run with other settings ({_differences(old, identity)}); "
-            "run with the same settings to resume, or choose another folder"
-        ),
+        another=lambda old: _another(out, old, identity),
     )
     return check_folder(out, "pipeline.json", PIPELINE_SCHEMA, identity, refusals, PipelineError, "out")
 
@@ -328,16 +391,20 @@ def _check(
 
     Returns the folder, its record (None: a new pipeline), the env's recipe and model.
     """
+    from pidlab.experiment.sweep import check_finished_logs
     from pidlab.plant.model import load_model
 
     if workers is not None and (type(workers) is not int or workers < 1):
         raise PipelineError(f"workers={workers!r}: expected 1 or more", param="workers")
     folder = Path(out).resolve()
+    check_settings(env_id, settings)  # before the folder: its refusal then names a command that works
     old = check_out_folder(folder, _identity(env_id, settings))
     recipe = load_recipe(default_recipe_path(env_id))
     loaded = load_model(env_id)
     loaded.require_card()
     _check_stage_files(folder)
+    runs = folder / "experiment" / "runs" / env_id
+    check_finished_logs(runs / c / f"seed-{seed}" for c in CONDITIONS for seed in range(settings.seeds))
     return folder, old, recipe, loaded
 
 
@@ -461,12 +528,12 @@ def _region(
     return region, kept, crit
 
 
-def _coached_recipe(s: _Session, recipe: Recipe) -> Recipe:
+def _coached_recipe(env_id: str, settings: PipelineSettings, recipe: Recipe) -> Recipe:
     """The recipe as the coached runs train it: its ``[coaching]`` with the settings' condition's fields."""
     from pidlab.experiment.conditions import with_coaching
 
-    fields = coaching_of(s.env_id, s.settings)[0]
-    return with_coaching(recipe, fields, f"condition {s.settings.condition} on {s.env_id}")
+    fields = coaching_of(env_id, settings)[0]
+    return with_coaching(recipe, fields, f"condition {settings.condition} on {env_id}")
 
 
 def _rescue(
@@ -619,7 +686,7 @@ def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple
             env_id=env_id,
             settings=s.settings,
             record=read_json(folder / "pipeline.json"),
-            coaching=recipe_to_dict(_coached_recipe(s, made.recipe))["coaching"],
+            coaching=recipe_to_dict(_coached_recipe(env_id, s.settings, made.recipe))["coaching"],
             lti=made.lti,
             control_dt=float(made.lin.control_dt),
             tuning=made.tuning,
@@ -678,6 +745,7 @@ def run_pipeline(
     PipelineError, RecipeError, SpecError, RegionError, ExperimentError
         One line naming what is wrong; nothing already finished is lost.
     """
+    path_argument(out, "out", PipelineError, what="the pipeline's folder")
     folder = _check(env_id, out, settings, workers)[0]  # refused here, nothing is made
     with hold_lock(folder, PipelineError, param="out"):
         folder, old, recipe, loaded = _check(env_id, out, settings, workers)  # again, under the lock
@@ -700,7 +768,8 @@ def _stages(
     lin, lti = _linearize(s)
     spec, tuning, tuned_path = _tune(s, lin)
     analysis, figures, score = _analyze(s, spec, tuned_path)
-    coached, roa, coach_path, roa_png = _bounds(s, spec, units, _coached_recipe(s, recipe).coaching.region)
+    region_kind = _coached_recipe(s.env_id, s.settings, recipe).coaching.region
+    coached, roa, coach_path, roa_png = _bounds(s, spec, units, region_kind)
     sweep_plan, sweep = _train(s, coach_path, workers, argv)
     failed = sweep.count("failed")
     if sweep.interrupted:

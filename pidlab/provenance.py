@@ -415,19 +415,47 @@ def _holder(fd: int) -> int | None:
     return int(text) if text.isdigit() else None
 
 
-def _try_flock(path: Path, folder_lock: bool) -> tuple[int, bool]:
-    """Open ``path`` and try to flock it: (fd, True) when this process now holds it.
+@dataclass(frozen=True)
+class _Found:
+    """A lock file as this command found it (a killed command's): put back when the command fails.
 
-    A lock taken on a file that was meanwhile unlinked or replaced (its holder removed it on
-    release, or a file target was rewritten) is not the lock of ``path``: (-1, True) says "try
-    again". (fd, False): another process holds it; the caller closes ``fd``.
+    A refused command changes nothing, the lock file a killed command left included.
     """
-    flags = os.O_RDWR | os.O_CREAT if folder_lock else os.O_RDONLY
-    fd = os.open(path, flags, 0o644)
+
+    data: bytes
+    times_ns: tuple[int, int]
+
+
+def _open_lock(path: Path, folder_lock: bool) -> tuple[int, bool]:
+    """Open the lock file ``path`` (a folder's is created when missing): (fd, whether it was created)."""
+    if not folder_lock:
+        return os.open(path, os.O_RDONLY), False
+    for _ in range(3):
+        try:
+            return os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644), True
+        except FileExistsError:
+            pass
+        try:
+            return os.open(path, os.O_RDWR), False
+        except FileNotFoundError:  # removed in between (its holder ended): create it
+            continue
+    return os.open(path, os.O_RDWR | os.O_CREAT, 0o644), False  # e.g. a dangling symlink
+
+
+def _try_flock(path: Path, folder_lock: bool) -> tuple[int, bool, _Found | None]:
+    """Open ``path`` and try to flock it: (fd, True, found) when this process now holds it.
+
+    ``found`` is the lock file as it was when this process did not create it (a killed
+    command's), else None. A lock taken on a file that was meanwhile unlinked or replaced (its
+    holder removed it on release, or a file target was rewritten) is not the lock of ``path``:
+    (-1, True, None) says "try again". (fd, False, None): another process holds it; the caller
+    closes ``fd``.
+    """
+    fd, created = _open_lock(path, folder_lock)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
-        return fd, False
+        return fd, False, None
     held = os.fstat(fd)
     try:
         there = os.stat(path)
@@ -436,22 +464,24 @@ def _try_flock(path: Path, folder_lock: bool) -> tuple[int, bool]:
         same = False
     if not same:
         os.close(fd)
-        return -1, True
-    return fd, True
+        return -1, True, None
+    if not folder_lock or created:
+        return fd, True, None
+    return fd, True, _Found(os.pread(fd, held.st_size, 0), (held.st_atime_ns, held.st_mtime_ns))
 
 
 def _acquire(path: Path, folder_lock: bool, shown: str, error: type[PidlabError], param: str | None,
-             wait_s: float) -> int:  # fmt: skip
-    """Flock ``path`` for this process (waiting up to ``wait_s`` seconds); its fd."""
+             wait_s: float) -> tuple[int, _Found | None]:  # fmt: skip
+    """Flock ``path`` for this process (waiting up to ``wait_s`` seconds): its fd, and the file found."""
     deadline = time.monotonic() + wait_s
     while True:
         try:
-            fd, mine = _try_flock(path, folder_lock)
+            fd, mine, found = _try_flock(path, folder_lock)
         except OSError as exc:
             reason = exc.strerror or exc
             raise error(f"{shown}: cannot take its lock {path.name}: {reason}", param=param) from None
         if mine and fd >= 0:
-            return fd
+            return fd, found
         if not mine:
             pid = _holder(fd)
             os.close(fd)
@@ -463,6 +493,31 @@ def _acquire(path: Path, folder_lock: bool, shown: str, error: type[PidlabError]
                     param=param,
                 )
             time.sleep(0.1)
+
+
+def _release(fd: int, path: Path, folder_lock: bool, found: _Found | None) -> None:
+    """Release the lock on ``fd``; a folder's lock file is removed, or (``found``) put back as it was."""
+    if not folder_lock:
+        pass
+    elif found is None:
+        path.unlink(missing_ok=True)  # before the release: a waiter then retries on a new file
+    else:
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, found.data, 0)
+            os.utime(fd, ns=found.times_ns)
+        except OSError:
+            pass  # the lock file of a killed command: nobody reads more than its name
+    os.close(fd)
+
+
+def _remove_empty(folders: Sequence[Path]) -> None:
+    """Remove ``folders`` (deepest first) while they are empty."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            break
 
 
 def _missing_folders(folder: Path) -> list[Path]:
@@ -492,7 +547,9 @@ def hold_lock(
     A folder's lock is the file :data:`LOCK_NAME` in it (created, with the folder and its
     parents, when missing; it holds the pid of its holder and is removed on release). The folder
     guard :func:`check_folder` ignores it, and folders this call created are removed again when
-    they are still empty at the end. A file's lock is the file itself (nothing is created).
+    they are still empty at the end. A block that ends with an exception (a refusal) leaves the
+    lock file as it found it: a killed command's file is put back, bytes and times, not removed.
+    A file's lock is the file itself (nothing is created).
     Within one process the lock is re-entrant: a block inside a block that holds it is a no-op.
 
     Parameters
@@ -530,25 +587,22 @@ def hold_lock(
     with _HELD_GUARD:
         depth = _HELD.get(path, 0)
         _HELD[path] = depth + 1
-    fd = -1
+    fd, found, failed = -1, None, False
     try:
         if depth == 0:
-            fd = _acquire(path, path != target, shown, error, param, wait_s)
+            fd, found = _acquire(path, path != target, shown, error, param, wait_s)
             if path != target:
                 os.ftruncate(fd, 0)
                 os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
         yield path
+    except BaseException:
+        failed = True
+        raise
     finally:
         with _HELD_GUARD:
             _HELD[path] -= 1
             if _HELD[path] == 0:
                 del _HELD[path]
         if fd >= 0:
-            if path != target:
-                path.unlink(missing_ok=True)  # before the release: a waiter then retries on a new file
-            os.close(fd)
-        for folder in created:  # deepest first; only those still empty
-            try:
-                folder.rmdir()
-            except OSError:
-                break
+            _release(fd, path, path != target, found if failed else None)
+        _remove_empty(created)

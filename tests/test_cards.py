@@ -130,12 +130,12 @@ high = 1
             lambda s: s.replace('name = "a_pos"', 'name = "a_pos"\ntransform = "tan"'),
             "allowed: identity, sin, cos",
         ),
-        (
-            lambda s: s.replace("[[termination]]", 'interval = "half"\n[[termination]]').replace(
-                "high = 1", 'high = 1\ninterval = "half"'
-            ),
-            "allowed: closed, open",
+        (lambda s: s.replace("high = 1", 'high = 1\ninterval = "half"'), "allowed: closed, open"),
+        (  # a field of one table written in another is no silent default (pidlab reads only its own)
+            lambda s: s.replace("[[termination]]", 'interval = "half"\n[[termination]]'),
+            "observation[0]: unknown field(s) ['interval']",
         ),
+        (lambda s: "colour = 1\n" + s, "card.toml: unknown field(s) ['colour']"),
         (lambda s: s.replace('env_id = "X-v0"', ""), "missing field 'env_id'"),
     ],
 )

@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -152,7 +153,7 @@ def test_runs_start_seed_by_seed_so_a_stopped_sweep_compares_like_with_like(tmp_
     [
         (["--envs", "Nope-v5"], "unknown env"),
         (["--conditions", "none,telepathy"], "unknown condition"),
-        (["--seeds", ""], "no seeds"),
+        (["--seeds", ""], "--seeds '': empty"),
         (["--recipe", "missing.toml"], "no such file"),
         (["--backend", "slurm"], "--backend"),
     ],
@@ -226,6 +227,39 @@ def test_a_folder_of_another_experiment_is_refused_untouched(tmp_path):
     code, stderr = cli_in_process(*cmd[1:])
     assert code == 2 and "not empty" in stderr
     assert [p.name for p in stranger.iterdir()] == ["thesis.tex"]
+
+
+def test_a_finished_run_with_a_cut_log_is_refused_before_any_write(tmp_path):
+    """One run's episodes.csv cut short: refused before anything is written, with advice that works.
+
+    The sweep had appended a resume to experiment.json on every try, then refused in its report,
+    advising the very command that refused.
+    """
+    from pidlab.provenance import LOCK_NAME
+
+    recipe = tiny_recipe(tmp_path, steps=300)
+    out = tmp_path / "exp"
+    args = ["experiment", "--envs", IP, "--conditions", "none", "--seeds", "1", "--recipe", str(recipe),
+            "--out", str(out), "--workers", "1", "--no-progress"]  # fmt: skip
+    p = plan([IP], ["none"], [0], out, recipe_files=[str(recipe)])
+    assert run_sweep(p, workers=1, progress_bar=False).count("done") == 1
+    run = out / "runs" / IP / "none" / "seed-0"
+    rows = (run / "episodes.csv").read_text().splitlines(keepends=True)
+    (run / "episodes.csv").write_text("".join(rows[:-2]))  # the last episode gone, the one before it cut
+    (out / LOCK_NAME).write_text("4194303\n")  # and the lock file of a command killed since
+    before = tree_digest(out)
+    for _ in range(2):  # each try: the same one line, nothing written
+        code, stderr = cli_in_process(*args)
+        lines = stderr.strip().splitlines()
+        assert code == 2 and len(lines) == 1, stderr
+        assert f"{run}: the finished run's logs are damaged" in lines[0] and "episodes.csv holds" in lines[0]
+        assert f"Remove the run's folder (rm -r {run}), then run this command again" in lines[0], lines[0]
+        assert tree_digest(out) == before
+    assert read_json(out / "experiment.json")["resumes"] == []
+    shutil.rmtree(run)  # what the line says to do
+    code, stderr = cli_in_process(*args)
+    assert code == 0, stderr
+    assert read_json(run / "summary.json")["completed"] and (out / "report.md").is_file()
 
 
 # ---------------------------------------------------------------- sweeps
@@ -342,3 +376,4 @@ def test_a_ray_address_where_no_cluster_answers_is_one_line_and_exit_2(tmp_path)
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and f"--address 127.0.0.1:{port}: no Ray cluster answers there" in lines[0]
+    assert not (tmp_path / "exp").exists()  # refused before anything was written (no experiment.json)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -159,6 +160,12 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
         (["InvertedPendulum-v5", "--condition", "none"], "--condition 'none': trains no coach"),
         (["InvertedPendulum-v5", "--workers", "0"], "--workers 0"),
         (["InvertedPendulum-v5", "--samples", "0"], "--samples 0"),
+        # checked before anything is written (it had written linearization.json and pipeline.json first)
+        (
+            ["Hopper-v5", "--preset", "room"],
+            "--preset 'room': Hopper-v5 has no linear design that measures its state (its coach is refined "
+            "on the env); expected one of robust, weak",
+        ),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
@@ -182,6 +189,50 @@ def test_a_folder_that_is_not_a_pipeline_is_refused(tmp_path):
     code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(tmp_path))
     assert code == 2 and "holds no pipeline.json" in err
     assert [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
+
+
+def test_a_folder_of_other_settings_is_refused_with_commands_that_work(tmp_path):
+    """The refusal names another --out and the folder removed; the folder's own command only when it runs.
+
+    A folder left by a refusal (``--preset room`` on Hopper-v5, before that was checked first) had
+    been advised "run with the same settings to resume": the command that refuses.
+    """
+    from dataclasses import replace
+
+    from pidlab.pipeline import PIPELINE_SCHEMA, _identity, check_out_folder, settings_for
+    from pidlab.provenance import new_record, write_record
+
+    def folder(name: str, env: str, settings: object, command: list[str]) -> Path:
+        out = tmp_path / name
+        write_record(
+            out / "pipeline.json", new_record(PIPELINE_SCHEMA, command, identity=_identity(env, settings))
+        )
+        (out / "linearization.json").write_text("{}")
+        return out
+
+    room = replace(settings_for("Hopper-v5"), preset="room")  # what the refusal left behind
+    stuck = folder("stuck", "Hopper-v5", room, ["pidlab", "run", "Hopper-v5", "--preset", "room"])
+    code, err = cli_in_process("run", "Hopper-v5", "--out", str(stuck), "--no-progress")
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert "other settings (preset room (now robust))" in lines[0] and "nothing was changed" in lines[0]
+    assert (
+        f"Choose another folder (--out), or remove this one (rm -r {stuck}) and run this command again"
+        in lines[0]
+    )
+    assert "--preset room" not in lines[0]  # its own command is refused: not advised
+    shutil.rmtree(stuck)  # what the line says; the command's checks then pass
+    assert check_out_folder(stuck, _identity("Hopper-v5", settings_for("Hopper-v5"))) is None
+
+    own = ["pidlab", "run", "InvertedPendulum-v5", "--steps", "1024"]
+    other = folder("other", "InvertedPendulum-v5", settings_for("InvertedPendulum-v5", steps=1024), own)
+    before = {p.name: p.read_bytes() for p in other.iterdir()}
+    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(other), "--steps", "2048")
+    assert code == 2 and "steps 1024 (now 2048)" in err, err
+    assert (
+        "Resume it with its own command (pidlab run InvertedPendulum-v5 --steps 1024), choose another" in err
+    )
+    assert {p.name: p.read_bytes() for p in other.iterdir()} == before
 
 
 def test_recipe_pipeline_table_defaults_and_errors(tmp_path, monkeypatch):

@@ -83,3 +83,33 @@ def test_the_evidence_script_refuses_an_env_without_a_design_before_any_work():
         "evidence.sh: CartPole-v1: no evidence design (expected one of the paper's four v5 envs)"
     ]
     assert done.stdout == ""
+
+
+def test_published_records_name_no_writers_absolute_path():
+    """config.toml and experiment.json name their sources relative to the data folders (issue 33)."""
+    import json
+    import re
+
+    absolute = re.compile(r'^(?:source|recipe_source) = "/', re.M)
+    for config in (ROOT / "docs" / "results").rglob("config.toml"):
+        assert not absolute.search(config.read_text()), config
+    for record in (ROOT / "docs" / "results").rglob("experiment.json"):
+        recipes = json.loads(record.read_text()).get("recipes", {})
+        assert not any(str(v).startswith("/") for v in recipes.values()), record
+
+
+def test_a_run_names_its_coach_and_recipe_by_their_place_in_the_data_folders(tmp_path):
+    from pidlab.data import portable_name, tuning_dir
+    from pidlab.rl.recipe import default_recipe_path, load_recipe
+    from pidlab.rl.rundir import config_dict
+
+    shipped = tuning_dir() / "Hopper-v5.paper.toml"
+    assert portable_name(shipped) == "tuning/Hopper-v5.paper.toml"
+    assert portable_name(tmp_path / "elsewhere" / "mine.toml") == "mine.toml"
+    assert portable_name("") == ""
+    recipe = load_recipe(default_recipe_path("Hopper-v5"))
+    from pidlab.controller.spec import load_spec
+
+    config = config_dict(recipe, load_spec(shipped), str(shipped))
+    assert config["coach"]["source"] == "tuning/Hopper-v5.paper.toml"
+    assert config["recipe_source"] == "coach/Hopper-v5.toml"

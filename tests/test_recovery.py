@@ -232,6 +232,42 @@ def test_a_killed_resume_does_not_block_the_next(run):
     assert_logs_consistent(run)
 
 
+def _stale_lock(folder: Path) -> tuple[bytes, int]:
+    """The lock file a killed command leaves (its pid), dated an hour ago: (its bytes, its mtime)."""
+    lock = folder / LOCK_NAME
+    lock.write_bytes(b"4194303\n")
+    an_hour_ago = time.time_ns() - 3600 * 10**9
+    os.utime(lock, ns=(an_hour_ago, an_hour_ago))
+    return lock.read_bytes(), lock.stat().st_mtime_ns
+
+
+def test_a_refusal_puts_back_the_lock_file_a_killed_command_left(tmp_path):
+    """A block that ends in an error leaves the lock file as it found it; one that ends well removes it."""
+    found = _stale_lock(tmp_path)
+    with pytest.raises(RunDirError, match="refused"), hold_lock(tmp_path, RunDirError) as lock:
+        assert lock.read_text().strip() == str(os.getpid())  # held: it names this process meanwhile
+        raise RunDirError("refused")
+    assert (lock.read_bytes(), lock.stat().st_mtime_ns) == found
+    with hold_lock(tmp_path, RunDirError):
+        pass
+    assert not lock.exists()  # a command that ended well removes it, as documented
+    with pytest.raises(RunDirError), hold_lock(tmp_path, RunDirError):  # none found: none left
+        raise RunDirError("refused")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_refused_resume_changes_nothing_not_even_a_killed_commands_lock_file(run):
+    """``--resume`` refused inside the run's lock (--steps below what was done): the lock file stays."""
+    (run / "summary.json").unlink()  # as a run that was killed, leaving its lock file
+    found = _stale_lock(run)
+    before = snapshot(run)
+    code, lines = resume_cli(run, "--steps", "300")
+    assert code == 2 and len(lines) == 1, lines
+    assert "--steps 300: the run has already done" in lines[0], lines
+    assert snapshot(run) == before
+    assert ((run / LOCK_NAME).read_bytes(), (run / LOCK_NAME).stat().st_mtime_ns) == found
+
+
 # ---------------------------------------------------------------- the checkpoint fallback
 
 
@@ -261,8 +297,8 @@ def _remove(path: Path) -> None:
 DAMAGES = [
     ("model.zip", _garbage),
     ("model.zip", _truncate),
-    ("vecnormalize.pkl", _garbage),
-    ("vecnormalize.pkl", _truncate),
+    ("vecnormalize.npz", _garbage),
+    ("vecnormalize.npz", _truncate),
     ("state.json", _cut_json),
     ("model.zip", _remove),
 ]
@@ -461,6 +497,113 @@ def test_a_killed_sweep_leaves_no_worker_and_starts_no_run(tmp_path):
     assert sorted(str(p.relative_to(runs)) for p in runs.glob("*/seed-*")) == started  # no queued run started
 
 
+ORPHAN_CHILD = """
+import os, signal, sys, time
+from pidlab.orphans import stop_with_parent
+fd = os.open(sys.argv[2], os.O_WRONLY | os.O_APPEND)
+signal.signal(signal.SIGTERM, lambda signum, frame: os.write(fd, b"TERM\\n"))  # counts, never dies of it
+stop_with_parent(int(sys.argv[1]), lambda: os.kill(os.getpid(), signal.SIGTERM), grace_s=1.0)
+print("ready", flush=True)
+while True:
+    time.sleep(0.01)
+"""
+THREADED_PARENT = """
+import os, subprocess, sys, threading, time
+for _ in range(16):  # each thread of the dying parent adopts the child in turn: one death signal each
+    threading.Thread(target=time.sleep, args=(600,), daemon=True).start()
+child = subprocess.Popen([sys.executable, "-c", sys.argv[1], str(os.getpid()), sys.argv[2]],
+                         stdout=subprocess.PIPE, text=True)
+child.stdout.readline()
+print(child.pid, flush=True)
+time.sleep(600)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl(PR_SET_PDEATHSIG) and /proc")
+def test_a_parent_death_is_handled_once(tmp_path):
+    """A worker whose multi-threaded parent is SIGKILLed is asked to stop once, then exits.
+
+    The kernel sends the death signal whenever the thread that started the worker ends, and again
+    each time another thread of the dying parent adopts it; the worker once took the second signal
+    as "stop at once" and lost its checkpoint.
+    """
+    counts = []
+    for attempt in range(3):
+        log = tmp_path / f"signals-{attempt}.txt"
+        log.touch()
+        parent = subprocess.Popen([sys.executable, "-c", THREADED_PARENT, ORPHAN_CHILD, str(log)],
+                                  stdout=subprocess.PIPE, text=True)  # fmt: skip
+        assert parent.stdout is not None
+        child = int(parent.stdout.readline())
+        parent.kill()
+        parent.wait()
+        deadline = time.time() + 15
+        while _alive(child) and time.time() < deadline:
+            time.sleep(0.05)
+        assert not _alive(child), "the orphan did not exit within its grace"
+        counts.append(log.read_text().count("TERM"))
+    assert counts == [1, 1, 1]
+
+
+def _furthest_episode(run: Path) -> int:
+    """The env steps at the end of the run's last logged episode (its complete rows only)."""
+    text = (run / "episodes.csv").read_text() if (run / "episodes.csv").exists() else ""
+    rows = text.split("\n")[:-1]  # a row still being written has no newline yet
+    if len(rows) < 2:
+        return 0
+    column = rows[0].split(",").index("env_steps_so_far")
+    return int(rows[-1].split(",")[column])
+
+
+SWEEP_WITH_THREADS = """
+import sys, threading, time
+for _ in range(16):  # a sweep started from a program with threads (a notebook, a Ray driver)
+    threading.Thread(target=time.sleep, args=(600,), daemon=True).start()
+from pidlab.cli import main
+sys.argv = ["pidlab", *sys.argv[1:]]
+main()
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_killed_sweep_keeps_every_runs_progress(tmp_path):
+    """SIGKILL of a sweep's main process: each worker checkpoints its run where it stopped, then exits.
+
+    Checkpoints are far apart here (every 100,000 env steps, none reached before the kill), so only
+    the checkpoint of the stop keeps a run's progress: every run's latest checkpoint is within one
+    checkpoint interval of the furthest step it logged, and at or past it (no logged episode lost).
+    The sweep's process has more threads than ``pidlab experiment`` alone: the more threads the dying
+    process has, the more death signals each worker gets (they had stopped it without a checkpoint).
+    """
+    every = 100_000
+    recipe = tiny_recipe(tmp_path, steps=4 * every, every=every)
+    out = tmp_path / "exp"
+    cmd = [sys.executable, "-c", SWEEP_WITH_THREADS, "experiment", "--envs", IP, "--conditions", "none",
+           "--seeds", "3", "--recipe", str(recipe), "--out", str(out), "--workers", "3", "--no-progress"]  # fmt: skip
+    with open(tmp_path / "stderr.txt", "w") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+    runs = [out / "runs" / IP / "none" / f"seed-{s}" for s in (0, 1, 2)]
+    deadline = time.time() + 120
+    while min(_furthest_episode(r) for r in runs) < 500:  # both runs under way
+        assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()
+        assert time.time() < deadline, "the sweep did not get both runs under way in time"
+        time.sleep(0.1)
+    children = _descendants(proc.pid)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    deadline = time.time() + 15
+    while any(_alive(pid) for pid in children) and time.time() < deadline:
+        time.sleep(0.1)
+    assert not [pid for pid in children if _alive(pid)], "processes of the killed sweep are still alive"
+    for run in runs:
+        furthest = _furthest_episode(run)
+        kept = checkpoint_folders(run)
+        assert kept, f"{run.name}: no checkpoint; {furthest} env steps lost"
+        latest = state(kept[-1])["env_steps"]
+        assert furthest <= latest <= furthest + every, (run.name, furthest, latest)
+    assert "Traceback" not in (tmp_path / "stderr.txt").read_text()
+
+
 def test_a_damaged_finished_run_is_one_line_in_the_report(tmp_path):
     """experiment --report-only over a run whose summary or logs were damaged: an ExperimentError naming it."""
     from pidlab.errors import ExperimentError
@@ -473,10 +616,10 @@ def test_a_damaged_finished_run_is_one_line_in_the_report(tmp_path):
     summary = {"env_steps": 10, "agent_steps": 10, "coach_steps": 0, "completed": True}
     (run / "summary.json").write_text(json.dumps(summary))
     (run / "episodes.csv").write_text("episode,agent_return\n0,not-a-number\n")
-    with pytest.raises(ExperimentError, match="seed-0: the run's logs are damaged"):
+    with pytest.raises(ExperimentError, match="seed-0: the finished run's logs are damaged"):
         load_run(run, "InvertedPendulum-v5", "none", 0, rule)
     (run / "episodes.csv").unlink()  # a log file gone
-    with pytest.raises(ExperimentError, match="seed-0: the run's logs are damaged"):
+    with pytest.raises(ExperimentError, match="seed-0: the finished run's logs are damaged"):
         load_run(run, "InvertedPendulum-v5", "none", 0, rule)
     (run / "summary.json").write_text(json.dumps({**summary, "policy_updates": -3}))  # a count that cannot be
     (run / "episodes.csv").write_text("episode,env_steps_so_far,agent_return,total_return,coach_steps\n")

@@ -81,7 +81,7 @@ def test_accounts_add_up_in_the_logs(tmp_path, ip_spec):
     steps = [int(r["env_steps_so_far"]) for r in ev]
     assert steps[0] == 0 and steps[-1] == result.env_steps and len(steps) >= 4
     run = tmp_path / "run"
-    for name in ("config.toml", "coach.toml", "run.json", "summary.json", "final_model.zip", "final_vecnormalize.pkl"):
+    for name in ("config.toml", "coach.toml", "run.json", "summary.json", "final_model.zip", "final_vecnormalize.npz"):
         assert (run / name).exists(), name
     assert list((run / "tb").glob("events.out.tfevents.*")) and list((run / "tb" / "sb3").glob("events.*"))
 
@@ -138,21 +138,18 @@ def test_same_seed_same_learning_curve(tmp_path, ip_spec):
 
 
 def test_evaluation_is_the_agent_alone_on_the_bare_env(tmp_path, ip_spec):
-    import pickle
-
-    from stable_baselines3 import PPO
+    from pidlab.rl.agent import load_agent
 
     recipe = load_recipe(tiny_recipe(tmp_path))
     result = train(recipe, ip_spec, tmp_path / "run", progress_bar=False)
-    model = PPO.load(tmp_path / "run" / "final_model.zip", device="cpu")
-    norm = pickle.loads((tmp_path / "run" / "final_vecnormalize.pkl").read_bytes())
+    agent = load_agent(tmp_path / "run")  # the final agent, read without unpickling
     env = gym.make(IP)  # no coach anywhere
     returns = []
     for seed in (123, 124):
         obs, _ = env.reset(seed=seed)
         total, done = 0.0, False
         while not done:
-            action, _ = model.predict(norm.normalize_obs(obs), deterministic=True)
+            action = agent.act(obs)
             obs, r, te, tr, _ = env.step(action)
             total += float(r)
             done = te or tr
@@ -316,17 +313,19 @@ def test_sac_resume_keeps_the_replay_buffer(tmp_path, ip_spec):
     assert result.completed and result.agent_steps == 600
     before = read_json(run / "summary.json")["policy_updates"]
     checkpoint = latest_checkpoint(run)
-    assert checkpoint is not None and (checkpoint / "replay_buffer.pkl").exists()
+    assert checkpoint is not None and (checkpoint / "replay_buffer.npz").exists()
     extended = resume(run, steps=900, progress_bar=False)  # a longer budget continues the run
     assert extended.completed and extended.env_steps >= 900 and extended.agent_steps > result.agent_steps
     after = read_json(run / "summary.json")["policy_updates"]
     assert 0 < before < after <= before + 300 + 8  # the count goes on across the resume: 8 per 8 steps at most
     from stable_baselines3 import SAC
 
-    model = SAC.load(run / "final_model.zip", device="cpu")
+    from pidlab.rl.checkpoint import load_buffer
+
+    model = SAC.load(run / "final_model.zip", device="cpu")  # SB3's own format, for SB3 users
     assert model.num_timesteps == extended.agent_steps == 900
     assert model.replay_buffer.size() == 0  # the final model is the policy; the buffer lives in the checkpoint
-    model.load_replay_buffer(latest_checkpoint(run) / "replay_buffer.pkl")
+    load_buffer(latest_checkpoint(run) / "replay_buffer.npz", model.replay_buffer)
     assert model.replay_buffer.size() == 900  # 600 before the resume, kept, and 300 after
 
 

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import functools
 import json
+import os
 import re
 import signal
 import sys
@@ -24,8 +26,10 @@ from typer.core import TyperGroup
 
 try:  # Typer 0.2x vendors Click; older Typer uses the click package
     from typer._click import exceptions as _click
+    from typer._click.globals import get_current_context
 except ImportError:  # pragma: no cover
     from click import exceptions as _click  # type: ignore[no-redef]
+    from click import get_current_context  # type: ignore[no-redef]
 
 from pidlab import __version__
 from pidlab.errors import PidlabError
@@ -160,8 +164,31 @@ def _fail(message: str) -> NoReturn:
 
 FLAGS = {"env_id": "ENV", "roa_samples": "--samples", "conditions_file": "--conditions-file",
          "recipe_files": "--recipe", "condition_names": "--conditions", "horizon_s": "--horizon",
-         "slice_vars": "--slice"}  # fmt: skip
-"""Python parameter -> the flag that sets it, where the flag is not ``--`` + the name with dashes."""
+         "slice_vars": "--slice", "action_fraction": "--fraction"}  # fmt: skip
+"""Python parameter of the API -> the flag that sets it, where the flag is not ``--`` + the name with
+dashes (a parameter of the running command itself is found by :func:`flag_of`)."""
+
+
+def _command_params() -> list[Any]:
+    """The Click parameters of the running command (none outside a command)."""
+    ctx = get_current_context(silent=True)
+    return list(ctx.command.params) if ctx is not None else []
+
+
+def flag_of(param: str) -> str:
+    """The flag (or argument) that sets the Python parameter ``param``, as the error line names it.
+
+    :data:`FLAGS` first (the API's names, e.g. ``horizon_s`` -> ``--horizon``), then an option of
+    the running command whose Python name is ``param`` (``resume_dir`` -> ``--resume``), else
+    ``--`` + the name with dashes.
+    """
+    if param in FLAGS:
+        return FLAGS[param]
+    for p in _command_params():
+        if p.name == param:
+            opts = [o for o in getattr(p, "opts", []) if o.startswith("-")]
+            return max(opts, key=len) if opts else str(getattr(p, "metavar", None) or param.upper())
+    return "--" + param.replace("_", "-")
 
 
 def cli_message(exc: PidlabError) -> str:
@@ -169,9 +196,26 @@ def cli_message(exc: PidlabError) -> str:
     message = str(exc)
     param = exc.param
     if param and message.startswith(f"{param}="):
-        flag = FLAGS.get(param, "--" + param.replace("_", "-"))
-        message = f"{flag} {message[len(param) + 1 :]}"
+        message = f"{flag_of(param)} {message[len(param) + 1 :]}"
     return message
+
+
+def _refuse_empty_values() -> None:
+    """One line and exit 2 when an option or argument was given as ``''`` (or blank), for every command.
+
+    An empty value never means "the default" (``--run-dir ''`` would write into the current folder,
+    ``--variables ''`` take the default variables): to get the default, leave the option out.
+    """
+    from pidlab.checks import shown
+
+    ctx = get_current_context(silent=True)
+    for p in _command_params():
+        value = ctx.params.get(p.name) if ctx is not None else None
+        for v in value if isinstance(value, (list, tuple)) else (value,):
+            if isinstance(v, str) and not v.strip():
+                optional = any(o.startswith("-") for o in getattr(p, "opts", []))
+                why = " (leave the option out for its default)" if optional else ""
+                _fail(f"{flag_of(p.name)} {shown(v)}: empty; expected a value{why}")
 
 
 def _refuse_unused(ctx: typer.Context, names: Sequence[str], why: str) -> None:
@@ -179,7 +223,7 @@ def _refuse_unused(ctx: typer.Context, names: Sequence[str], why: str) -> None:
     for name in names:
         source = ctx.get_parameter_source(name)
         if getattr(source, "name", None) == "COMMANDLINE":
-            _fail(f"{FLAGS.get(name, '--' + name.replace('_', '-'))}: {why}")
+            _fail(f"{flag_of(name)}: {why}")
 
 
 def friendly_errors(func: F) -> F:
@@ -188,12 +232,18 @@ def friendly_errors(func: F) -> F:
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
+            _refuse_empty_values()
             return func(*args, **kwargs)
         except PidlabError as exc:
             _fail(cli_message(exc))
         except KeyboardInterrupt:
             typer.echo("pidlab: interrupted", err=True)
             raise typer.Exit(code=EXIT_INTERRUPTED) from None
+        except OSError as exc:  # a full disk or quota wherever a command writes: one line, not a traceback
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            where = f" writing {exc.filename}" if exc.filename else ""
+            _fail(f"{os.strerror(exc.errno).lower()}{where}; free some space and run the command again")
 
     return wrapper  # type: ignore[return-value]
 
@@ -368,7 +418,7 @@ def _operating_point(
 
     op = resolve_operating_point(loaded, at, **vectors, equilibrium_ctrl=equilibrium_ctrl)
     if settle_joints:
-        free = [name.strip() for name in settle_joints.split(",") if name.strip()]
+        free = _names(settle_joints, "settle_joints")
         settled = settle(loaded, op.qpos, free)
         base = op.source
         op = resolve_operating_point(loaded, at, qpos=settled.qpos, qvel=op.qvel, equilibrium_ctrl=True)
@@ -376,7 +426,7 @@ def _operating_point(
     return op
 
 
-AUTO_ONLY = ("bandwidth", "phase_margin", "preset", "output", "name", "workers")
+AUTO_ONLY = ("bandwidth", "phase_margin", "preset", "output", "name", "workers", "force")
 """``tune`` options that only ``--auto`` uses."""
 UI_ONLY = ("spec", "port", "tuning_dir", "animation", "bounds_samples", "allow_host")
 """``tune`` options that only ``--ui`` uses."""
@@ -422,13 +472,13 @@ def tune(
         str | None, typer.Option(help="--auto: the spec's name (default: pidlab-PRESET).")
     ] = None,
     workers: Annotated[int | None, typer.Option(help="--auto: worker processes (default: cores).")] = None,
+    force: Annotated[
+        bool, typer.Option("--force", help="--auto: replace the output spec if it exists (with its bounds).")
+    ] = False,
 ) -> None:
     """Tune a PID coach for ENV: automatically (--auto) or interactively in the browser (--ui)."""
-    from rich.progress import Progress
-
-    from pidlab.controller.autotune import tune as run_tune
-    from pidlab.controller.spec import save_spec
-    from pidlab.files import check_output_file
+    from pidlab.controller.autotune import check_request
+    from pidlab.controller.spec import writing_spec
     from pidlab.plant.model import load_model
     from pidlab.report.console import wide_console
 
@@ -440,27 +490,35 @@ def tune(
 
     spec_name = check_name(name, "--name", PidlabError) if name is not None else f"pidlab-{preset}"
     out = output or f"tuning/{env}.{spec_name}.toml"
-    check_output_file(out, "output")  # before the tuning, not after
     loaded = load_model(env)
-    with Progress(transient=True) as bar:
-        task = bar.add_task(f"tuning {env} ({preset})", total=None)
+    if preset != "room":
+        check_request(loaded, bandwidth, phase_margin, preset)  # bad targets first, then the file
+    with writing_spec(out, force=force, param="output") as write:  # refused before the tuning, not after
+        result = _auto_tune(loaded, preset, bandwidth, phase_margin, workers)
+        path = write(dataclasses.replace(result.spec, name=spec_name))
+    _print_tuned(env, preset, result)
+    wide_console().print(f"wrote {path}")
+
+
+def _auto_tune(
+    loaded: Any, preset: str, bandwidth: float | None, phase_margin: float | None, workers: int | None
+) -> Any:
+    """``tune --auto``: the tuning itself, with a progress line."""
+    from rich.progress import Progress
+
+    from pidlab.controller.autotune import tune as run_tune
+
+    with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
+        task = bar.add_task(f"tuning {loaded.name} ({preset})", total=None)
         tick = lambda n: bar.update(task, completed=n)  # noqa: E731
         if preset == "room":
             from pidlab.region.room import tune_for_room
 
-            result = tune_for_room(loaded, workers=workers, progress=tick)
-        else:
-            result = run_tune(
-                loaded,
-                bandwidth=bandwidth,
-                phase_margin=phase_margin,
-                preset=preset,
-                progress=tick,
-                workers=workers,
-            )
-    path = save_spec(dataclasses.replace(result.spec, name=spec_name), out)
-    _print_tuned(env, preset, result)
-    wide_console().print(f"wrote {path}")
+            return tune_for_room(loaded, workers=workers, progress=tick)
+        return run_tune(
+            loaded, bandwidth=bandwidth, phase_margin=phase_margin, preset=preset, progress=tick,
+            workers=workers,
+        )  # fmt: skip
 
 
 def _check_tune_mode(ctx: typer.Context, auto: bool, ui: bool, preset: str) -> None:
@@ -659,10 +717,10 @@ def _slice_pair(spec: Any, loaded: Any, slice_vars: str | None) -> tuple[str, st
     from pidlab.region.bounds import check_variables
 
     lp0 = spec.loops[0]
-    chosen = [v.strip() for v in slice_vars.split(",")] if slice_vars else [lp0.signal, lp0.rate_signal or ""]
+    chosen = _names(slice_vars, "slice_vars") if slice_vars else [lp0.signal, lp0.rate_signal or ""]
     if len(chosen) != 2 or not all(chosen):
         _fail("--slice: expected two observation variables, e.g. --slice hinge_pos,hinge_vel")
-    check_variables(chosen, loaded)
+    check_variables(chosen, loaded, "slice_vars", count=2)
     return (chosen[0], chosen[1])
 
 
@@ -727,35 +785,40 @@ def bounds(
     ] = None,
 ) -> None:
     """Derive critical-state bounds (ellipsoid and box) from the certified region."""
-    from pidlab.controller.spec import SpecError, load_spec, save_spec
+    from pidlab.controller.spec import editing_spec
+
+    if samples < 1:
+        _fail(f"--samples {samples}: expected a positive number")
+    # --write: the spec is read under its lock, held to its rewrite (a second writer is refused)
+    with editing_spec(spec_file, write) as spec:
+        _bounds_of(spec, spec_file, variables, write, (samples, seed, workers))
+
+
+def _bounds_of(
+    spec: Any, spec_file: str, variables: str | None, write: bool, how: tuple[int, int, int | None]
+) -> None:
+    """``bounds``: the region and bounds of ``spec``, shown, and written into ``spec_file`` with ``write``."""
+    from pidlab.controller.spec import save_spec
     from pidlab.plant.model import load_model
-    from pidlab.provenance import hold_lock
     from pidlab.region.bounds import check_variables, derive_bounds, with_bounds
     from pidlab.region.roa import estimate_roa
     from pidlab.report.console import bounds_view, roa_view, wide_console
 
-    if samples < 1:
-        _fail(f"--samples {samples}: expected a positive number")
-    if write:
-        from pidlab.files import check_output_file
-
-        check_output_file(spec_file, "write")  # a read-only spec is refused before the work
-    spec = load_spec(spec_file)
+    samples, seed, workers = how
     loaded = load_model(spec.env_id)
-    names = [v.strip() for v in variables.split(",") if v.strip()] if variables else None
+    names = None if variables is None else _names(variables, "variables")
     if names:
         check_variables(names, loaded)
-    # --write: the spec is locked from here to its rewrite (a second command on it is refused)
-    with hold_lock(spec_file, SpecError) if write else contextlib.nullcontext():
-        result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed, workers=workers)
-        crit = derive_bounds(result, spec, loaded, variables=names, seed=seed, workers=workers)
-        con = wide_console()
-        card = loaded.require_card()
-        con.print(roa_view(result, {v.name: v.unit for v in card.observation}))
-        con.print(bounds_view(crit))
-        if write:
-            path = save_spec(with_bounds(spec, crit), spec_file)
-            con.print(f"wrote the bounds into {path}")
+    result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed, workers=workers)
+    crit = derive_bounds(result, spec, loaded, variables=names, seed=seed, workers=workers)
+    con = wide_console()
+    card = loaded.require_card()
+    con.print(roa_view(result, {v.name: v.unit for v in card.observation}))
+    con.print(bounds_view(crit))
+    if write:
+        path = save_spec(with_bounds(spec, crit), spec_file)
+        kept = " (its rescue region and takeover choice kept)" if "rescue" in (spec.bounds or {}) else ""
+        con.print(f"wrote the bounds into {path}{kept}")
 
 
 @app.command()
@@ -791,10 +854,9 @@ def rescue(
 
     from rich.progress import Progress
 
-    from pidlab.controller.spec import SpecError, load_spec, save_spec
-    from pidlab.files import check_output_file, check_output_folder
+    from pidlab.controller.spec import editing_spec, save_spec
+    from pidlab.files import check_output_folder
     from pidlab.plant.model import load_model
-    from pidlab.provenance import hold_lock
     from pidlab.region.rescue import default_settings, estimate_rescue, with_rescue
     from pidlab.report.console import rescue_view, wide_console
 
@@ -805,18 +867,16 @@ def rescue(
     if fraction is not None and trigger == "predictive":
         _fail("--fraction: the predictive trigger vets the agent's action itself and needs no room for it; "
               "use it with --trigger reactive")  # fmt: skip
-    if write:
-        check_output_file(spec_file, "write")
     if plots:
         check_output_folder(plots, "plots")
-    spec = load_spec(spec_file)
-    loaded = load_model(spec.env_id)
-    settings = replace(
-        default_settings(spec, loaded, trigger), action_fraction=fraction, validation=validation,
-        coverage=coverage, probes=probes, horizon_s=horizon, seed=seed,
-    )  # fmt: skip
-    with hold_lock(spec_file, SpecError) if write else contextlib.nullcontext():
-        with Progress(transient=True) as bar:
+    # --write: the spec is read under its lock, held to its rewrite (a second writer is refused)
+    with editing_spec(spec_file, write) as spec:
+        loaded = load_model(spec.env_id)
+        settings = replace(
+            default_settings(spec, loaded, trigger), action_fraction=fraction, validation=validation,
+            coverage=coverage, probes=probes, horizon_s=horizon, seed=seed,
+        )  # fmt: skip
+        with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
             task = bar.add_task("rescue region", total=1.0)
             region = estimate_rescue(
                 spec, loaded, settings, workers=workers,
@@ -959,8 +1019,21 @@ def _resumed_recipe(
     return saved
 
 
-def _names(text: str) -> list[str]:
-    return [v.strip() for v in text.split(",") if v.strip()]
+def _names(text: str, param: str, what: str = "names") -> list[str]:
+    """Comma-separated names (``--envs a,b``); an empty one (``a,,b``) is refused, not skipped."""
+    from pidlab.checks import split_list
+
+    return split_list(text, param, what=what)
+
+
+def _seed_text(text: str) -> str:
+    """``--seeds`` as given, when its digits are 0-9 and no part of a list is empty."""
+    from pidlab.checks import check_ascii_digits
+
+    check_ascii_digits(text, "seeds", param="seeds")
+    if "," in text:
+        _names(text, "seeds", "seeds")
+    return text
 
 
 @app.command()
@@ -1020,10 +1093,10 @@ def experiment(
     """
     from pidlab.experiment.sweep import parse_seeds, plan
 
-    env_list = _names(envs)
+    env_list = _names(envs, "envs")
     folder = out or f"results/{'+'.join(env_list)}"
     p = plan(
-        env_list, _names(conditions), parse_seeds(seeds), folder,
+        env_list, _names(conditions, "condition_names"), parse_seeds(_seed_text(seeds)), folder,
         conditions_file=conditions_file, recipe_files=recipe or [], algo=algo, steps=steps,
     )  # fmt: skip
     if report_only and not (p.out / "experiment.json").exists():

@@ -27,6 +27,7 @@ from typing import Any
 import control as ct
 import numpy as np
 
+from pidlab.checks import instance
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import AnalysisError, PidlabError
@@ -912,6 +913,8 @@ def analyze_coach(
     AnalysisError
         Gains so large that the poles or margins are undefined; names the loop with the largest gain.
     """
+    instance(coach, Coach, "coach")
+    instance(loaded, LoadedModel, "loaded")
     if lin is None:
         lin = linearize(loaded)
     loops = [lp.name for lp in coach.spec.loops]

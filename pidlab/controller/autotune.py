@@ -253,10 +253,13 @@ class _Evaluations:
             self.progress(self.count)
 
 
-def _check_request(
+def check_request(
     loaded: LoadedModel, bandwidth: float | None, phase_margin: float | None, preset: str
 ) -> ModelCard:
     """The model card with its tuning template; raises on a request that cannot be tuned."""
+    from pidlab.checks import instance
+
+    instance(loaded, LoadedModel, "loaded")
     if preset not in PRESETS:
         raise PidlabError(
             f"preset={preset!r}: unknown preset; expected one of {', '.join(PRESETS)}", param="preset"
@@ -548,7 +551,7 @@ def tune(
     """
     from pidlab.parallel import resolve_workers
 
-    card = _check_request(loaded, bandwidth, phase_margin, preset)
+    card = check_request(loaded, bandwidth, phase_margin, preset)
     n_workers = resolve_workers(workers)
     p = PRESETS[preset]
     if lin is None:

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from pidlab.checks import instance
 from pidlab.controller.spec import CoachSpec, Loop, validate_against
 from pidlab.errors import SpecError
 from pidlab.plant.model import LoadedModel
@@ -251,6 +252,8 @@ class Coach:
     """
 
     def __init__(self, spec: CoachSpec, loaded: LoadedModel) -> None:
+        instance(spec, CoachSpec, "spec", SpecError)
+        instance(loaded, LoadedModel, "loaded")
         self.layout = compile_spec(spec, loaded)
         self.spec = spec
         self.state = np.zeros(self.layout.n_states)

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 
+from pidlab.checks import instance, shown
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
-from pidlab.errors import BudgetError
+from pidlab.errors import ArgumentError, BudgetError
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import check_termination
 
@@ -30,13 +31,13 @@ def check_episodes(episodes: object, param: str = "episodes") -> int:
 
     Raises
     ------
-    TypeError
-        ``episodes`` is not an int (a bool is not).
+    ArgumentError
+        ``episodes`` is not an int (a bool is not); a ``TypeError`` too.
     BudgetError
         ``episodes`` is below 1 or above :data:`MAX_EPISODES`.
     """
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)):
-        raise TypeError(f"{param}: expected an int, got {type(episodes).__name__}")
+        raise ArgumentError(f"{param}={shown(episodes)}: expected an int", param=param)
     if not 1 <= episodes <= MAX_EPISODES:
         raise BudgetError(
             f"{param}={episodes!r}: expected 1 to {MAX_EPISODES:,} episodes (more would run for hours)",
@@ -175,6 +176,8 @@ def coach_alone(
         ``episodes`` is outside 1 to :data:`MAX_EPISODES`.
     """
     episodes = check_episodes(episodes)
+    instance(spec, CoachSpec, "spec")
+    instance(loaded, LoadedModel, "loaded")
     env = gym.make(spec.env_id) if max_steps is None else gym.make(spec.env_id, max_episode_steps=max_steps)
     coach = Coach(spec, loaded)
     lay = coach.layout

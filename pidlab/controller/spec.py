@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import datetime
 import math
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -533,6 +535,104 @@ def load_spec(path: str | Path) -> CoachSpec:
 
 def save_spec(spec: CoachSpec, path: str | Path) -> Path:
     """Write ``spec`` atomically (temporary file, then rename) in canonical form."""
+    from pidlab.checks import instance
     from pidlab.files import atomic_write_text
 
-    return atomic_write_text(path, dumps_spec(spec))
+    return atomic_write_text(path, dumps_spec(instance(spec, CoachSpec, "spec")))
+
+
+# --------------------------------------------------------------------------- writing spec files
+#
+# One rule for every command that writes a spec (``tune --auto -o``, ``bounds --write``,
+# ``rescue --write``, the tuner's Save): it holds the spec's lock while it works on an existing
+# file, it keeps every table it does not own, and it never replaces a file it did not open for
+# editing unless it was asked to (``force``). A refusal changes nothing.
+
+
+@contextmanager
+def writing_spec(
+    path: str | Path, *, force: bool = False, param: str = "path"
+) -> Iterator[Callable[[CoachSpec], Path]]:
+    """Write a new spec file: refused before any work when the file exists, unless ``force``.
+
+    With ``force`` and an existing file, the file's lock is held for the whole block, so that
+    ``bounds --write`` or ``rescue --write`` on it is refused meanwhile (and the reverse). The
+    function the block receives writes the spec: replacing the file (``force``), else creating it
+    only if no file appeared there in the meantime.
+
+    Parameters
+    ----------
+    path : path
+        The spec file to write.
+    force : bool
+        Replace an existing file (the whole spec: its bounds and rescue region go with it).
+    param : str
+        The parameter that named ``path`` (in messages).
+
+    Yields
+    ------
+    callable
+        ``write(spec) -> Path``.
+
+    Raises
+    ------
+    SpecError
+        The file exists and ``force`` is not given, another command holds its lock, or a file
+        appeared at ``path`` while the block worked. Nothing was written then.
+    OutputError
+        ``path`` cannot be written (a folder, read-only, ...).
+    """
+    from pidlab.files import atomic_create_text, atomic_write_text, check_output_file
+    from pidlab.provenance import hold_lock
+
+    target = check_output_file(path, param)
+    if target.exists() and not force:
+        raise SpecError(
+            f"{param}={target}: the file exists; replace it with force (--force), or write another file",
+            param=param,
+        )
+
+    def write(spec: CoachSpec) -> Path:
+        text = dumps_spec(spec)
+        if force:
+            return atomic_write_text(target, text)
+        try:
+            return atomic_create_text(target, text)
+        except FileExistsError:
+            raise SpecError(
+                f"{param}={target}: another command created the file meanwhile; nothing was written "
+                "(run again with force (--force) to replace it, or write another file)",
+                param=param,
+            ) from None
+
+    with hold_lock(target, SpecError, param=param) if target.is_file() else nullcontext():
+        yield write
+
+
+@contextmanager
+def editing_spec(path: str | Path, write: bool = True) -> Iterator[CoachSpec]:
+    """The spec at ``path``, read under its lock when the block will rewrite it (``write``).
+
+    The spec is read after the lock is taken, so a command that rewrote it just before is seen;
+    the lock is held to the end of the block, so no other command rewrites it meanwhile.
+
+    Raises
+    ------
+    SpecError
+        The spec cannot be read, or another command holds its lock (nothing was changed).
+    OutputError
+        ``write`` and the file cannot be replaced (read-only, ...).
+    """
+    from pidlab.files import check_output_file
+    from pidlab.provenance import hold_lock
+
+    if not write:
+        yield load_spec(path)
+        return
+    if not isinstance(path, (str, Path)) or not str(path):
+        load_spec(path)  # the one message for what is no path
+    check_output_file(path, "write")  # a folder, a read-only file: refused before the work
+    if not Path(path).is_file():
+        load_spec(path)  # the one message for a path that is no spec file
+    with hold_lock(path, SpecError):
+        yield load_spec(path)

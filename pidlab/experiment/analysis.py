@@ -159,11 +159,23 @@ def load_run(run_dir: Path, env_id: str, condition: str, seed: int, rule: Rule) 
     s = load_json(summary_path, "run summary", ExperimentError)
     try:
         return _run_data(run_dir, s, env_id, condition, seed, rule)
-    except (KeyError, ValueError, TypeError, AttributeError, OSError) as exc:
-        raise ExperimentError(
-            f"{run_dir}: the run's logs are damaged ({type(exc).__name__}: {exc}); "
-            "resume the run (pidlab experiment with the same command) or delete its folder"
-        ) from None
+    except LOG_DAMAGE as exc:
+        again = "run the experiment's command again (without --report-only)"
+        raise logs_damaged(run_dir, exc, again) from None
+
+
+LOG_DAMAGE = (KeyError, ValueError, TypeError, AttributeError, OSError)
+"""What reading a finished run's damaged logs raises (:func:`read_logs`)."""
+
+
+def logs_damaged(run_dir: Path, exc: Exception, again: str) -> ExperimentError:
+    """The one message for a finished run whose logs are damaged: what to remove, what to run ``again``."""
+    import shlex
+
+    return ExperimentError(
+        f"{run_dir}: the finished run's logs are damaged ({type(exc).__name__}: {exc}); nothing was changed. "
+        f"Remove the run's folder (rm -r {shlex.quote(str(run_dir))}), then {again}: it trains that run anew"
+    )
 
 
 def _run_data(run_dir: Path, s: Any, env_id: str, condition: str, seed: int, rule: Rule) -> RunData:

@@ -27,10 +27,24 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from pidlab.checks import as_table, check_name, clip, exists, number, path_under, shown, text
+from pidlab.checks import (
+    as_table,
+    boolean,
+    check_name,
+    clip,
+    exists,
+    fail,
+    integer,
+    number,
+    path_argument,
+    path_under,
+    shown,
+    strings,
+    text,
+)
 from pidlab.controller.spec import CoachSpec, load_spec, parse_spec, spec_to_dict
 from pidlab.data import tuning_dir
-from pidlab.errors import ConditionError, RecipeError, SpecError
+from pidlab.errors import ConditionError, ExperimentError, RecipeError, SpecError
 from pidlab.files import read_toml
 from pidlab.rl.recipe import Recipe, check_coaching, parse_recipe, recipe_to_dict
 
@@ -273,3 +287,70 @@ def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | N
         except SpecError as exc:
             raise ConditionError(str(exc)) from None
     return resolved, spec, str(path)
+
+
+def check_plan_arguments(
+    envs: Any,
+    condition_names: Any,
+    seeds: Any,
+    out: Any,
+    conditions_file: Any = None,
+    recipe_files: Any = (),
+    algo: Any = None,
+    steps: Any = None,
+) -> None:
+    """The types of what :func:`pidlab.experiment.sweep.plan` was given, checked before anything else.
+
+    ``plan`` checks the values (names, ranges, files); this refuses what is no value of the right
+    kind, naming the parameter: one string where a list is expected (``envs="Hopper-v5"`` for
+    ``["Hopper-v5"]``), a seed text (``"10"``: :func:`~pidlab.experiment.sweep.parse_seeds`
+    reads it), a missing or empty folder.
+
+    Raises
+    ------
+    ExperimentError
+        Naming the parameter (its ``param``).
+    """
+    strings(envs, "envs", ExperimentError, what="env ids")
+    strings(condition_names, "condition_names", ExperimentError, what="condition names")
+    if isinstance(seeds, str) or not isinstance(seeds, (list, tuple, range)):
+        fail(seeds, "seeds", "a list of seeds, e.g. [0, 1, 2] (parse_seeds reads a text such as '10')",
+             ExperimentError, "seeds")  # fmt: skip
+    path_argument(out, "out", ExperimentError, what="the experiment's folder")
+    if conditions_file is not None:
+        path_argument(conditions_file, "conditions_file", ExperimentError, what="a conditions file")
+    strings(recipe_files, "recipe_files", ExperimentError, what="recipe files")
+    if algo is not None and not isinstance(algo, str):
+        fail(algo, "algo", "ppo, sac or None (each recipe's own)", ExperimentError, "algo")
+    if steps is not None:
+        from pidlab.rl.recipe import MAX_STEPS
+
+        integer(steps, "steps", ExperimentError, low=1, high=MAX_STEPS, param="steps")
+
+
+def check_sweep_arguments(
+    p: Any, backend: Any = "process", workers: Any = None, address: Any = None, argv: Any = (),
+    progress_bar: Any = True,
+) -> None:  # fmt: skip
+    """The types of what :func:`pidlab.experiment.sweep.run_sweep` (and ``check_sweep``) was given.
+
+    Raises
+    ------
+    ExperimentError
+        ``p`` is no :class:`~pidlab.experiment.sweep.Plan` (make one with ``plan``), ``backend`` or
+        ``address`` no string, ``workers`` no integer >= 1, ``argv`` no list of strings or
+        ``progress_bar`` no bool; naming the parameter.
+    """
+    from pidlab.experiment.sweep import Plan
+
+    if not isinstance(p, Plan):
+        expected = "a Plan (make one with pidlab.plan(envs, condition_names, seeds, out))"
+        fail(p, "p", expected, ExperimentError, "p")
+    if not isinstance(backend, str):
+        fail(backend, "backend", "process or ray", ExperimentError, "backend")
+    if workers is not None:
+        integer(workers, "workers", ExperimentError, low=1, param="workers")
+    if address is not None and not isinstance(address, str):
+        fail(address, "address", "a Ray cluster address (a str) or None", ExperimentError, "address")
+    strings(argv, "argv", ExperimentError, what="command-line words")
+    boolean(progress_bar, "progress_bar", ExperimentError)

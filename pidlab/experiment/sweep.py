@@ -27,6 +27,7 @@ instance or, with ``address``, on a cluster whose nodes all have pidlab installe
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import shlex
 import shutil
@@ -34,17 +35,35 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import Callable, Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from pidlab.checks import MAX_SEEDS, SEED_MAX, check_name, clip, is_file, path_under, shown
+from pidlab.checks import (
+    MAX_SEEDS,
+    SEED_MAX,
+    check_ascii_digits,
+    check_name,
+    clip,
+    is_file,
+    path_under,
+    shown,
+    split_list,
+)
 from pidlab.checks import seed as check_seed
 from pidlab.controller.spec import CoachSpec, parse_spec, spec_to_dict
+from pidlab.data import portable_name
 from pidlab.errors import ExperimentError, PidlabError, RunDirError
-from pidlab.experiment.conditions import Condition, load_conditions, resolve, select
+from pidlab.experiment.conditions import (
+    Condition,
+    check_plan_arguments,
+    check_sweep_arguments,
+    load_conditions,
+    resolve,
+    select,
+)
 from pidlab.orphans import orphaned, stop_with_parent
 from pidlab.provenance import (
     LOCK_NAME,
@@ -135,6 +154,7 @@ def parse_seeds(seeds: str, default_count: int | None = None) -> tuple[int, ...]
 
     if not isinstance(seeds, str):
         raise bad("expected a count (10), a range (0-9) or a list (0,3,7)")
+    check_ascii_digits(seeds, "seeds", ExperimentError, param="seeds")
     t = seeds.strip()
     values: list[int] = []
     try:
@@ -143,7 +163,7 @@ def parse_seeds(seeds: str, default_count: int | None = None) -> tuple[int, ...]
         elif "-" in t and "," not in t:
             low, high = (int(v) for v in t.split("-", 1))
         else:
-            values = [int(v) for v in t.split(",") if v.strip()]
+            values = [int(v) for v in split_list(t, "seeds", ExperimentError, what="seeds")]
             low, high = min(values, default=0), max(values, default=-1)
     except ValueError:
         raise bad("expected a count (10), a range (0-9) or a list (0,3,7)") from None
@@ -281,6 +301,7 @@ def plan(
     ExperimentError, RecipeError, ConditionError, SpecError
         One line naming what is wrong.
     """
+    check_plan_arguments(envs, condition_names, seeds, out, conditions_file, recipe_files, algo, steps)
     _check_names(envs, seeds)
     conditions: dict[str, Condition] = load_conditions(conditions_file)
     chosen = select(conditions, list(condition_names), str(conditions_file or "coach/conditions.toml"))
@@ -359,7 +380,7 @@ def write_experiment_record(p: Plan, argv: Sequence[str], backend: str) -> Recor
     if meta.exists():
         record = add_resume(read_record(meta, EXPERIMENT_SCHEMA, ExperimentError), argv, backend=backend)
     else:
-        recipes = {env: r.path for env, r in p.recipes.items()}
+        recipes = {env: portable_name(r.path or "") for env, r in p.recipes.items()}  # not the writer's path
         kind = {"backend": backend, "descriptions": p.descriptions, "recipes": recipes,
                 "python": sys.version.split()[0]}  # fmt: skip
         record = new_record(EXPERIMENT_SCHEMA, argv, identity=p.identity(), extra=kind)
@@ -387,6 +408,34 @@ def finished(run_dir: Path, budget: int) -> bool:
         return finished_summary(run_dir, budget) is not None
     except RunDirError:
         return False  # its resume says what is wrong, and writes it again
+
+
+def check_finished_logs(run_dirs: Iterable[Path]) -> None:
+    """The logs of every finished run in ``run_dirs`` read as the report reads them; nothing is written.
+
+    A sweep skips a finished run and its report reads the run's logs: logs damaged since (an
+    ``episodes.csv`` cut short) are refused before the sweep writes anything, with the command
+    that repairs the experiment. A run without a readable ``summary.json`` is not finished: the
+    sweep resumes it, and the resume checks its logs.
+
+    Raises
+    ------
+    ExperimentError
+        One line naming the run, what is damaged, and what to do.
+    """
+    from pidlab.experiment.analysis import LOG_DAMAGE, logs_damaged, read_logs
+
+    for run_dir in run_dirs:
+        try:
+            summary = json.loads((run_dir / "summary.json").read_bytes().decode("utf-8"))
+        except (OSError, ValueError, RecursionError):
+            continue
+        if not isinstance(summary, dict) or not summary.get("completed"):
+            continue
+        try:
+            read_logs(run_dir, summary)
+        except LOG_DAMAGE as exc:
+            raise logs_damaged(run_dir, exc, "run this command again") from None
 
 
 STOP_FILE = ".stopping"
@@ -544,17 +593,10 @@ def _join_ray(ray: Any, address: str) -> None:
         ) from None
 
 
-def _run_ray(
-    tasks: Sequence[RunTask], workers: int, report: Progress, out: Path, address: str | None
-) -> None:
+def _run_ray(tasks: Sequence[RunTask], report: Progress, out: Path) -> None:
+    """The tasks as Ray tasks, on the instance :func:`_ray_ready` started or joined."""
     import ray
 
-    started_here = not ray.is_initialized()
-    if started_here:
-        if address:
-            _join_ray(ray, address)
-        else:
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
     remote = ray.remote(num_cpus=1, max_retries=0)(execute)
     pending = [remote.remote(t) for t in tasks]
     try:
@@ -567,6 +609,33 @@ def _run_ray(
         for ref in pending:
             ray.cancel(ref)
         raise
+
+
+@contextmanager
+def _ray_ready(backend: str, workers: int, address: str | None) -> Iterator[None]:
+    """Ray started (``workers`` CPUs) or joined (``address``) for the block; nothing for a process pool.
+
+    The sweep enters it before it writes anything: a cluster that does not answer is a refusal
+    that changes nothing. Ray is shut down at the end when the block started it.
+
+    Raises
+    ------
+    ExperimentError
+        No cluster answers at ``address``, or it refuses this driver.
+    """
+    if backend != "ray":
+        yield
+        return
+    import ray
+
+    started_here = not ray.is_initialized()
+    if started_here:
+        if address:
+            _join_ray(ray, address)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    try:
+        yield
     finally:
         if started_here:
             ray.shutdown()
@@ -593,10 +662,13 @@ def check_sweep(
     ------
     ExperimentError
         Unknown backend (or Ray not installed), a bad number of workers, an address without
-        Ray, or a folder that holds something else than this experiment.
+        Ray, a folder that holds something else than this experiment, or a finished run of it
+        whose logs were damaged since (:func:`check_finished_logs`).
     """
+    check_sweep_arguments(p, backend, workers, address)
     _check_backend(backend, workers, address)
     check_out_folder(p)
+    check_finished_logs(Path(t.run_dir) for t in p.tasks)
 
 
 def lock_experiment(p: Plan) -> AbstractContextManager[Path]:
@@ -656,9 +728,7 @@ class _Tally:
         return tuple(self.outcomes.get(_key(t), RunOutcome(*_key(t), "stopped")) for t in tasks)
 
 
-def _dispatch(
-    todo: Sequence[RunTask], backend: str, workers: int, address: str | None, tally: _Tally, out: Path
-) -> bool:
+def _dispatch(todo: Sequence[RunTask], backend: str, workers: int, tally: _Tally, out: Path) -> bool:
     """Run ``todo`` on the backend; True when SIGINT or SIGTERM interrupted it."""
     old = signal.signal(signal.SIGTERM, _term_as_interrupt)
     try:
@@ -666,7 +736,7 @@ def _dispatch(
             if backend == "process":
                 _run_process_pool(todo, min(workers, len(todo)), tally, out)
             else:
-                _run_ray(todo, workers, tally, out, address)
+                _run_ray(todo, tally, out)
     except KeyboardInterrupt:
         return True
     finally:
@@ -706,15 +776,19 @@ def run_sweep(
     Raises
     ------
     ExperimentError
-        Unknown backend, a folder of another experiment, another command working in it. Every
-        input is checked before the first file is written.
+        Unknown backend, a folder of another experiment, a finished run whose logs were damaged
+        since, another command working in it, a Ray cluster that does not answer. Every input is
+        checked before the first file is written: a refusal changes nothing.
     """
+    check_sweep_arguments(p, backend, workers, address, argv, progress_bar)
     check_sweep(p, backend=backend, workers=workers, address=address)
+    n = workers or os.cpu_count() or 1
     with lock_experiment(p):
-        check_out_folder(p)  # again, now that no other command can change it
-        write_experiment_record(p, argv, backend)
-        (p.out / STOP_FILE).unlink(missing_ok=True)
+        check_sweep(p, backend=backend, workers=workers, address=address)  # again, under the lock
         todo = dispatch_order([t for t in p.tasks if not finished(Path(t.run_dir), int(t.recipe["steps"]))])
-        tally = _Tally(p.tasks, todo, progress_bar)
-        interrupted = _dispatch(todo, backend, workers or os.cpu_count() or 1, address, tally, p.out)
+        with _ray_ready(backend if todo else "process", n, address):  # a refusal here writes nothing
+            write_experiment_record(p, argv, backend)
+            (p.out / STOP_FILE).unlink(missing_ok=True)
+            tally = _Tally(p.tasks, todo, progress_bar)
+            interrupted = _dispatch(todo, backend, n, tally, p.out)
     return SweepResult(tally.ordered(p.tasks), interrupted)

@@ -32,6 +32,7 @@ import control as ct
 import mujoco
 import numpy as np
 
+from pidlab.checks import instance
 from pidlab.errors import LinearizationError, NonFiniteJacobianError
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import observe
@@ -336,10 +337,12 @@ def linearize(
         ``eps`` is not positive and finite, ``discretization`` is unknown, or the model has no
         state (no degrees of freedom, no activations).
     """
+    instance(loaded, LoadedModel, "loaded")
     check_arguments(eps, discretization)
     check_has_state(loaded)
     if op is None:
         op = resolve_operating_point(loaded)
+    instance(op, OperatingPoint, "op")
     ev = _Evaluator(loaded, op)
     lo, hi = _ctrl_steps(loaded, op, eps)
     jacobians = functools.partial(

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import control as ct
 import numpy as np
 
+from pidlab.checks import instance
+
 
 @dataclass(frozen=True)
 class Mode:
@@ -147,6 +149,7 @@ def analyze_lti(
     -------
     LtiReport
     """
+    instance(sys, ct.StateSpace, "sys")
     A, B, C = (np.asarray(M, dtype=float) for M in (sys.A, sys.B, sys.C))
     n = A.shape[0]
     discrete = bool(sys.isdtime(strict=True))

@@ -69,7 +69,18 @@ from typing import Any
 
 import mujoco
 
-from pidlab.checks import as_table, check_name, flag, integer, is_name, number, path_under, shown, text
+from pidlab.checks import (
+    as_table,
+    check_name,
+    clip,
+    flag,
+    integer,
+    is_name,
+    number,
+    path_under,
+    shown,
+    text,
+)
 from pidlab.data import models_dir
 from pidlab.errors import ModelCardError
 from pidlab.files import read_toml
@@ -295,7 +306,7 @@ class ModelCard:
         )
 
     def check_against(self, model: mujoco.MjModel, frame_skip: int) -> None:
-        """Check that every joint and site the card names exists in ``model``.
+        """Check that every joint, site and actuator the card names exists in ``model``.
 
         Raises
         ------
@@ -305,6 +316,16 @@ class ModelCard:
             _joint_id(model, v.joint, f"{self.path}: observation {v.name!r}")
         for t in self.termination:
             _check_signal(model, t.signal, f"{self.path}: termination signal {t.signal!r}")
+        from pidlab.plant.model import actuator_names  # the names every stage uses
+
+        inputs = actuator_names(model)
+        for lp in self.tuning:
+            for actuator, _ in lp.actuators:
+                if actuator not in inputs:
+                    raise ModelCardError(
+                        f"{self.path}: tuning.loop {lp.name!r}: no actuator {clip(actuator, 40)!r} in the "
+                        f"model; actuators: {', '.join(inputs)}"
+                    )
         op = self.operating_point
         for field, values, n in (
             ("qpos", op.qpos, model.nq),
@@ -353,6 +374,28 @@ def _require(table: dict[str, Any], key: str, typ: type | tuple[type, ...], wher
     return value
 
 
+_FIELDS = {
+    "": {"schema", "env_id", "description", "operating_point", "observation", "termination",
+         "terminate_on_nonfinite", "tuning", "region", "rescue", "paper"},
+    "operating_point": {"name", "qpos", "qvel", "ctrl", "note"},
+    "observation": {"name", "source", "joint", "transform", "clip", "unit", "description"},
+    "termination": {"signal", "low", "high", "interval", "description"},
+    "tuning.loop": {"name", "signal", "rate_signal", "actuators", "core"},
+    "paper": {"win_target", "episodes_to_5_wins", "episodes_to_average", "savings_percent"},
+}  # fmt: skip
+"""The fields each table of a model card may hold (``""``: the top level); anything else is refused."""
+
+
+def _known(table: dict[str, Any], kind: str, where: str) -> dict[str, Any]:
+    """``table`` when it holds only the fields of :data:`_FIELDS` ``[kind]`` (a typo is no silent default)."""
+    allowed = _FIELDS[kind]
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        names = [clip(k, 40) for k in unknown[:10]]
+        raise ModelCardError(f"{where}: unknown field(s) {names}; allowed: {', '.join(sorted(allowed))}")
+    return table
+
+
 def _tables(value: Any, where: str) -> list[dict[str, Any]]:
     """A list of tables (``[[observation]]``, ``[[termination]]``, ``[[tuning.loop]]``)."""
     if not isinstance(value, list):
@@ -379,6 +422,7 @@ def _parse_observation(data: dict[str, Any], path: str) -> list[ObservationVaria
     obs: list[ObservationVariable] = []
     for i, t in enumerate(_tables(_require(data, "observation", list, path), f"{path}: observation")):
         where = f"{path}: observation[{i}]"
+        _known(t, "observation", where)
         source = _require(t, "source", str, where)
         if source not in OBS_SOURCES:
             raise ModelCardError(f"{where}.source: {source!r}; allowed: {', '.join(OBS_SOURCES)}")
@@ -418,6 +462,7 @@ def _parse_tuning(data: dict[str, Any], path: str) -> tuple[tuple[TuningLoop, ..
     loops = []
     for i, lp in enumerate(_tables(table.get("loop", []), f"{path}: tuning.loop")):
         where = f"{path}: tuning.loop[{i}]"
+        _known(lp, "tuning.loop", where)
         acts = _require(lp, "actuators", dict, where) if "actuators" in lp else {}
         weights = tuple(
             (str(k), number(v, f"{where}.actuators.{k}", ModelCardError)) for k, v in acts.items()
@@ -485,7 +530,7 @@ def _parse_paper(data: dict[str, Any], path: str) -> PaperNumbers | None:
     if "paper" not in data:
         return None
     where = f"{path}: paper"
-    table = _require(data, "paper", dict, path)
+    table = _known(_require(data, "paper", dict, path), "paper", where)
 
     def pair(key: str, a: str, b: str, episodes: bool) -> tuple[float, float]:
         sub = _require(table, key, dict, where)
@@ -517,9 +562,10 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
     schema = data.get("schema")
     if schema != CARD_SCHEMA:
         raise ModelCardError(f"{path}: schema is {shown(schema)}; expected {CARD_SCHEMA!r}")
+    _known(data, "", path)
     env_id = check_name(_require(data, "env_id", str, path), f"{path}: env_id", ModelCardError)
-    opt = _require(data, "operating_point", dict, path)
     w = f"{path}: operating_point"
+    opt = _known(_require(data, "operating_point", dict, path), "operating_point", w)
     op = CardOperatingPoint(
         name=text(opt.get("name", "operating point"), f"{w}.name", ModelCardError),
         qpos=_floats(_require(opt, "qpos", list, w), f"{w}.qpos"),
@@ -535,6 +581,7 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
     term: list[TerminationLimit] = []
     for i, t in enumerate(_tables(data.get("termination", []), f"{path}: termination")):
         where = f"{path}: termination[{i}]"
+        _known(t, "termination", where)
         interval = t.get("interval", "closed")
         if interval not in INTERVALS:
             raise ModelCardError(f"{where}.interval: {shown(interval)}; allowed: closed, open")
@@ -591,8 +638,22 @@ def find_card(env_id: str) -> ModelCard | None:
 
     An ``env_id`` that is no name of :data:`pidlab.checks.NAME_RULE` has no card (its file name
     would leave ``models/``).
+
+    Raises
+    ------
+    ModelCardError
+        The card cannot be read (a loop of symbolic links, no permission) or is malformed, or it
+        is for another env (its ``env_id`` is not the one its file is named after).
     """
     if not is_name(env_id):
         return None
     path = path_under(models_dir(), f"{env_id}.toml", error=ModelCardError)
-    return load_card(path) if path.exists() else None
+    if not (path.exists() or path.is_symlink()):  # a link to nowhere, or a loop, is no missing card
+        return None
+    card = load_card(path)
+    if card.env_id != env_id:
+        raise ModelCardError(
+            f"{path}: env_id = {card.env_id!r}, but the card is for {env_id} (its file name); "
+            f"expected env_id = {env_id!r}"
+        )
+    return card

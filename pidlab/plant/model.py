@@ -17,7 +17,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from pidlab.checks import exists, shown
+from pidlab.checks import exists, path_argument, shown
 from pidlab.errors import ModelCardError, ModelCompileError, UnknownEnvError
 from pidlab.plant.card import ModelCard, find_card
 
@@ -225,7 +225,7 @@ def load_model(target: str | Path) -> LoadedModel:
     ModelCompileError
         MuJoCo cannot load the file; the message carries MuJoCo's own text.
     """
-    target = str(target)
+    target = str(path_argument(target, "target", UnknownEnvError, what="an env id or an MJCF file's path"))
     if _is_mjcf_path(target):
         return _load_mjcf(Path(target))
     return _load_env(target)

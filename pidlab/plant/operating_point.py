@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 from scipy.optimize import least_squares
 
-from pidlab.checks import number, shown
+from pidlab.checks import instance, number, shown
 from pidlab.errors import KeyframeError, OperatingPointError
 from pidlab.plant.model import LoadedModel, dof_names, finite_or_raise, joint_name
 
@@ -182,7 +182,7 @@ def resolve_operating_point(
     OperatingPointError
         A vector has the wrong length or non-finite entries.
     """
-    model = loaded.model
+    model = instance(loaded, LoadedModel, "loaded").model
     if at is None:
         at = "card" if loaded.card is not None else "qpos0"
     if not isinstance(at, str):

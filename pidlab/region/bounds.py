@@ -34,7 +34,7 @@ import scipy.linalg
 from scipy.optimize import minimize
 
 from pidlab import __version__
-from pidlab.checks import integer
+from pidlab.checks import instance, integer
 from pidlab.checks import seed as check_seed
 from pidlab.controller.analysis import analyze_coach
 from pidlab.controller.pid import Coach
@@ -43,7 +43,7 @@ from pidlab.errors import RegionError
 from pidlab.linear.linearize import Linearization
 from pidlab.parallel import resolve_workers
 from pidlab.plant.model import LoadedModel
-from pidlab.region.roa import METHOD_SIMULATION, Lyapunov, RegionOfAttraction
+from pidlab.region.roa import METHOD_SIMULATION, Lyapunov, RegionOfAttraction, check_variables
 from pidlab.region.shrink import geometric_bisect, shrink_until_clean
 from pidlab.region.simulate import SimulationPool, Simulator, horizon_steps, sample_ellipsoid, tangent_index
 
@@ -134,13 +134,6 @@ def _largest_box(M: np.ndarray, r: float) -> np.ndarray:
     return h * min(1.0, math.sqrt(r / worst))
 
 
-def check_variables(names: list[str], loaded: LoadedModel) -> None:
-    """Raise :class:`~pidlab.errors.UnknownSignalError` (listing the valid names) for an unknown name."""
-    card = loaded.require_card()
-    for n in names:
-        card.variable(n)
-
-
 @dataclass(frozen=True)
 class _OneStep:
     """The one-step check's setting: the simulator, worst-case actions, horizon and random draws.
@@ -199,10 +192,14 @@ def derive_bounds(
     UnknownSignalError
         A variable is not in the observation (the message lists the valid names).
     RegionError
-        One worst-case agent step can leave the certified set from anywhere: no useful bound; or
+        ``variables`` empty or naming a variable twice; one worst-case agent step can leave the
+        certified set from anywhere: no useful bound; or
         ``check_samples`` outside [1, 1e6], ``seed`` outside [0, 2**32 - 1] or ``workers`` outside
         [1, 256].
     """
+    instance(roa, RegionOfAttraction, "roa")
+    instance(spec, CoachSpec, "spec")
+    instance(loaded, LoadedModel, "loaded")
     integer(check_samples, "check_samples", RegionError, low=1, high=10**6, param="check_samples")
     check_seed(seed, "seed", RegionError, param="seed")
     n_workers = resolve_workers(workers, RegionError)
@@ -505,6 +502,21 @@ def _kicked_recovery(
     return 0
 
 
+BOUNDS_KEYS = ("method", "ellipsoid", "box", "provenance")
+"""The keys of a spec's ``[bounds]`` table that :func:`with_bounds` owns (``rescue`` and
+``takeover`` are :func:`pidlab.region.rescue.with_rescue`'s)."""
+
+
 def with_bounds(spec: CoachSpec, bounds: CriticalBounds) -> CoachSpec:
-    """A copy of ``spec`` carrying ``bounds`` in its ``[bounds]`` table."""
-    return replace(spec, bounds=bounds.to_table())
+    """A copy of ``spec`` carrying ``bounds`` in its ``[bounds]`` table.
+
+    Every key the bounds do not own is kept: the rescue region and the ``takeover`` choice stay
+    (a ``takeover`` that named a region the new bounds no longer have falls back to the default).
+    """
+    instance(spec, CoachSpec, "spec")
+    instance(bounds, CriticalBounds, "bounds")
+    kept = {k: v for k, v in (spec.bounds or {}).items() if k not in BOUNDS_KEYS}
+    table = {**bounds.to_table(), **kept}
+    if table.get("takeover") in ("box", "ellipsoid") and table["takeover"] not in table:
+        del table["takeover"]
+    return replace(spec, bounds=table)

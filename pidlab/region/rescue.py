@@ -50,7 +50,7 @@ import numpy as np
 from scipy import ndimage
 
 from pidlab import __version__
-from pidlab.checks import integer, number
+from pidlab.checks import instance, integer, number, shown
 from pidlab.checks import seed as check_seed
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
@@ -112,6 +112,10 @@ class RescueSettings:
     validation: int = 2000
     coverage: int = 2000
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        """Refuse settings out of range at once (:class:`RegionError` naming the field)."""
+        _check_settings(self)
 
 
 @dataclass(frozen=True)
@@ -487,23 +491,33 @@ def _choose_fraction(
 
 
 def _check_settings(s: RescueSettings) -> None:
-    """One-line :class:`RegionError` on settings out of range."""
+    """One-line :class:`RegionError` on settings out of range, naming the field (its ``param``).
+
+    :class:`RescueSettings` calls it whenever one is made (``replace`` included), so settings out of
+    range are refused where they are given, before any work (or progress bar) starts.
+    """
     if s.trigger not in TRIGGERS:
-        raise RegionError(f"trigger {s.trigger!r}: expected one of {', '.join(TRIGGERS)}")
-    if s.action_fraction is not None:
-        number(s.action_fraction, "action_fraction", RegionError, low=0.0, high=1.0, low_open=True)
-    k = len(s.variables)
-    if not 1 <= k <= 4 or len(s.half_range) != k or len(s.cells) != k:
+        expected = f"expected one of {', '.join(TRIGGERS)}"
+        raise RegionError(f"trigger={shown(s.trigger)}: {expected}", param="trigger")
+    if s.action_fraction is not None and not (s.trigger == "predictive" and s.action_fraction == 0.0):
+        number(s.action_fraction, "action_fraction", RegionError, low=0.0, high=1.0, low_open=True,
+               param="action_fraction")  # fmt: skip
+    grid = (s.variables, s.half_range, s.cells)
+    k = len(s.variables) if isinstance(s.variables, (tuple, list)) else 0
+    if not 1 <= k <= 4 or not all(isinstance(g, (tuple, list)) and len(g) == k for g in grid):
         raise RegionError("rescue grid: expected 1 to 4 variables, with a half-range and a cell count each")
     for c in s.cells:
         integer(c, "cells", RegionError, low=2, high=400)
+    if not isinstance(s.guard, dict):
+        expected = "expected a table of variable -> half-width"
+        raise RegionError(f"guard={shown(s.guard)}: {expected}", param="guard")
     for h in (*s.half_range, *s.guard.values()):
         number(h, "half-range", RegionError, low=0.0, low_open=True)
-    integer(s.probes, "probes", RegionError, low=1, high=100)
-    integer(s.validation, "validation", RegionError, low=1, high=10**6)
-    integer(s.coverage, "coverage", RegionError, low=1, high=10**6)
-    number(s.horizon_s, "horizon_s", RegionError, low=0.0, low_open=True, high=60.0)
-    check_seed(s.seed, "seed", RegionError)
+    for name, high in (("probes", 100), ("validation", 10**6), ("coverage", 10**6)):
+        integer(getattr(s, name), name, RegionError, low=1, high=high, param=name)
+    number(s.horizon_s, "horizon_s", RegionError, low=0.0, low_open=True, high=60.0, unit="s",
+           param="horizon_s")  # fmt: skip
+    check_seed(s.seed, "seed", RegionError, param="seed")
 
 
 @contextlib.contextmanager
@@ -562,6 +576,10 @@ def estimate_rescue(
         Settings out of range, a variable that cannot be set, a spec without a certified core, or a
         coach that rescues nothing.
     """
+    instance(spec, CoachSpec, "spec")
+    instance(loaded, LoadedModel, "loaded")
+    if settings is not None:
+        instance(settings, RescueSettings, "settings")
     t0 = time.perf_counter()
     s = settings if settings is not None else default_settings(spec, loaded)
     with _estimating(spec, loaded, s, workers, progress) as (est, coach, lin):
@@ -646,6 +664,8 @@ def default_settings(spec: CoachSpec, loaded: LoadedModel, trigger: str = "predi
 
 def with_rescue(spec: CoachSpec, region: RescueRegion, takeover: bool = True) -> CoachSpec:
     """A copy of ``spec`` whose ``[bounds]`` holds ``region`` (as its takeover region if ``takeover``)."""
+    instance(spec, CoachSpec, "spec")
+    instance(region, RescueRegion, "region")
     b = dict(spec.bounds or {})
     b["rescue"] = region.to_table()
     if takeover:

@@ -42,7 +42,7 @@ import mujoco
 import numpy as np
 import scipy.linalg
 
-from pidlab.checks import MAX_SAMPLES, integer, number
+from pidlab.checks import MAX_SAMPLES, instance, integer, number, shown
 from pidlab.checks import seed as check_seed
 from pidlab.controller.analysis import CoachAnalysis, analyze_coach
 from pidlab.controller.pid import N_LOOP_STATES, Coach, law
@@ -337,6 +337,7 @@ def phase_portrait(
     The two variables are set through the plant state (least-norm change), everything else
     at the operating point.
     """
+    check_variables(variables, loaded, "variables", count=2)
     coach = Coach(spec, loaded)
     lin = analyze_coach(coach, loaded).linearization
     sim = Simulator(spec, loaded, lin)
@@ -555,6 +556,43 @@ MAX_HORIZON_S = 3600.0
 """The longest simulated time per trajectory, s."""
 
 
+def check_variables(
+    names: list[str] | tuple[str, ...],
+    loaded: LoadedModel,
+    param: str = "variables",
+    count: int | None = None,
+) -> None:
+    """Refuse anything but distinct observation variables of ``loaded`` (``count`` of them when given).
+
+    The one check of the variables a box, a plot slice or a recording is asked for: a variable
+    named twice makes every matrix built on them singular.
+
+    Raises
+    ------
+    UnknownSignalError
+        A name the observation does not have (the message lists the valid names).
+    RegionError
+        Not a list of names, the wrong number of them, or a name given twice; ``param`` names
+        the Python parameter.
+    """
+    if isinstance(names, str) or not isinstance(names, (list, tuple)):
+        raise RegionError(f"{param}={shown(names)}: expected a list of observation variables", param=param)
+    given = shown(",".join(map(str, names)), 80)
+    if count is not None and len(names) != count:
+        raise RegionError(f"{param}={given}: expected {count} observation variables", param=param)
+    if not names:
+        raise RegionError(f"{param}=[]: expected at least one observation variable", param=param)
+    card = loaded.require_card()
+    for n in names:
+        card.variable(n)
+    twice = [n for i, n in enumerate(names) if n in names[:i]]
+    if twice:
+        raise RegionError(
+            f"{param}={given}: {twice[0]!r} is named twice; expected distinct observation variables",
+            param=param,
+        )
+
+
 def _check_budget(
     samples: int, seed: int, horizon_s: float, bisection_samples: int, bisection_rounds: int, keep: int
 ) -> None:
@@ -605,7 +643,7 @@ def estimate_roa(
     keep_trajectories : int
         How many final-check trajectories to return (for plots).
     record : (str, str), optional
-        Two observation variables to record along those trajectories.
+        Two distinct observation variables to record along those trajectories.
     progress : callable, optional
         Called as ``progress(stage, fraction)`` while the estimate runs (``fraction`` in [0, 1],
         or None where the stage's length is unknown). It may raise to abandon the estimate.
@@ -624,7 +662,11 @@ def estimate_roa(
         in [1, 1e7], ``seed`` in [0, 2**32 - 1], ``horizon_s`` in (0, 3600] s, ``workers`` in
         [1, 256], ...).
     """
+    instance(spec, CoachSpec, "spec")
+    instance(loaded, LoadedModel, "loaded")
     _check_budget(samples, seed, horizon_s, bisection_samples, bisection_rounds, keep_trajectories)
+    if record is not None:
+        check_variables(record, loaded, "record", count=2)
     n_workers = resolve_workers(workers, RegionError)
     t0 = time.perf_counter()
     report = progress if progress is not None else _no_progress

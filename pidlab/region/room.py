@@ -25,6 +25,7 @@ from pidlab.controller.autotune import PRESETS, TuneResult, lqr_projection, tune
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import PidlabError, RegionError
 from pidlab.linear.linearize import Linearization, linearize
+from pidlab.plant.card import ModelCard
 from pidlab.plant.model import LoadedModel
 from pidlab.region.rescue import default_settings, rescued_fraction
 
@@ -60,6 +61,14 @@ def _with_core(spec: CoachSpec, loaded: LoadedModel, seed: int, workers: int | N
     return replace(spec, bounds={"method": roa.method, "ellipsoid": ellipsoid})
 
 
+def has_room_design(card: ModelCard) -> bool:
+    """Whether the room preset can tune the env of ``card``: a linear design that measures its state.
+
+    Envs whose coach is refined on the env (contacts: Hopper, Walker2d) have none.
+    """
+    return bool(card.tuning) and not card.refine_on_env
+
+
 def tune_for_room(
     loaded: LoadedModel,
     lin: Linearization | None = None,
@@ -90,7 +99,7 @@ def tune_for_room(
         The env's coach is refined on the env (contacts), or no candidate rescues anything.
     """
     card = loaded.require_card()
-    if card.refine_on_env or not card.tuning:
+    if not has_room_design(card):
         raise PidlabError(
             f"preset room: {loaded.name} has no linear design that measures its state (its coach is "
             "refined on the env); use the robust preset"

@@ -21,11 +21,13 @@ and users ask the same object.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
+from pidlab.checks import shown
 from pidlab.errors import CoachingError
 from pidlab.lookup import LookupGrid, parse_lookup
 
@@ -61,6 +63,26 @@ def observation_indices(
     return out
 
 
+def _checked(obs: Any, size: int, inside: Callable[[Any], bool]) -> bool:
+    """``inside(obs)`` for an observation of ``size`` numbers; else the error ``contains`` raises."""
+    try:
+        if len(obs) == size:
+            return inside(obs)
+    except (TypeError, IndexError, ValueError):
+        pass
+    raise _bad_observation(obs, size)
+
+
+def _bad_observation(obs: Any, size: int) -> CoachingError:
+    """Why ``obs`` is no observation of ``size`` numbers, as the error ``contains`` raises."""
+    try:
+        got = f"{len(obs)} entr{'y' if len(obs) == 1 else 'ies'}"
+    except TypeError:
+        got = type(obs).__name__
+    return CoachingError(f"obs={shown(obs)}: expected the env's observation, {size} numbers (got {got})",
+                         param="obs")  # fmt: skip
+
+
 def _check_fraction(fraction: float, where: str) -> float:
     f = float(fraction)
     if not 0.0 < f <= 1.0 or not np.isfinite(f):
@@ -91,6 +113,7 @@ class BoxRegion:
         hi = np.array([v[1] for v in self.box.values()])
         self.center, self.half = 0.5 * (lo + hi), 0.5 * (hi - lo)
         self._idx = idx
+        self._size = len(observation_names)
         self.scale = scale
 
     @property
@@ -108,8 +131,14 @@ class BoxRegion:
         ]
 
     def contains(self, obs: np.ndarray) -> bool:
-        """Whether ``obs`` lies in the (scaled) box."""
-        return all(lo <= obs[i] <= hi for i, lo, hi in self._limits)
+        """Whether ``obs`` lies in the (scaled) box.
+
+        Raises
+        ------
+        CoachingError
+            ``obs`` is not an observation of the env (another length, not numbers).
+        """
+        return _checked(obs, self._size, lambda o: all(lo <= o[i] <= hi for i, lo, hi in self._limits))
 
     def inner(self, fraction: float) -> BoxRegion:
         """The box with its half-widths times ``fraction``."""
@@ -140,6 +169,7 @@ class EllipsoidRegion:
         self.variables = tuple(ellipsoid["variables"])
         self._obs_names = observation_names
         self.index = np.array(observation_indices(self.variables, observation_names, "bounds.ellipsoid"))
+        self._size = len(observation_names)
         self.center = np.array(ellipsoid["center"], dtype=float)
         self.shape = np.array(ellipsoid["shape"], dtype=float)
         rho = 1.0 if certified else float(ellipsoid["rho"])
@@ -147,8 +177,20 @@ class EllipsoidRegion:
         self.scale = float(scale)
 
     def contains(self, obs: np.ndarray) -> bool:
-        """Whether ``obs`` lies in the (scaled) ellipsoid."""
-        y = np.asarray(obs, dtype=float)[self.index] - self.center
+        """Whether ``obs`` lies in the (scaled) ellipsoid.
+
+        Raises
+        ------
+        CoachingError
+            ``obs`` is not an observation of the env (another length, not numbers).
+        """
+        try:
+            x = np.asarray(obs, dtype=float)
+        except (TypeError, ValueError):
+            raise _bad_observation(obs, self._size) from None
+        if x.shape != (self._size,):
+            raise _bad_observation(obs, self._size)
+        y = x[self.index] - self.center
         return bool(y @ self.shape @ y <= self.threshold * self.scale**2)
 
     def inner(self, fraction: float) -> EllipsoidRegion:
@@ -186,6 +228,7 @@ class GridRegion:
         ]
         gidx = observation_indices(tuple(grid.guard), observation_names, "bounds.rescue.guard")
         self._guard = [(i, lo, hi) for i, (lo, hi) in zip(gidx, grid.guard.values(), strict=True)]
+        self._size = len(observation_names)
         self.scale = 1.0
 
     @property
@@ -201,7 +244,16 @@ class GridRegion:
         return int(self._depth[tuple(g.cell_of(centre[None, :])[0])])
 
     def contains(self, obs: np.ndarray) -> bool:
-        """Whether ``obs`` lies in the guard box and in a marked cell."""
+        """Whether ``obs`` lies in the guard box and in a marked cell.
+
+        Raises
+        ------
+        CoachingError
+            ``obs`` is not an observation of the env (another length, not numbers).
+        """
+        return _checked(obs, self._size, self._contains)
+
+    def _contains(self, obs: np.ndarray) -> bool:
         for i, lo, hi in self._guard:
             if not lo <= obs[i] <= hi:
                 return False
@@ -246,9 +298,17 @@ def region_from_bounds(
     CoachingError
         ``kind`` unknown, or the table has no such region.
     """
-    kind = kind if kind is not None else takeover_kind(bounds)
-    if kind not in KINDS:
-        raise CoachingError(f"region {kind!r}: expected one of {', '.join(KINDS)}")
+    if kind is None:
+        kind = takeover_kind(bounds)
+        if kind is None:
+            raise CoachingError(
+                f"{name}: the spec has no [bounds], so no takeover region; "
+                "run `pidlab bounds SPEC --write` (and `pidlab rescue SPEC --write`) first"
+            )
+    elif kind not in KINDS:
+        raise CoachingError(f"kind={shown(kind)}: expected one of {', '.join(KINDS)}", param="kind")
+    if kind not in KINDS:  # the spec's [bounds] takeover names no shape (a spec file checks this)
+        raise CoachingError(f"{name}: [bounds] takeover = {shown(kind)}: expected one of {', '.join(KINDS)}")
     b = bounds or {}
     if kind not in b:
         hint = {
@@ -301,8 +361,7 @@ def load_region(spec: Any, kind: str | None = None) -> Region:
     if isinstance(spec, str | Path):
         spec = load_spec(spec)
     if not isinstance(spec, CoachSpec):
-        got = type(spec).__name__
-        raise CoachingError(f"load_region: expected a CoachSpec or a spec file's path, got {got}")
+        raise CoachingError(f"spec={shown(spec)}: expected a CoachSpec or a spec file's path", param="spec")
     card = find_card(spec.env_id)
     if card is None:
         raise CoachingError(f"{spec.name}: {spec.env_id} has no model card, so its observation is unknown")

@@ -62,6 +62,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from pidlab.checks import instance
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
@@ -279,6 +280,9 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         cost: float | None = None,
         handback: float = 1.0,
     ) -> None:
+        instance(env, gym.Env, "env", CoachingError)
+        if spec is not None:
+            instance(spec, CoachSpec, "spec", CoachingError)
         gym.utils.RecordConstructorArgs.__init__(
             self, spec=spec, mode=mode, region=region, trigger=trigger, nudge_steps=nudge_steps,
             max_coach_steps=max_coach_steps, reward=reward, probability=probability, width=width,

@@ -86,6 +86,7 @@ from pidlab.checks import (
     check_name,
     fail,
     flag,
+    float_text,
     integer,
     number,
     path_under,
@@ -219,6 +220,14 @@ class Recipe:
     algorithm_envs: dict[str, int] = field(default_factory=dict)
     path: str | None = None
 
+    def __post_init__(self) -> None:
+        """Refuse a recipe changed out of range (``dataclasses.replace(recipe, steps=-5)``).
+
+        :func:`parse_recipe` checks every field of a file; this holds the fields a caller may
+        change with ``replace`` to the same rules, so that no path reaches SB3 unchecked.
+        """
+        _check_recipe(self)
+
     @property
     def hyperparameters(self) -> dict[str, Any]:
         """SB3 keyword arguments of the chosen algorithm."""
@@ -229,6 +238,38 @@ MAX_STEPS = 10**12
 """The largest budget (env steps) a recipe or a command may ask for."""
 MAX_PARALLEL = 1024
 """The most parallel envs (``n_envs``) and torch threads a recipe may ask for."""
+
+
+def _check_recipe(r: Recipe) -> None:
+    """The fields of a :class:`Recipe` in range; :class:`RecipeError` names the field (its ``param``).
+
+    Raises
+    ------
+    RecipeError
+    """
+    check_name(r.env_id, "env_id", RecipeError, param="env_id")
+    if not isinstance(r.algorithms, dict) or not r.algorithms or not set(r.algorithms) <= set(ALGOS):
+        fail(r.algorithms, "algorithms", "a table of SB3 arguments per algorithm (ppo, sac)", RecipeError,
+             "algorithms")  # fmt: skip
+    if r.algo not in ALGOS:
+        fail(r.algo, "algo", f"one of {', '.join(ALGOS)}", RecipeError, "algo")
+    if r.algo not in r.algorithms:
+        fail(r.algo, "algo", f"an algorithm the recipe has a table for ({', '.join(r.algorithms)})",
+             RecipeError, "algo")  # fmt: skip
+    for name, high in (("steps", MAX_STEPS), ("n_envs", MAX_PARALLEL), ("threads", MAX_PARALLEL),
+                       ("checkpoint_every", MAX_STEPS)):  # fmt: skip
+        integer(getattr(r, name), name, RecipeError, low=1, high=high, param=name)
+    check_seed(r.seed, "seed", RecipeError, param="seed")
+    if r.vec_env not in VEC_ENVS:
+        fail(r.vec_env, "vec_env", f"one of {', '.join(VEC_ENVS)}", RecipeError, "vec_env")
+    for name in ("normalize_obs", "normalize_reward"):
+        if not isinstance(getattr(r, name), bool):
+            fail(getattr(r, name), name, "true or false", RecipeError, name)
+    for name, kind in (("win", Win), ("evaluation", Evaluation), ("coaching", Coaching)):
+        if not isinstance(getattr(r, name), kind):
+            fail(getattr(r, name), name, f"a {kind.__name__}", RecipeError, name)
+    if r.algo == "ppo":
+        check_rollout(r.algorithms["ppo"], r.n_envs, "ppo", param="n_envs")
 
 
 def _int(
@@ -295,10 +336,7 @@ def _rate(value: Any, where: str) -> Any:
 
 
 def _float_or_nan(text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        return math.nan
+    return float_text(text)  # ASCII digits only, as every number given as text
 
 
 def _sac_ent_coef(value: Any, where: str) -> Any:
@@ -653,7 +691,40 @@ def load_pipeline_settings(path: str | Path) -> PipelineSettings:
     """
     data = read_toml(path, "recipe", RecipeError)
     parse_recipe(data, str(path))
-    return parse_pipeline(data, str(path))
+    settings = parse_pipeline(data, str(path))
+    check_pipeline_condition(data, settings.condition, str(path))
+    return settings
+
+
+def check_pipeline_condition(data: dict[str, Any], condition: str, where: str) -> None:
+    """The ``[pipeline] condition`` a recipe file names is a coached condition of ``coach/conditions.toml``.
+
+    Checked wherever a recipe file is read (``pidlab train --recipe``, ``pidlab experiment``), not
+    only by ``pidlab run``, which trains with it. Without a readable conditions file there is
+    nothing to check against; the commands that read that file report it.
+
+    Raises
+    ------
+    RecipeError
+        Naming the field, and the conditions the file has.
+    """
+    try:
+        conditions = read_toml(recipes_dir() / "conditions.toml", "conditions file", RecipeError)
+    except PidlabError:
+        return
+    tables = conditions.get("condition")
+    if not isinstance(tables, dict) or not all(isinstance(t, dict) for t in tables.values()):
+        return
+    w = f"{where}.pipeline.condition"
+    if condition not in tables:
+        fail(condition, w, f"a condition of {recipes_dir() / 'conditions.toml'}: {', '.join(tables)}",
+             RecipeError)  # fmt: skip
+    table = tables[condition]
+    envs = table.get("env")
+    env = envs.get(data.get("env_id"), {}) if isinstance(envs, dict) else {}
+    coach = env.get("coach", table.get("coach")) if isinstance(env, dict) else table.get("coach")
+    if coach == "none":
+        fail(condition, w, "a condition that trains a coach (this one has coach = 'none')", RecipeError)
 
 
 def _top(data: Any, where: str) -> dict[str, Any]:
@@ -763,14 +834,17 @@ def _algorithm_envs(data: dict[str, Any], algorithms: dict[str, Any], where: str
 
 
 def load_recipe(path: str | Path) -> Recipe:
-    """Read and validate a recipe file.
+    """Read and validate a recipe file (its ``[pipeline] condition`` too: :func:`check_pipeline_condition`).
 
     Raises
     ------
     RecipeError
     """
     data = read_toml(path, "recipe", RecipeError)
-    return replace(parse_recipe(data, str(path)), path=str(path))
+    recipe = parse_recipe(data, str(path))
+    if "pipeline" in data:
+        check_pipeline_condition(data, parse_pipeline(data, str(path)).condition, str(path))
+    return replace(recipe, path=str(path))
 
 
 def recipes_dir() -> Path:

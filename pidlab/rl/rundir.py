@@ -3,8 +3,8 @@
 A run directory holds ``config.toml`` (the resolved recipe and the coach's name, source and
 digest), ``coach.toml`` (the spec), ``run.json`` (seed, command, versions, git SHA, resumes: a
 :class:`pidlab.provenance.Record`), ``episodes.csv``, ``evaluations.csv``, ``tb/``,
-``checkpoints/<env steps>/`` (the latest two) and, once the budget is spent, ``final_model.zip``
-and ``summary.json``. See :mod:`pidlab.rl.train`.
+``checkpoints/<env steps>/`` (the latest two) and, once the budget is spent, ``final_model.zip``,
+``final_vecnormalize.npz`` and ``summary.json``. See :mod:`pidlab.rl.train`.
 
 Everything read back from a run directory may have been damaged since (a disk that filled up, a
 hand edit, a copy cut short): each reader here says which file is damaged, in one line.
@@ -193,18 +193,22 @@ class CsvLog:
 
 def is_checkpoint_name(name: str) -> bool:
     """Whether ``name`` is a checkpoint folder's (its env steps, 12 digits)."""
-    return len(name) == 12 and name.isdigit()
+    return len(name) == 12 and name.isascii() and name.isdigit()
 
 
-def checkpoint_folders(run_dir: Path) -> list[Path]:
-    """The run's complete checkpoints (folders with ``state.json``), oldest first."""
+def checkpoint_folders(run_dir: Path, complete: bool = True) -> list[Path]:
+    """The run's checkpoints, oldest first: those with ``state.json``, or (``complete`` False) all.
+
+    A checkpoint is written into a temporary folder and renamed into place once complete, so a
+    numbered folder without ``state.json`` was damaged since; a resume reports it as such.
+    """
     folder = run_dir / "checkpoints"
     if not folder.is_dir():
         return []
     return sorted(
         p
         for p in folder.iterdir()
-        if is_checkpoint_name(p.name) and p.is_dir() and (p / "state.json").exists()
+        if is_checkpoint_name(p.name) and p.is_dir() and (not complete or (p / "state.json").exists())
     )
 
 
@@ -260,14 +264,20 @@ def spec_digest(spec: CoachSpec) -> str:
 
 
 def config_dict(recipe: Recipe, spec: CoachSpec | None, coach_source: str | None) -> dict[str, Any]:
-    """The tables of ``config.toml``: the resolved recipe and which coach (name, source, SHA-256)."""
+    """The tables of ``config.toml``: the resolved recipe and which coach (name, source, SHA-256).
+
+    Sources are named as :func:`pidlab.data.portable_name` does (``tuning/ENV.NAME.toml``), never
+    by the writer's absolute path; the spec's SHA-256 identifies it wherever it came from.
+    """
+    from pidlab.data import portable_name
+
     coach: dict[str, Any] = {"name": "none"}
     if spec is not None:
-        coach = {"name": spec.name, "source": coach_source or "", "sha256": spec_digest(spec)}
+        coach = {"name": spec.name, "source": portable_name(coach_source or ""), "sha256": spec_digest(spec)}
     return {
         "schema": "pidlab.run-config/1",
         "env_id": recipe.env_id,
-        "recipe_source": recipe.path or "",
+        "recipe_source": portable_name(recipe.path or ""),
         "coach": coach,
         "recipe": recipe_to_dict(recipe),
     }

@@ -13,15 +13,16 @@ A run directory holds::
     episodes.csv         one row per finished agent episode (whether the env's episode ended too, a fall)
     evaluations.csv      one row per agent-alone evaluation (coach off, fixed seeds)
     tb/                  TensorBoard: pidlab's scalars (x = env steps), tb/sb3: SB3's (x = agent steps)
-    checkpoints/<env steps>/   the latest two: model.zip, vecnormalize.pkl, replay_buffer.pkl (SAC),
-                               state.json (written last: a folder without it is incomplete)
-    final_model.zip      (and final_vecnormalize.pkl) when the budget is spent
+    checkpoints/<env steps>/   the latest two: model.zip, vecnormalize.npz, replay_buffer.npz (SAC),
+                               state.json (written last, with each file's SHA-256)
+    final_model.zip      (and final_vecnormalize.npz) when the budget is spent
     summary.json         totals, final evaluation, wall time (this session's and the run's total)
 
 :mod:`pidlab.rl.rundir` writes and reads these files. :func:`resume` continues from the newest
 checkpoint that loads (:func:`load_checkpoint` checks every file of it): the CSV files are cut
 back to the rows that checkpoint had recorded (so no episode is lost or logged twice), the model,
-normalization statistics and replay buffer are reloaded, and the envs start fresh episodes.
+normalization statistics and replay buffer are reloaded without unpickling anything
+(:mod:`pidlab.rl.checkpoint`), and the envs start fresh episodes.
 Episodes in progress at the checkpoint are not logged (their env steps stay counted). When the
 latest checkpoint is damaged, a resume says so in one warning line, falls back to the previous
 one and records that in ``run.json``; when no checkpoint loads, it refuses and changes nothing.
@@ -32,14 +33,15 @@ next step with a checkpoint. :func:`train` and :func:`resume` hold the run direc
 
 from __future__ import annotations
 
+import errno
+import os
 import shutil
 import signal
 import sys
 import threading
 import time
-import warnings
-import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -49,9 +51,10 @@ import numpy as np
 import tomli_w
 
 from pidlab.controller.spec import CoachSpec
-from pidlab.errors import CheckpointError
-from pidlab.files import atomic_write_bytes, atomic_write_text, check_output_folder, read_json, write_json
+from pidlab.errors import CheckpointError, OutputError
+from pidlab.files import atomic_write_text, check_output_folder, read_json, write_json
 from pidlab.provenance import hold_lock, read_record
+from pidlab.rl.checkpoint import FINAL, check_manifest, expected_files, load_agent_files, save_agent
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, evaluation_envs, sb3_policy
 from pidlab.rl.recipe import LINEAR_SCHEDULES, Recipe, recipe_to_dict
@@ -235,7 +238,7 @@ def _algorithm_class(algo: str) -> Any:
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
-def _new_model(recipe: Recipe, venv: Any) -> Any:
+def new_model(recipe: Recipe, venv: Any) -> Any:
     """A new agent of ``recipe`` on ``venv``."""
     cls = _algorithm_class(recipe.algo)
     return cls("MlpPolicy", venv, seed=recipe.seed, device="cpu", verbose=0, **sb3_arguments(recipe))
@@ -255,32 +258,12 @@ def _reason(exc: BaseException) -> str:
     return text if len(text) <= 160 else text[:157] + "..."
 
 
-def _load_part(path: Path, load: Callable[[Path], Any]) -> Any:
-    """``load(path)``: a missing or damaged file becomes a :class:`CheckpointError` naming it."""
-    if not path.is_file():
-        raise CheckpointError(f"{path}: missing")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # SB3 warns, then fails, on a damaged file
-            return load(path)
-    except Exception as exc:  # SB3, torch, pickle and zipfile raise many kinds on a damaged file
-        raise CheckpointError(f"{path}: damaged ({_reason(exc)})") from None
-
-
-def _check_zip(path: Path) -> None:
-    """A zip archive whose every member reads back (its CRC checks)."""
-
-    def test(p: Path) -> str | None:
-        with zipfile.ZipFile(p) as archive:
-            return archive.testzip()
-
-    bad = _load_part(path, test)
-    if bad is not None:
-        raise CheckpointError(f"{path}: damaged ({bad} in it fails its CRC check)")
-
-
 def load_checkpoint(checkpoint: Path, recipe: Recipe, venv: Any) -> tuple[Any, Any, dict[str, int]]:
     """Load a checkpoint of a run: the one place that recognizes a damaged one.
+
+    Nothing is unpickled (see :mod:`pidlab.rl.checkpoint`): the agent is rebuilt from ``recipe``
+    and its weights, normalizer statistics and replay buffer are read from plain files, each
+    checked first against the SHA-256 that ``state.json`` records.
 
     Parameters
     ----------
@@ -289,7 +272,7 @@ def load_checkpoint(checkpoint: Path, recipe: Recipe, venv: Any) -> tuple[Any, A
     recipe : Recipe
         The run's recipe (which algorithm, whether observations are normalized).
     venv : VecEnv
-        New training envs of the run (:func:`make_vec_env`); not changed.
+        New training envs of the run (:func:`make_vec_env`); their normalizer statistics are set.
 
     Returns
     -------
@@ -301,29 +284,23 @@ def load_checkpoint(checkpoint: Path, recipe: Recipe, venv: Any) -> tuple[Any, A
     ------
     CheckpointError
         One line naming the file that is missing or damaged: ``state.json`` (cut short, not JSON,
-        counters that disagree), ``model.zip`` (not a zip, truncated, a member that fails its CRC,
-        not this run's agent or not at the state's step), ``vecnormalize.pkl`` or
-        ``replay_buffer.pkl`` (does not unpickle, or not for these envs).
+        counters that disagree, no file digests), or an agent file whose digest does not match,
+        that does not read, or that is not for this run's agent and envs.
     """
-    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
     from stable_baselines3.common.vec_env import VecNormalize
 
     state = read_state(checkpoint)
-    _check_zip(checkpoint / "model.zip")
-    if isinstance(venv, VecNormalize):
-        inner = venv.venv
-        venv = _load_part(checkpoint / "vecnormalize.pkl", lambda p: VecNormalize.load(str(p), inner))
-        venv.training = True
-    cls = _algorithm_class(recipe.algo)
-    model = _load_part(checkpoint / "model.zip", lambda p: cls.load(p, env=venv, device="cpu"))
-    if int(model.num_timesteps) != state["num_timesteps"]:
-        raise CheckpointError(
-            f"{checkpoint / 'model.zip'}: damaged (an agent of {model.num_timesteps} agent steps; "
-            f"state.json says {state['num_timesteps']})"
-        )
-    if isinstance(model, OffPolicyAlgorithm):
-        _load_part(checkpoint / "replay_buffer.pkl", model.load_replay_buffer)
-    return model, venv, state
+    record = checkpoint / "state.json"
+    data = read_json(record)
+    files = check_manifest(data, record, expected_files(recipe.algo == "sac", isinstance(venv, VecNormalize)))
+    agent = load_agent_files(checkpoint, files, record, lambda v: new_model(recipe, v), venv)
+    model = agent.model
+    model.num_timesteps = state["num_timesteps"]
+    sb3 = data.get("sb3") if isinstance(data.get("sb3"), dict) else {}
+    for key in ("n_updates", "episode_num"):
+        value = sb3.get(key, 0)
+        setattr(model, f"_{key}", value if type(value) is int and value >= 0 else 0)
+    return model, agent.venv, state
 
 
 @dataclass(frozen=True)
@@ -346,7 +323,7 @@ def _restore(run_dir: Path, recipe: Recipe, venv: Any) -> _Restored:
         Checkpoints exist and none of them loads.
     """
     damaged: list[tuple[Path, str]] = []
-    for checkpoint in reversed(checkpoint_folders(run_dir)):
+    for checkpoint in reversed(checkpoint_folders(run_dir, complete=False)):
         try:
             state = read_state(checkpoint)
             check_log(run_dir / "episodes.csv", EPISODE_COLUMNS, state["episodes"])
@@ -364,7 +341,7 @@ def _restore(run_dir: Path, recipe: Recipe, venv: Any) -> _Restored:
     if damaged:
         reasons = "; ".join(reason for _, reason in damaged)
         raise RunDirError(f"{run_dir}: cannot resume: no checkpoint loads ({reasons}). Nothing was changed")
-    return _Restored(_new_model(recipe, venv), venv, None, None, ())
+    return _Restored(new_model(recipe, venv), venv, None, None, ())
 
 
 def _warn(message: str) -> None:
@@ -392,12 +369,17 @@ class _Stop:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        print(
-            f"\npidlab: {signal.Signals(signum).name}: stopping at the next step with a checkpoint "
-            "(send it again to stop at once)",
-            file=sys.stderr,
-            flush=True,
-        )
+        try:
+            print(
+                f"\npidlab: {signal.Signals(signum).name}: stopping at the next step with a checkpoint "
+                "(send it again to stop at once)",
+                file=sys.stderr,
+                flush=True,
+            )
+        except (OSError, RuntimeError, ValueError):
+            # stderr gone (a pipe whose reader died with the sweep, a closed stream) or in the middle
+            # of a write the signal interrupted: the stop is what matters, not its notice
+            pass
 
     def __exit__(self, *exc: Any) -> None:
         for sig, old in self._old.items():
@@ -612,19 +594,17 @@ class _Trainer:
         return folder
 
     def _save(self, folder: Path) -> None:
-        """The model, statistics, replay buffer and counters into ``folder`` (``state.json`` last)."""
-        from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-        from stable_baselines3.common.vec_env import VecNormalize
+        """The agent's files, the logs and the counters into ``folder`` (``state.json`` last).
 
-        self.model.save(folder / "model.zip")
-        if isinstance(self.venv, VecNormalize):
-            self.venv.save(str(folder / "vecnormalize.pkl"))
-        if isinstance(self.model, OffPolicyAlgorithm):
-            self.model.save_replay_buffer(folder / "replay_buffer.pkl")
+        ``state.json`` records each agent file's SHA-256 (see :mod:`pidlab.rl.checkpoint`).
+        """
+        files = save_agent(folder, self.model, self.venv)
         self.episodes_log.sync()
         self.evaluations_log.sync()
         self.tb.flush()
-        state = {**self.counters.to_dict(), "num_timesteps": int(self.model.num_timesteps)}
+        sb3 = {"n_updates": int(self.model._n_updates), "episode_num": int(self.model._episode_num)}
+        state = {**self.counters.to_dict(), "num_timesteps": int(self.model.num_timesteps), "files": files,
+                 "sb3": sb3}  # fmt: skip
         write_json(folder / "state.json", state)  # written last: marks the checkpoint complete
 
     def _bar_update(self) -> None:
@@ -711,16 +691,19 @@ def train(
         is checked (the coach runs on the env, SB3 accepts the agent's settings) before the
         first file is written.
     """
+    from pidlab.rl.arguments import check_train_arguments
+
+    check_train_arguments(recipe, spec, run_dir, coach_source, progress_bar, argv)
     run_dir = Path(run_dir)
     EnvFactory(recipe.env_id, spec, recipe)().close()  # a coach that cannot run fails here, before any file
     check_new_run_dir(run_dir)
 
     def start(venv: Any) -> tuple[Any, Any, dict[str, int] | None]:
-        model = _new_model(recipe, venv)  # bad agent settings fail here, before any file
+        model = new_model(recipe, venv)  # bad agent settings fail here, before any file
         prepare_run_dir(run_dir, recipe, spec, coach_source, argv)
         return model, venv, None
 
-    with hold_lock(run_dir, RunDirError):
+    with hold_lock(run_dir, RunDirError), _disk_full(run_dir, recipe.env_id):
         return _run(recipe, spec, run_dir, progress_bar, start)
 
 
@@ -753,13 +736,35 @@ def resume(
         below what the run has already done, or another command working in it. Nothing is
         changed then.
     """
+    from pidlab.rl.arguments import check_resume_arguments
+
+    check_resume_arguments(run_dir, steps, progress_bar, argv)
     run_dir = Path(run_dir)
     if steps is not None and (type(steps) is not int or steps < 1):
         raise RunDirError(f"steps={steps!r}: expected a positive number of env steps", param="steps")
-    load_run_config(run_dir)  # not a run: refused before its lock is taken
+    env_id = load_run_config(run_dir)[0].env_id  # not a run: refused before its lock is taken
     check_output_folder(run_dir)  # a read-only run: refused before the first write, not during
-    with hold_lock(run_dir, RunDirError):
+    with hold_lock(run_dir, RunDirError), _disk_full(run_dir, env_id):
         return _resume(run_dir, steps, progress_bar, argv)
+
+
+@contextmanager
+def _disk_full(run_dir: Path, env_id: str) -> Iterator[None]:
+    """A full disk (or quota) while a run writes becomes one line that says how to go on.
+
+    What the run wrote up to its last complete checkpoint stays usable (checkpoints are renamed
+    into place once complete); the resume cuts the logs back to it.
+    """
+    try:
+        yield
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        where = f" ({exc.filename})" if exc.filename else ""
+        raise OutputError(
+            f"{run_dir}: {os.strerror(exc.errno).lower()}{where}; the run keeps its last checkpoint. "
+            f"Free some space, then resume: pidlab train {env_id} --resume {run_dir}"
+        ) from None
 
 
 def _finished(run_dir: Path, budget: int) -> TrainResult | None:
@@ -849,13 +854,15 @@ def _run(
         model.set_logger(trainer.sb3_logger)
         stopped = _learn(trainer, resumed=state is not None) if c.env_steps < recipe.steps else False
         completed = not stopped and c.env_steps >= recipe.steps
+        final: dict[str, str] = {}
         if completed:
             if not evaluated_at(run_dir, c.env_steps):
                 trainer.evaluate()
-            _save_final(trainer)
+            final = _save_final(trainer)
         trainer.checkpoint()
         wall = time.perf_counter() - started
-        write_json(run_dir / "summary.json", _run_summary(trainer, completed, wall, earlier_s))
+        summary = _run_summary(trainer, completed, wall, earlier_s)
+        write_json(run_dir / "summary.json", {**summary, "files": final} if final else summary)
         return TrainResult(
             run_dir, c.env_steps, c.agent_steps, c.coach_steps, c.interventions, c.episodes, completed,
             trainer.last_evaluation, wall, c.env_episodes, c.env_resets, c.falls,
@@ -953,18 +960,22 @@ def _learn(trainer: _Trainer, resumed: bool) -> bool:
         return stop.requested
 
 
-def _save_final(trainer: _Trainer) -> None:
-    import pickle
+def _save_final(trainer: _Trainer) -> dict[str, str]:
+    """The final agent (model and normalizer, no replay buffer) into the run folder; their digests.
 
-    from stable_baselines3.common.vec_env import VecNormalize
-
+    Each file is written under a temporary name and renamed into place.
+    """
     run_dir = trainer.run_dir
-    tmp = run_dir / ".final_model.tmp.zip"
-    trainer.model.save(tmp)
-    tmp.replace(run_dir / "final_model.zip")
-    if isinstance(trainer.venv, VecNormalize):
-        # what VecNormalize.save writes (the VecEnv itself is not pickled), written atomically
-        atomic_write_bytes(run_dir / "final_vecnormalize.pkl", pickle.dumps(trainer.venv))
+    tmp = run_dir / ".final.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        files = save_agent(tmp, trainer.model, trainer.venv, buffer=False)
+        for name in files:
+            (tmp / name).replace(run_dir / FINAL[name])
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return files
 
 
 def _result_from_summary(run_dir: Path, s: dict[str, Any]) -> TrainResult:
