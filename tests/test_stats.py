@@ -231,3 +231,27 @@ def test_detectable_improvement_rejects_bad_arguments() -> None:
         detectable_improvement(5, 5, alpha=0.0)
     with pytest.raises(ValueError):
         detectable_improvement(5, 5, power=1.5)
+
+
+def test_the_score_interval_of_the_mann_whitney_probability_against_hand_computed_cases():
+    from pidlab.experiment.stats import _newcombe_variance, mann_whitney_interval
+
+    # n = m = 10: k = (10 + 10)/2 - 1 = 9. At theta = 0.8:
+    # V = 0.8 * 0.2 * (1 + 9 * (0.2/1.2 + 0.8/1.8)) / 100 = 0.16 * 6.5 / 100 = 0.0104
+    assert _newcombe_variance(0.8, 10, 10) == pytest.approx(0.0104, rel=1e-12)
+    # complete separation: (1 - theta)^2 = 1.959964^2 V(theta); at 0.8 the left side (0.04) still
+    # exceeds the right (3.841459 * 0.0104 = 0.039951), so the root lies just above 0.8
+    low, high = mann_whitney_interval(1.0, 10, 10)
+    assert high == 1.0 and 0.8 < low < 0.801
+    assert (1 - low) ** 2 == pytest.approx(1.959963985**2 * _newcombe_variance(low, 10, 10), rel=1e-8)
+    # the interval does not collapse, is symmetric under swapping the samples, and holds theta_hat
+    assert mann_whitney_interval(0.0, 10, 10) == pytest.approx((0.0, 1 - low))
+    for theta, n, m in [(0.5, 10, 10), (0.82, 10, 10), (0.3, 5, 7), (1.0, 3, 3)]:
+        lo, hi = mann_whitney_interval(theta, n, m)
+        lo2, hi2 = mann_whitney_interval(1 - theta, m, n)
+        assert 0 < lo <= theta <= hi <= 1 and hi - lo > 0.1
+        assert (lo, hi) == pytest.approx((1 - hi2, 1 - lo2))
+    # more seeds, a narrower interval
+    assert mann_whitney_interval(1.0, 30, 30)[0] > mann_whitney_interval(1.0, 10, 10)[0]
+    with pytest.raises(ValueError):
+        mann_whitney_interval(1.2, 10, 10)
