@@ -85,6 +85,7 @@ def main() -> None:
                 page = ctx.new_page()
                 page.goto(f"http://localhost:{port}/")
                 page.wait_for_selector("#margins-table", timeout=60_000)
+                page.wait_for_function("() => window.__plotted()", timeout=60_000)
                 page.wait_for_selector("#rollout-animation", timeout=300_000)
                 page.wait_for_function("() => window.__source('roa-paths').xs.length > 0", timeout=300_000)
                 page.wait_for_timeout(1000)

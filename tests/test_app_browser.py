@@ -50,6 +50,7 @@ def page(browser, server):
     pg.on("pageerror", lambda e: errors.append(str(e)))
     pg.goto(url)
     pg.wait_for_selector("#margins-table", timeout=60_000)
+    pg.wait_for_function("() => window.__plotted()", timeout=60_000)
     yield pg
     context.close()
     assert not errors, f"JavaScript errors on the page: {errors}"
@@ -264,3 +265,143 @@ def test_autotune_and_derive_bounds_buttons(page):
     pg.wait_for_function("(b) => window.__source('bounds-box').x[1] !== b", arg=box0[1], timeout=5000)
     box1 = _source(pg, "bounds-box", "x")
     assert box1[1] - box1[0] > box0[1] - box0[0]
+
+
+def _raw_get(url: str, path: str, headers: dict[str, str] | None = None) -> int:
+    """The status of ``GET path`` sent as written (no client-side normalization of ``..``)."""
+    import http.client
+    from urllib.parse import urlparse
+
+    u = urlparse(url)
+    conn = http.client.HTTPConnection(u.hostname, u.port, timeout=60)
+    try:
+        conn.request("GET", path, headers=headers or {})
+        return conn.getresponse().status
+    finally:
+        conn.close()
+
+
+def _log_since(log: Path, start: int) -> str:
+    return log.read_text(errors="replace")[start:]
+
+
+def test_paths_out_of_the_server_are_refused_without_a_traceback(server):
+    url, _, log = server
+    start = len(log.read_text(errors="replace"))
+    paths = [
+        "/components/../../../../etc/passwd",
+        "/components/%2e%2e/%2e%2e/etc/passwd",
+        "/components/..%2f..%2f..%2fetc/passwd",
+        "/components/os/path/__css__/x",
+        "/components/this/x/y/z",  # importing `this` prints; no module is imported by name
+        "/components/",
+        "/static/../../../etc/passwd",
+        "/static/extensions/../../../etc/passwd",
+    ]
+    codes = {p: _raw_get(url, p) for p in paths}
+    assert all(c in (403, 404) for c in codes.values()), codes
+    text = _log_since(log, start)
+    assert "Traceback" not in text and "500 GET" not in text, text[-3000:]
+
+
+def test_a_foreign_page_is_told_about_allow_host(server):
+    """Bokeh's refusal of a websocket from another origin names pidlab's flag, not Bokeh's."""
+    url, _, log = server
+    start = len(log.read_text(errors="replace"))
+    upgrade = {
+        "Connection": "Upgrade",
+        "Upgrade": "websocket",
+        "Sec-WebSocket-Version": "13",
+        "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==",
+        "Origin": "http://evil.example:8000",
+    }
+    assert _raw_get(url, "/ws", upgrade) == 403
+    text = _log_since(log, start)
+    assert "--allow-host" in text and "evil.example" in text, text[-2000:]
+    assert "--allow-websocket-origin" not in text and "BOKEH_ALLOW_WS_ORIGIN" not in text
+
+
+CRAFTED = """([cls, attr, value]) => {
+  const m = [...Bokeh.documents[0].all_models].find((m) => (m.css_classes || []).includes(cls));
+  m[attr] = value;  // BokehJS sends the change to the server, as a slider drag would
+}"""
+
+
+def test_a_crafted_websocket_patch_cannot_leave_a_widgets_range(page, server):
+    """Values sent past a widget's range are clamped by the server; bad options are ignored."""
+    pg = page
+    _, _, log = server
+    start = len(log.read_text(errors="replace"))
+    end = pg.evaluate(
+        "() => [...Bokeh.documents[0].all_models].find((m) => (m.css_classes || []).includes('pidlab-slider-kp')).end"
+    )
+    table = _table(pg)
+    pg.evaluate(CRAFTED, ["pidlab-slider-kp", "end", 1e12])  # a wider range is not taken either
+    pg.evaluate(CRAFTED, ["pidlab-slider-kp", "value", 1e9])
+    pg.wait_for_function(
+        "(v) => window.__input('.pidlab-input-kp').value === v", arg=f"{end:.6g}", timeout=10_000
+    )
+    _wait_changed(pg, "#margins-table", table)
+    for cls, attr, value in (
+        ("pidlab-slider-tf", "value", -5.0),
+        ("pidlab-slider-ki", "value", 1e300),
+        ("pidlab-scale", "value", 1e6),
+        ("pidlab-response-time", "value_throttled", 1e-9),
+        ("pidlab-robustness", "value", -3.0),
+        ("pidlab-loop", "value", "nope"),
+        ("pidlab-load-select", "value", "../../../../etc/passwd"),
+    ):
+        pg.evaluate(CRAFTED, [cls, attr, value])
+    pg.wait_for_timeout(1500)
+    assert float(_field(pg, "tf").input_value()) >= 0.0
+    assert abs(float(_field(pg, "ki").input_value())) <= 1e4
+    # the page still answers
+    table = _table(pg)
+    _type(pg, "kp", "5")
+    _wait_changed(pg, "#margins-table", table)
+    text = _log_since(log, start)
+    assert "Traceback" not in text and "Error" not in text, text[-3000:]
+
+
+def test_five_tabs_at_once_and_a_limit(server):
+    """Page requests get a placeholder (no tuner built); five tabs open at once; the ninth is told no.
+
+    Mechanics only: how fast is measured by ``benchmarks/tuner_load.py`` (docs/tuner-load.md).
+    """
+    import asyncio
+
+    from pidlab.app.browser import TunerClient
+    from pidlab.app.serve import MAX_SESSIONS
+    from pidlab.errors import PidlabError
+
+    url, _, log = server
+
+    async def scenario() -> tuple[list, list, str, float]:
+        five = [TunerClient(url) for _ in range(5)]
+        opened = await asyncio.gather(*(c.open(120) for c in five))
+        more = [TunerClient(url) for _ in range(MAX_SESSIONS + 1 - 5)]
+        rest = await asyncio.gather(*(c.open(120) for c in more), return_exceptions=True)
+        tabs = five + more
+        pulled = five[0].pulled
+        for c in tabs:
+            c.close()
+        await asyncio.sleep(0.5)
+        again = TunerClient(url)  # the closed tabs freed their places at once
+        seconds = await again.open(120)
+        again.close()
+        return opened, rest, pulled, seconds
+
+    import threading
+
+    out: list = []  # in a thread of its own: this thread's event loop belongs to Playwright
+    worker = threading.Thread(target=lambda: out.append(asyncio.run(scenario())))
+    worker.start()
+    worker.join(timeout=600)
+    opened, rest, pulled, again = out[0]
+    assert len(opened) == 5 and all(isinstance(t, float) for t in opened)
+    busy = [r for r in rest if isinstance(r, PidlabError)]
+    assert len(busy) == 1 and "busy" in str(busy[0]), rest
+    assert sum(isinstance(r, float) for r in rest) == MAX_SESSIONS - 5
+    assert "margins-table" not in pulled and "pidlab-loading" in pulled  # the page alone: a placeholder
+    assert isinstance(again, float)
+    assert "Traceback" not in log.read_text(errors="replace")

@@ -273,10 +273,18 @@ def test_tuner_answers_only_local_host_names_and_sigint_exits_130(tmp_path):
     port = free_port()
     log = tmp_path / "server.log"
     extra = ["--allow-host", "tuner.example"]
+    (tmp_path / "tuning").mkdir()
     proc = start_server("InvertedPendulum-v5", TUNING / "InvertedPendulum-v5.pidlab-robust.toml",
                         tmp_path / "tuning", port, extra=extra, log=log)  # fmt: skip
     try:
-        hosts = ("localhost", "127.0.0.1", "LocalHost", "tuner.example", "evil.example", "localhost.evil.example")
+        hosts = (
+            "localhost",
+            "127.0.0.1",
+            "LocalHost",
+            "tuner.example",
+            "evil.example",
+            "localhost.evil.example",
+        )
         codes = {host: _status(port, host) for host in hosts}
         codes["evil.example /"] = _status(port, "evil.example", "/")  # the page itself
     finally:
@@ -296,3 +304,182 @@ def test_allow_host_takes_host_names_only(name):
     with pytest.raises(PidlabError, match="allow_host="):
         check_hosts([name])
     assert check_hosts(["Tuner.Example", "10.0.0.2", "*"]) == ("tuner.example", "10.0.0.2", "*")
+
+
+def test_tune_ui_refuses_a_missing_tuning_dir(tmp_path):
+    """A --tuning-dir that does not exist is refused in one line before anything is served."""
+    from pidlab.app.browser import free_port
+
+    missing = tmp_path / "no-such-folder"
+    r = subprocess.run(
+        [sys.executable, "-m", "pidlab", "tune", "InvertedPendulum-v5", "--ui", "--tuning-dir", str(missing),
+         "--port", str(free_port())],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert (
+        r.stderr.startswith("pidlab: error: --tuning-dir ") and ": no such folder;" in r.stderr
+    )  # long paths are clipped
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+    assert "pidlab tuner for" not in r.stdout  # never served
+
+
+def test_check_tuning_dir(tmp_path):
+    from pidlab.app.serve import check_tuning_dir
+    from pidlab.errors import PidlabError
+
+    assert check_tuning_dir(tmp_path) == tmp_path
+    (tmp_path / "file").write_text("x")
+    for bad, words in ((tmp_path / "nope", "no such folder"), (tmp_path / "file", "not a folder")):
+        with pytest.raises(PidlabError, match=f"tuning_dir=.*{words}") as err:
+            check_tuning_dir(bad)
+        assert err.value.param == "tuning_dir"
+
+
+def test_every_widget_keeps_what_a_browser_sends_in_range(ip, tmp_path):
+    """A crafted websocket patch (any value, any property) cannot push a widget past its range.
+
+    ``_process_events`` is where Panel applies what the browser sent; the tuner's widgets check it
+    there, on the server, for every numeric widget, and refuse options that are not offered.
+    """
+    from pidlab.app.tuner import Tuner
+
+    _, _, spec = ip
+    tuner = Tuner(spec, "notebook", tmp_path, runner=JobRunner(workers=1))
+    try:
+        numeric = {**{f"gain {f}": s for f, s in tuner.sliders.items()}, "response time": tuner.response_time,
+                   "robustness": tuner.robustness, "scale": tuner.scale}  # fmt: skip
+        for name, w in numeric.items():
+            start, end = w.start, w.end
+            for sent in (1e9, -1e9, 1e300):
+                w._process_events({"value": sent, "value_throttled": sent})  # no exception either
+                assert start <= w.value <= end, (name, sent, w.value)
+            w._process_events({"value": (start + end) / 2})
+            before = w.value
+            for sent in (float("nan"), float("inf"), "12", None, True):
+                w._process_events({"value": sent})
+                assert w.value == before, (name, sent)
+            w._process_events({"start": -1e12, "end": 1e12, "step": 1e9})  # the range is the server's
+            assert (w.start, w.end) == (start, end), name
+        gains = {f: getattr(tuner.spec.loop(tuner.loop), f) for f in ("kp", "ki", "kd", "tf")}
+        assert gains["kp"] == tuner.sliders["kp"].value and all(abs(v) <= 1e4 for v in gains.values())
+        # a selector takes only the options it offers; a text field, text of a sane length
+        loop = tuner.loop_select.value
+        tuner.loop_select._process_events({"value": "nope"})
+        tuner.load_select._process_events({"value": "../../../etc/passwd"})
+        assert tuner.loop_select.value == loop and tuner.load_select.value != "../../../etc/passwd"
+        kd = tuner.inputs["kd"].value
+        tuner.inputs["kd"]._process_events({"value": "1" * 100_000})
+        assert tuner.inputs["kd"].value == kd
+        tuner.overwrite._process_events({"active": "yes"})
+        assert tuner.overwrite.value is False
+        # and a value the views cannot be computed for is refused with a message, not a traceback
+        table = tuner.margins.object
+        tuner._apply("kp", 1e300)
+        assert "undefined" in tuner.messages["kp"].object and tuner.margins.object == table
+        assert tuner.spec.loop(tuner.loop).kp == gains["kp"]
+    finally:
+        tuner.runner.shutdown()
+
+
+def _parent_death_signal() -> int:
+    """The signal this process gets when its parent dies (Linux ``prctl(PR_GET_PDEATHSIG)``)."""
+    import ctypes
+
+    sig = ctypes.c_int(0)
+    ctypes.CDLL(None).prctl(2, ctypes.byref(sig), 0, 0, 0)  # PR_GET_PDEATHSIG
+    return sig.value
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux's")
+def test_workers_die_with_their_server():
+    """The kernel kills a worker the moment its server dies (SIGKILL), instead of a 1 s poll."""
+    import signal
+
+    runner = JobRunner(workers=1)
+    try:
+        runner.start()
+        assert runner._pool is not None
+        assert runner._pool.submit(_parent_death_signal).result(timeout=60) == signal.SIGKILL
+    finally:
+        runner.shutdown()
+
+
+def _descendants(pid: int) -> set[int]:
+    """The processes ``pid`` started, and theirs (from each process's parent in /proc)."""
+    parent: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        try:
+            parent[int(entry.name)] = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (ValueError, OSError, IndexError):
+            continue
+    out: set[int] = set()
+    frontier = [pid]
+    while frontier:
+        p = frontier.pop()
+        for child in [c for c, pp in parent.items() if pp == p and c not in out]:
+            out.add(child)
+            frontier.append(child)
+    return out
+
+
+def _running(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_killed_server_leaves_no_workers(tmp_path):
+    """SIGKILL of the server (no cleanup at all): its workers and their manager end too.
+
+    How soon is measured by ``benchmarks/tuner_load.py`` (docs/tuner-load.md), not asserted here.
+    """
+    from pidlab.app.browser import free_port, start_server
+
+    port = free_port()
+    proc = start_server("InvertedPendulum-v5", TUNING / "InvertedPendulum-v5.pidlab-robust.toml", tmp_path,
+                        port, log=tmp_path / "server.log")  # fmt: skip
+    kids = _descendants(proc.pid)
+    proc.kill()
+    proc.wait(timeout=30)
+    deadline = time.monotonic() + 30
+    while any(_running(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert len(kids) >= 3 and not [k for k in kids if _running(k)]  # 2 workers, their manager, ...
+
+
+def test_tuner_pages_serve_at_most_max_sessions(tmp_path):
+    """Tabs beyond the limit get a page that says so; a closed tab frees its place at once."""
+    import panel as pn
+    from bokeh.document import Document
+
+    from pidlab.app.serve import TunerPages
+
+    class FakeTuner:
+        def __init__(self) -> None:
+            self.gone, self.changed_at = False, 0.0
+
+        def closed(self) -> bool:
+            return self.gone
+
+        def panel(self, plots: bool = True) -> object:
+            return pn.pane.HTML("<div id='margins-table'></div>")
+
+    made: list[FakeTuner] = []
+
+    def make() -> FakeTuner:
+        made.append(FakeTuner())
+        return made[-1]
+
+    pages = TunerPages(make, max_sessions=2, spares=0)
+    holders = [pn.Column() for _ in range(3)]
+    for h in holders:
+        pages._fill(Document(), h)
+    assert ["margins-table" in h.objects[0].object for h in holders] == [True, True, False]
+    assert "busy" in holders[2].objects[0].object and len(made) == 2
+    made[0].gone = True  # its tab was closed
+    again = pn.Column()
+    pages._fill(Document(), again)
+    assert "margins-table" in again.objects[0].object and pages.live() == 2

@@ -1,21 +1,27 @@
-"""Driving the tuner from outside: start a server, and the JavaScript that reads the page.
+"""Driving the tuner from outside: start a server, the JavaScript that reads the page, a light client.
 
-Used by the browser tests and by ``benchmarks/tuner_latency.py``. The page is read through
-Bokeh's own document (``Bokeh.documents[0]``: the plots' data sources by name) and through the
-DOM; Bokeh and Panel render every widget and pane inside a shadow root, so the helpers search
-through shadow roots.
+Used by the browser tests and by ``benchmarks/tuner_latency.py`` and ``benchmarks/tuner_load.py``.
+The page is read through Bokeh's own document (``Bokeh.documents[0]``: the plots' data sources
+by name) and through the DOM; Bokeh and Panel render every widget and pane inside a shadow root,
+so the helpers search through shadow roots. :class:`TunerClient` opens a tab without a browser:
+it speaks Bokeh's websocket protocol as the page's JavaScript does, but draws nothing.
 """
 
 from __future__ import annotations
 
+import json
+import math
 import os
+import re
 import socket
 import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Sequence
+import uuid
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 from pidlab.errors import PidlabError
 
@@ -50,6 +56,9 @@ window.__input = (host) => {
   return h && h.shadowRoot ? h.shadowRoot.querySelector('input') : null;
 };
 window.__source = (name) => Bokeh.documents[0].get_model_by_name(name).data;
+// whether the plots have arrived (a server sends a new tab its controls first, its plots next)
+window.__plotted = () => Boolean(window.Bokeh && Bokeh.documents.length
+  && Bokeh.documents[0].get_model_by_name('bode-mag') && window.__deep('.bk-Figure'));
 // resolves with the ms from the next keydown until the Bode data and the margins table have
 // both changed and the browser has painted a frame (null for the table if it did not change)
 window.__measure = (timeoutMs = 5000) => new Promise((resolve) => {
@@ -137,3 +146,152 @@ def stop_server(proc: subprocess.Popen[bytes]) -> int:
     except subprocess.TimeoutExpired:
         proc.kill()
         return proc.wait()
+
+
+DOCUMENT_READY = {
+    "events": [
+        {
+            "kind": "MessageSent",
+            "msg_type": "bokeh_event",
+            "msg_data": {"type": "event", "name": "document_ready", "values": {"type": "map"}},
+        }
+    ]
+}
+"""What BokehJS sends once it has rendered a document (Panel then runs the page's ``onload``)."""
+
+
+def _objects(node: Any) -> Iterator[dict[str, Any]]:
+    """Every serialized Bokeh model (``{"type": "object", "id": ...}``) inside a message's content."""
+    stack = [node]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, dict):
+            if item.get("type") == "object" and "id" in item:
+                yield item
+            stack.extend(item.values())
+        elif isinstance(item, list):
+            stack.extend(item)
+
+
+class TunerClient:
+    """One tuner tab without a browser: what the page's JavaScript sends and receives, nothing drawn.
+
+    :meth:`open` requests the page, opens its websocket, pulls the document and says it is
+    ready, as BokehJS does, then waits for the tuner's margins table. :meth:`set_value` changes a
+    widget's value as a browser would (the server does not know the difference), and
+    :meth:`wait_for` waits for a message that holds a piece of text. Methods are coroutines on
+    Tornado's (asyncio) loop.
+
+    Parameters
+    ----------
+    url : str
+        The tuner's page, e.g. ``http://localhost:5006/``.
+    """
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.ws: Any = None
+        self.models: dict[str, dict[str, Any]] = {}  # css class -> the widget's model id and attributes
+        self.status = 0
+        self.pulled = ""  # the document as first pulled, before the page said it had loaded
+        self.usable_s = math.nan
+        self._t0 = 0.0
+
+    async def open(self, timeout: float = 60.0) -> float:
+        """Open the tab; the seconds from the page request until the whole tuner, plots too, arrived.
+
+        :attr:`usable_s` is the time until its controls and numbers (the margins table) arrived.
+
+        Raises
+        ------
+        TimeoutError
+            The views did not arrive within ``timeout`` seconds.
+        PidlabError
+            The server sent its "busy" page instead (it serves as many tabs as it will).
+        """
+        import asyncio
+
+        self._t0 = time.perf_counter()
+        await asyncio.wait_for(self._open(), timeout)
+        return time.perf_counter() - self._t0
+
+    async def _open(self) -> None:
+        from tornado.httpclient import AsyncHTTPClient, HTTPRequest
+        from tornado.websocket import websocket_connect
+
+        page = await AsyncHTTPClient().fetch(self.url, raise_error=False, request_timeout=120)
+        self.status = page.code
+        found = re.search(r'"token":\s*"([^"]+)"', page.body.decode("utf-8", "replace"))
+        if found is None:
+            raise PidlabError(f"{self.url} answered {page.code} without a Bokeh session")
+        origin = self.url.rstrip("/")
+        ws_url = origin.replace("http://", "ws://", 1) + "/ws"
+        request = HTTPRequest(ws_url, headers={"Origin": origin}, request_timeout=120)
+        self.ws = await websocket_connect(
+            request, subprotocols=["bokeh", found.group(1)], max_message_size=200 * 2**20
+        )
+        await self.wait_for(msgtype="ACK")
+        await self.send("PULL-DOC-REQ", {})
+        seen = self.pulled = await self.wait_for(msgtype="PULL-DOC-REPLY")
+        if "margins-table" not in seen:
+            await self.send("PATCH-DOC", DOCUMENT_READY)
+            seen = await self.wait_for_any("margins-table", "pidlab-busy")
+            if "pidlab-busy" in seen:
+                raise PidlabError(f"{self.url}: the tuner is busy (it serves as many tabs as it will)")
+        self.usable_s = time.perf_counter() - self._t0
+        if '"bode-mag"' not in seen:
+            await self.wait_for('"bode-mag"')  # the plots' data sources: the plots have arrived
+
+    async def send(self, msgtype: str, content: dict[str, Any]) -> None:
+        """Send one Bokeh protocol message (no buffers)."""
+        header = {"msgid": uuid.uuid4().hex, "msgtype": msgtype}
+        for part in (header, {}, content):
+            await self.ws.write_message(json.dumps(part))
+
+    async def _receive(self) -> tuple[dict[str, Any], str]:
+        """The next message: its header and its content's text (buffers are read and dropped)."""
+        parts = []
+        for _ in range(3):
+            frame = await self.ws.read_message()
+            if frame is None:
+                raise PidlabError(f"{self.url}: the server closed the websocket")
+            parts.append(frame)
+        header = json.loads(parts[0])
+        for _ in range(2 * int(header.get("num_buffers", 0))):
+            await self.ws.read_message()
+        text = parts[2] if isinstance(parts[2], str) else parts[2].decode("utf-8", "replace")
+        if '"css_classes"' in text:
+            self._remember(json.loads(text))
+        return header, text
+
+    def _remember(self, content: Any) -> None:
+        for obj in _objects(content):
+            attrs = obj.get("attributes", {})
+            for css in attrs.get("css_classes", []) if isinstance(attrs, dict) else []:
+                if isinstance(css, str) and css.startswith("pidlab-"):
+                    self.models[css] = {"id": obj["id"], **attrs}
+
+    async def wait_for(self, text: str = "", msgtype: str = "") -> str:
+        """Read messages until one of type ``msgtype`` (any: "") holds ``text``; its content's text."""
+        while True:
+            header, content = await self._receive()
+            if (not msgtype or header.get("msgtype") == msgtype) and text in content:
+                return content
+
+    async def wait_for_any(self, *texts: str) -> str:
+        """Read messages until one holds one of ``texts``; its content's text."""
+        while True:
+            _, content = await self._receive()
+            if any(t in content for t in texts):
+                return content
+
+    async def set_value(self, css_class: str, value: Any, attr: str = "value") -> None:
+        """Set the value of the widget with CSS class ``css_class``, as its page would."""
+        model = self.models[css_class]["id"]
+        event = {"kind": "ModelChanged", "model": {"id": model}, "attr": attr, "new": value}
+        await self.send("PATCH-DOC", {"events": [event]})
+
+    def close(self) -> None:
+        """Close the websocket (the tab is gone)."""
+        if self.ws is not None:
+            self.ws.close()

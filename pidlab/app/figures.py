@@ -22,7 +22,8 @@ from pidlab.region.roa import ellipse_slice
 
 STABLE = "#2b8a3e"
 UNSTABLE = "#c92a2a"
-PLOT_TOOLS = "pan,wheel_zoom,box_zoom,reset,save,hover"
+PLOT_TOOLS = "pan,wheel_zoom,reset,save,hover"
+"""Every plot's tools (no box zoom: its overlay is four more models per plot, sent to every tab)."""
 
 
 def _finite(a: np.ndarray) -> np.ndarray:
@@ -88,6 +89,19 @@ def _fig(title: str, x_label: str, y_label: str, **kw: Any) -> Any:
     return f
 
 
+def _lean(f: Any) -> Any:
+    """``f`` without the glyphs Bokeh adds for unselected and muted points (the tuner has neither).
+
+    Every glyph method adds two copies of its glyph, drawn for points outside a selection and for
+    a muted legend entry; without selection tools or muting they are never drawn, yet every tab's
+    document would carry them (a third of the plots' models).
+    """
+    for r in f.renderers:
+        r.nonselection_glyph = None
+        r.muted_glyph = None
+    return f
+
+
 def bode_figures(s: Sources) -> tuple[Any, Any]:
     """Magnitude and phase of the loop transfer, with the margins marked."""
     mag = _fig("Bode: |L|", "frequency (rad/s)", "magnitude (dB)", x_axis_type="log", height=220)
@@ -100,7 +114,7 @@ def bode_figures(s: Sources) -> tuple[Any, Any]:
     for level in (-180, 180):
         ph.add_layout(Span(location=level, dimension="width", line_dash="dashed", line_color="gray"))
     ph.scatter("w", "deg", source=s.bode_markers, size=9, color=UNSTABLE, marker="circle")
-    return mag, ph
+    return _lean(mag), _lean(ph)
 
 
 def nyquist_figure(s: Sources) -> Any:
@@ -114,7 +128,7 @@ def nyquist_figure(s: Sources) -> Any:
     f.scatter("re", "im", source=s.nyquist_markers, size=8, color="black")
     f.legend.location = "bottom_right"
     f.legend.label_text_font_size = "8pt"
-    return f
+    return _lean(f)
 
 
 def response_figures(s: Sources) -> tuple[Any, Any]:
@@ -128,7 +142,7 @@ def response_figures(s: Sources) -> tuple[Any, Any]:
     for f, src in ((step, s.step), (init, s.initial)):
         f.line("t", "u", source=src, line_width=1, color="orange", legend_label="actuator command")
         f.legend.label_text_font_size = "8pt"
-    return step, init
+    return _lean(step), _lean(init)
 
 
 def pole_zero_figure(s: Sources) -> Any:
@@ -150,7 +164,7 @@ def pole_zero_figure(s: Sources) -> Any:
         legend_label="zeros",
     )
     f.legend.label_text_font_size = "8pt"
-    return f
+    return _lean(f)
 
 
 def roa_figure(s: Sources, variables: tuple[str, str], units: dict[str, str]) -> Any:
@@ -176,7 +190,7 @@ def roa_figure(s: Sources, variables: tuple[str, str], units: dict[str, str]) ->
     f.line("x", "y", source=s.bounds_box, line_width=2, color="darkorange", legend_label="critical box")
     f.legend.label_text_font_size = "8pt"
     f.legend.location = "top_right"
-    return f
+    return _lean(f)
 
 
 def bode_data(v: LinearViews) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:

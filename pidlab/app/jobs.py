@@ -20,6 +20,7 @@ import logging
 import multiprocessing as mp
 import os
 import queue as queue_mod
+import signal
 import threading
 import traceback
 from collections.abc import Callable
@@ -32,7 +33,7 @@ import numpy as np
 
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import JobCancelled, PidlabError
-from pidlab.orphans import watch_parent
+from pidlab.orphans import signal_on_parent_death, watch_parent
 
 log = logging.getLogger("pidlab.app")
 
@@ -243,7 +244,22 @@ JOBS: dict[str, Callable[..., Any]] = {
 # Worker side
 
 
-def _init_worker() -> None:
+def _end_with(parent: int, by_kernel: bool) -> None:
+    """End this process the moment ``parent`` (the server) dies, even by SIGKILL.
+
+    A job has nothing to save, so the kernel's SIGKILL on the parent's death (Linux) ends it at
+    once; elsewhere, and should the signal not come, a thread polling every 0.2 s ends it. The
+    kernel's signal follows the *thread* that started this process, so it is asked for only when
+    that was the main thread (``by_kernel``), which lives as long as the server.
+    """
+    if by_kernel:
+        signal_on_parent_death(signal.SIGKILL)
+    if os.getppid() != parent:  # the server died before the request above
+        os._exit(0)
+    watch_parent(lambda: os._exit(0), period_s=0.2)
+
+
+def _init_worker(parent: int, by_kernel: bool) -> None:
     # headless offscreen rendering; must be set before mujoco is imported in this process
     if not os.environ.get("DISPLAY"):
         os.environ.setdefault("MUJOCO_GL", "egl")
@@ -251,12 +267,16 @@ def _init_worker() -> None:
         os.nice(10)  # the server process answers slider moves first
     except OSError:  # pragma: no cover
         pass
-    # a job has nothing to save: a worker whose server died just ends
-    watch_parent(lambda: os._exit(0))
+    _end_with(parent, by_kernel)
 
 
-def _init_manager() -> None:
-    watch_parent(lambda: os._exit(0))
+def _init_manager(parent: int, by_kernel: bool) -> None:
+    _end_with(parent, by_kernel)
+
+
+def _ready() -> bool:
+    """A no-op job: returns once a worker process is up."""
+    return True
 
 
 def _run(
@@ -322,9 +342,12 @@ class JobRunner:
     """A pool of worker processes running at most one job per (owner, kind) at a time.
 
     The owner is a tuner session: sessions sharing a runner do not abandon each other's jobs.
+    While :attr:`held` is True (a server opening tabs) the tuners start no background jobs of
+    their own accord; what the user asks for (auto-tune, bounds) still starts.
     """
 
     workers: int = 2
+    held: bool = False
     _next: Any = field(default_factory=lambda: itertools.count(1))
     _jobs: dict[tuple[str, str], Job] = field(default_factory=dict)
     _latest: dict[int, tuple[str, float | None]] = field(default_factory=dict)
@@ -332,15 +355,28 @@ class JobRunner:
     _manager: Any = None
     _updates: Any = None
 
+    def start(self) -> None:
+        """Start the manager and the worker processes now (otherwise the first job starts them).
+
+        Starting takes a second or two (new Python processes); a server does it before it serves.
+        """
+        pool, _ = self._start()
+        for future in [pool.submit(_ready) for _ in range(self.workers)]:
+            future.result()
+
     def _start(self) -> tuple[ProcessPoolExecutor, Any]:
         """The worker pool and the manager, started on first use."""
         if self._pool is None:
             ctx = mp.get_context("spawn")
-            self._manager = SyncManager(ctx=ctx)
-            self._manager.start(initializer=_init_manager)
-            self._updates = self._manager.Queue()
+            # the processes are started by this thread: the kernel may end them with the process
+            # only if this thread lives as long as it (see _end_with)
+            started_by = (os.getpid(), threading.current_thread() is threading.main_thread())
+            manager = SyncManager(ctx=ctx)
+            manager.start(initializer=_init_manager, initargs=started_by)
+            self._manager = manager
+            self._updates = manager.Queue()
             self._pool = ProcessPoolExecutor(
-                max_workers=self.workers, mp_context=ctx, initializer=_init_worker
+                max_workers=self.workers, mp_context=ctx, initializer=_init_worker, initargs=started_by
             )
         return self._pool, self._manager
 

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import panel as pn
+from panel.io import hold
 
 from pidlab import __version__
 from pidlab.app import figures as F
@@ -28,6 +29,7 @@ from pidlab.app.live import (
     FIELD_LIMITS,
     GAIN_FIELDS,
     LinearViews,
+    TunerContext,
     check_field,
     check_name,
     linear_views,
@@ -38,7 +40,14 @@ from pidlab.app.live import (
 )
 from pidlab.checks import path_under
 from pidlab.controller.analysis import MARGIN_COLUMNS
-from pidlab.controller.spec import CoachSpec, dumps_spec, load_spec, loads_spec, save_spec, validate_against
+from pidlab.controller.spec import (
+    CoachSpec,
+    dumps_spec,
+    load_spec,
+    loads_spec,
+    validate_against,
+    writing_spec,
+)
 from pidlab.errors import PidlabError
 from pidlab.plant.model import load_model
 
@@ -49,6 +58,9 @@ DEBOUNCE_S = 0.4
 """Slow jobs start this long after the last change (a slider drag is many changes)."""
 
 SLOW_KINDS = ("roa", "rollout")
+
+MAX_TEXT = 200
+"""The longest text a form field takes from the browser."""
 
 # inline styles: a pane's stylesheets are Bokeh models, and replacing them on every update makes
 # Bokeh recompute the document's model graph (~90 ms a time on this page)
@@ -78,6 +90,73 @@ class _HTML(pn.pane.HTML):
 def _html(object: str = "", **kw: Any) -> Any:
     """An HTML pane for text the tuner updates (styles are inline: see :data:`RED`)."""
     return _HTML(object, **kw)
+
+
+def _heading(text: str, level: int = 3) -> Any:
+    """A heading as plain HTML (a Markdown string would be parsed again for every tab)."""
+    return pn.pane.HTML(f"<h{level}>{html.escape(text)}</h{level}>")
+
+
+def _number(value: Any) -> float | None:
+    """``value`` as a finite float, or None (a string, a bool, None, NaN or an infinity)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return float(value) if math.isfinite(value) else None
+
+
+class _Slider(pn.widgets.FloatSlider):
+    """A slider whose value the server keeps within its range, whatever a browser sends.
+
+    A browser (or anything that speaks Bokeh's websocket protocol) may send any property of a
+    widget's model, and Panel would apply it: a value past the slider's end, or a new end. This
+    slider takes only its value from the browser, clamped to ``[start, end]``; anything else
+    (range, step, label, a value that is not a finite number) is ignored.
+    """
+
+    def _process_property_change(self, props: dict[str, Any]) -> dict[str, Any]:
+        kept = {}
+        for key in ("value", "value_throttled"):
+            v = _number(props.get(key))
+            if v is not None:
+                kept[key] = min(max(v, float(self.start)), float(self.end))
+        return dict(super()._process_property_change(kept))
+
+
+class _Text(pn.widgets.TextInput):
+    """A text field that takes only its text from the browser (at most :data:`MAX_TEXT` characters)."""
+
+    def _process_property_change(self, props: dict[str, Any]) -> dict[str, Any]:
+        kept = {
+            k: v
+            for k, v in props.items()
+            if k in ("value", "value_input") and isinstance(v, str) and len(v) <= MAX_TEXT
+        }
+        return dict(super()._process_property_change(kept))
+
+
+class _Select(pn.widgets.Select):
+    """A selector that takes from the browser only one of the options it offers."""
+
+    def _process_property_change(self, props: dict[str, Any]) -> dict[str, Any]:
+        value = props.get("value")
+        labels = [str(label) for label in self.labels]
+        kept = {"value": value} if isinstance(value, str) and value in labels else {}
+        return dict(super()._process_property_change(kept))
+
+
+class _Checkbox(pn.widgets.Checkbox):
+    """A checkbox that takes from the browser only whether it is ticked."""
+
+    def _process_property_change(self, props: dict[str, Any]) -> dict[str, Any]:
+        kept = {"active": props["active"]} if isinstance(props.get("active"), bool) else {}
+        return dict(super()._process_property_change(kept))
+
+
+class _Button(pn.widgets.Button):
+    """A button that takes nothing from the browser but its clicks (events, not properties)."""
+
+    def _process_property_change(self, props: dict[str, Any]) -> dict[str, Any]:
+        return dict(super()._process_property_change({}))
 
 
 def _value(widget: Any) -> float:
@@ -124,6 +203,8 @@ class Tuner:
     bounds_samples : int
         Simulated initial states that certify the region behind *Derive bounds* (as
         ``pidlab bounds --samples``).
+    context : TunerContext, optional
+        The env's model and linearization, shared by the tabs of one server; default: made here.
     """
 
     def __init__(
@@ -134,9 +215,10 @@ class Tuner:
         runner: JobRunner | None = None,
         animation: str = "auto",
         bounds_samples: int = 1000,
+        context: TunerContext | None = None,
     ) -> None:
-        self.loaded = load_model(spec.env_id)
-        self.ctx = tuner_context(self.loaded)
+        self.ctx = context if context is not None else tuner_context(load_model(spec.env_id))
+        self.loaded = self.ctx.loaded
         self.env_id = spec.env_id
         self.tuning_dir = Path(tuning_dir)
         self.runner = runner or JobRunner()
@@ -148,6 +230,8 @@ class Tuner:
         self.owner = uuid.uuid4().hex
         self._guard = False
         self._attached = False  # True once the page is live (the first poll)
+        self.changed_at = time.monotonic()  # when the user last changed something
+        self._doc: Any = None  # the served document, once the page is made in one
         self._invalid: set[str] = set()
         self._slow_due: float | None = None
         self._views: LinearViews | None = None
@@ -167,13 +251,13 @@ class Tuner:
     def _build_gain_widgets(self) -> None:
         """The loop selector, and a slider, a text field and a message per gain."""
         self.title = _html(sizing_mode="stretch_width")
-        self.loop_select = pn.widgets.Select(label="Loop", options=[], css_classes=["pidlab-loop"])
+        self.loop_select = _Select(label="Loop", options=[], css_classes=["pidlab-loop"])
         self.loop_select.param.watch(self._on_loop, "value")
         self.sliders: dict[str, Any] = {}
         self.inputs: dict[str, Any] = {}
         self.messages: dict[str, Any] = {}
         for f in GAIN_FIELDS:
-            s = pn.widgets.FloatSlider(
+            s = _Slider(
                 label=FIELD_LABELS[f],
                 start=0.0,
                 end=1.0,
@@ -183,16 +267,14 @@ class Tuner:
                 sizing_mode="stretch_width",
             )
             s.param.watch(lambda ev, f=f: self._on_slider(f, ev.new), "value")
-            t = pn.widgets.TextInput(
-                label=f"{FIELD_LABELS[f]} value", width=130, css_classes=[f"pidlab-input-{f}"]
-            )
+            t = _Text(label=f"{FIELD_LABELS[f]} value", width=130, css_classes=[f"pidlab-input-{f}"])
             t.param.watch(lambda ev, f=f: self._on_text(f, ev.new), "value")
             self.sliders[f], self.inputs[f] = s, t
             self.messages[f] = _html("", css_classes=[f"pidlab-msg-{f}"], sizing_mode="stretch_width")
 
     def _build_tuning_widgets(self) -> None:
         """Automatic tuning (response time, robustness) and the critical bounds' scale and button."""
-        self.response_time = pn.widgets.FloatSlider(
+        self.response_time = _Slider(
             label="Response time (s)",
             start=0.01,
             end=1.0,
@@ -200,7 +282,7 @@ class Tuner:
             value=0.1,
             css_classes=["pidlab-response-time"],
         )
-        self.robustness = pn.widgets.FloatSlider(
+        self.robustness = _Slider(
             label="Robustness", start=0.0, end=1.0, step=0.05, value=0.67, css_classes=["pidlab-robustness"]
         )
         self.targets = _html("")
@@ -208,7 +290,7 @@ class Tuner:
         self.robustness.param.watch(lambda ev: self._autotune(), "value_throttled")
         self.robustness.param.watch(lambda ev: self._show_targets(), "value")
         self.response_time.param.watch(lambda ev: self._show_targets(), "value")
-        self.scale = pn.widgets.FloatSlider(
+        self.scale = _Slider(
             label="Critical-bound scale",
             start=0.25,
             end=3.0,
@@ -217,28 +299,20 @@ class Tuner:
             css_classes=["pidlab-scale"],
         )
         self.scale.param.watch(lambda ev: self._draw_bounds(), "value")
-        self.autotune_button = pn.widgets.Button(
-            label="Auto-tune", color="primary", css_classes=["pidlab-autotune"]
-        )
+        self.autotune_button = _Button(label="Auto-tune", color="primary", css_classes=["pidlab-autotune"])
         self.autotune_button.on_click(lambda ev: self._autotune())
-        self.bounds_button = pn.widgets.Button(
-            label="Derive bounds", color="primary", css_classes=["pidlab-derive"]
-        )
+        self.bounds_button = _Button(label="Derive bounds", color="primary", css_classes=["pidlab-derive"])
         self.bounds_button.on_click(lambda ev: self._derive_bounds())
 
     def _build_file_widgets(self) -> None:
         """Save and Load, with their messages."""
-        self.name_input = pn.widgets.TextInput(label="Spec name", width=200, css_classes=["pidlab-name"])
+        self.name_input = _Text(label="Spec name", width=200, css_classes=["pidlab-name"])
         self.name_msg = _html("", css_classes=["pidlab-msg-name"])
-        self.overwrite = pn.widgets.Checkbox(label="overwrite an existing file", value=False)
-        self.save_button = pn.widgets.Button(
-            label="Save to tuning/", color="success", css_classes=["pidlab-save"]
-        )
+        self.overwrite = _Checkbox(label="overwrite an existing file", value=False)
+        self.save_button = _Button(label="Save to tuning/", color="success", css_classes=["pidlab-save"])
         self.save_button.on_click(lambda ev: self._save())
-        self.load_select = pn.widgets.Select(
-            label="Spec file", options=[], css_classes=["pidlab-load-select"]
-        )
-        self.load_button = pn.widgets.Button(label="Load", css_classes=["pidlab-load"])
+        self.load_select = _Select(label="Spec file", options=[], css_classes=["pidlab-load-select"])
+        self.load_button = _Button(label="Load", css_classes=["pidlab-load"])
         self.load_button.on_click(lambda ev: self._load())
         self.file_msg = _html("", css_classes=["pidlab-file-msg"], sizing_mode="stretch_width")
 
@@ -247,13 +321,9 @@ class Tuner:
         self.margins = _html("", css_classes=["pidlab-margins"], sizing_mode="stretch_width")
         self.summary = _html("", css_classes=["pidlab-summary"], sizing_mode="stretch_width")
         self.bounds_info = _html("", css_classes=["pidlab-bounds"], sizing_mode="stretch_width")
-        self.status: dict[str, Any] = {}
-        self.progress: dict[str, Any] = {}
+        self.status: dict[str, Any] = {}  # a slow job's stage, with its progress bar while it runs
         for kind in ("roa", "rollout", "autotune", "bounds"):
             self.status[kind] = _html("", css_classes=[f"pidlab-status-{kind}"], sizing_mode="stretch_width")
-            self.progress[kind] = pn.indicators.Progress(
-                value=0, max=100, width=220, visible=False, css_classes=[f"pidlab-progress-{kind}"]
-            )
         self.score = _html("", css_classes=["pidlab-score"], sizing_mode="stretch_width")
         self.animation_pane = _html("", css_classes=["pidlab-animation"], min_height=250)
         src = self.sources
@@ -263,16 +333,24 @@ class Tuner:
         self.pz = F.pole_zero_figure(src)
         self.roa_fig = F.roa_figure(src, self.variables, self.ctx.units)
 
-    def panel(self) -> Any:
-        """The page, and the periodic poll that feeds it background results."""
+    def panel(self, plots: bool = True) -> Any:
+        """The page, and the periodic poll that feeds it background results (see :meth:`layout`)."""
         pn.state.add_periodic_callback(self._poll, period=POLL_MS)
         if pn.state.curdoc is not None and getattr(pn.state.curdoc, "session_context", None) is not None:
+            self._doc = pn.state.curdoc
             pn.state.on_session_destroyed(lambda ctx: self.runner.cancel(self.owner))
-        return pn.Row(
-            self._controls(),
-            self._views_column(),
-            sizing_mode="stretch_width",
-        )
+        self._refresh_files()  # the tuner may have been built a while before it is shown
+        return self.layout(plots)
+
+    def layout(self, plots: bool = True) -> Any:
+        """The page's widgets and views, without the poll (:meth:`panel` is the live page).
+
+        Without ``plots`` the plots' places stay empty until :meth:`show_plots`.
+        """
+        page = pn.Row(self._controls(), self._views_column(), sizing_mode="stretch_width")
+        if plots:
+            self.show_plots()
+        return page
 
     def _controls(self) -> Any:
         """The left column: gains, automatic tuning, critical bounds, spec file."""
@@ -281,21 +359,21 @@ class Tuner:
             gains.append(pn.Row(self.sliders[f], self.inputs[f], sizing_mode="stretch_width"))
             gains.append(self.messages[f])
         return pn.Column(
-            "### Coach",
+            _heading("Coach"),
             self.loop_select,
             *gains,
-            "### Automatic tuning",
+            _heading("Automatic tuning"),
             self.response_time,
             self.robustness,
             self.targets,
-            pn.Row(self.autotune_button, self.progress["autotune"]),
+            self.autotune_button,
             self.status["autotune"],
-            "### Critical bounds",
+            _heading("Critical bounds"),
             self.scale,
-            pn.Row(self.bounds_button, self.progress["bounds"]),
+            self.bounds_button,
             self.status["bounds"],
             self.bounds_info,
-            "### Spec file",
+            _heading("Spec file"),
             self.name_input,
             self.name_msg,
             self.overwrite,
@@ -306,34 +384,22 @@ class Tuner:
         )
 
     def _views_column(self) -> Any:
-        """The right column: linear views, margins, region of attraction, the coach alone."""
+        """The right column: linear views, margins, region of attraction, the coach alone.
+
+        The plots go into two slots that :meth:`show_plots` fills (the plots are most of a page).
+        """
+        self._plot_slots = (pn.Column(sizing_mode="stretch_width"), pn.Column(sizing_mode="stretch_width"))
         return pn.Column(
             self.title,
-            pn.Row(
-                pn.Column(
-                    pn.pane.Bokeh(self.bode_mag), pn.pane.Bokeh(self.bode_phase), sizing_mode="stretch_width"
-                ),
-                pn.pane.Bokeh(self.nyquist, sizing_mode="stretch_width"),
-                sizing_mode="stretch_width",
-            ),
-            pn.Row(
-                pn.pane.Bokeh(self.step_fig, sizing_mode="stretch_width"),
-                pn.pane.Bokeh(self.initial_fig, sizing_mode="stretch_width"),
-                pn.pane.Bokeh(self.pz, sizing_mode="stretch_width"),
-                sizing_mode="stretch_width",
-            ),
-            "#### Stability margins (discrete loop, broken at each actuator)",
+            self._plot_slots[0],
+            _heading("Stability margins (discrete loop, broken at each actuator)", 4),
             self.margins,
             self.summary,
             pn.Row(
+                pn.Column(self.status["roa"], self._plot_slots[1], sizing_mode="stretch_width"),
                 pn.Column(
-                    pn.Row(self.progress["roa"], self.status["roa"]),
-                    pn.pane.Bokeh(self.roa_fig, sizing_mode="stretch_width"),
-                    sizing_mode="stretch_width",
-                ),
-                pn.Column(
-                    "#### The coach alone on the real env",
-                    pn.Row(self.progress["rollout"], self.status["rollout"]),
+                    _heading("The coach alone on the real env", 4),
+                    self.status["rollout"],
                     self.score,
                     self.animation_pane,
                     sizing_mode="stretch_width",
@@ -342,6 +408,26 @@ class Tuner:
             ),
             sizing_mode="stretch_width",
         )
+
+    def show_plots(self) -> None:
+        """Put the plots in the page made by :meth:`layout` (once; later calls do nothing).
+
+        A server sends a new tab its controls and numbers first and the plots right after, so
+        that when several tabs open at once each is usable before the last one's plots are sent.
+        """
+        linear, roa = self._plot_slots
+        if linear.objects:
+            return
+
+        wide = {"sizing_mode": "stretch_width"}
+        bode = pn.Column(pn.pane.Bokeh(self.bode_mag), pn.pane.Bokeh(self.bode_phase), **wide)
+        step, initial, pz = (pn.pane.Bokeh(f, **wide) for f in (self.step_fig, self.initial_fig, self.pz))
+        with hold():
+            linear.objects = [
+                pn.Row(bode, pn.pane.Bokeh(self.nyquist, **wide), **wide),
+                pn.Row(step, initial, pz, **wide),
+            ]
+            roa.objects = [pn.pane.Bokeh(self.roa_fig, **wide)]
 
     # ------------------------------------------------------------------ state
 
@@ -364,9 +450,9 @@ class Tuner:
         else:
             doc.add_next_tick_callback(draw)
 
-    def _closed(self) -> bool:
+    def closed(self) -> bool:
         """Whether this page's browser tab has gone (Bokeh keeps the session a while longer)."""
-        doc = pn.state.curdoc
+        doc = self._doc if self._doc is not None else pn.state.curdoc
         session = getattr(getattr(doc, "session_context", None), "_session", None)
         return session is not None and getattr(session, "connection_count", 1) == 0
 
@@ -499,15 +585,29 @@ class Tuner:
         self._apply(field, value)
 
     def _apply(self, field: str, value: float) -> None:
+        previous = self.spec
         self.spec = with_loop_value(self.spec, self.loop, field, value)
-        self._refresh_linear(field)
+        if not self._refresh_linear(field):
+            self.spec = previous  # the views could not be computed: keep the last coach that could
+            return
         self._draw_bounds()
         self._schedule_slow()
 
     # ------------------------------------------------------------------ linear views
 
-    def _refresh_linear(self, field: str | None = None) -> None:
-        v = linear_views(self.ctx, self.spec, self.loop)
+    def _refresh_linear(self, field: str | None = None) -> bool:
+        """Recompute and redraw the linear views; False (and a message) when they cannot be computed."""
+        self.changed_at = time.monotonic()
+        try:
+            v = linear_views(self.ctx, self.spec, self.loop)
+        except PidlabError as exc:  # e.g. gains so large that the closed loop overflows
+            text = f"<span class='pidlab-msg' {RED}>{html.escape(str(exc))}</span>"
+            if field is not None:
+                self.messages[field].object = text
+            else:
+                self._views = None
+                self.summary.object = text
+            return False
         self._views = v
         s = self.sources
         mag, ph, marks = F.bode_data(v)
@@ -536,6 +636,7 @@ class Tuner:
                 )
             else:
                 self.messages[field].object = ""
+        return True
 
     @staticmethod
     def _margins_html(v: LinearViews) -> str:
@@ -659,7 +760,6 @@ class Tuner:
                 self.status[
                     kind
                 ].object = f"<span class='pidlab-msg' {RED}>closed loop unstable: not simulated</span>"
-                self.progress[kind].visible = False
             return
         self.runner.submit(self.owner, "roa", self.spec)
         self._running("roa", "starting", 0.0)
@@ -674,20 +774,19 @@ class Tuner:
         self._running("autotune", "starting", 0.0)
 
     def _running(self, kind: str, stage: str, fraction: float | None) -> None:
-        bar = self.progress[kind]
-        bar.visible = True
-        if fraction is None:
-            bar.active, bar.value = True, -1
-        else:
-            bar.active, bar.value = False, int(100 * fraction)
-        self.status[kind].object = f"<i>{html.escape(stage)}…</i>"
+        # the bar is part of the status pane: one model per job instead of three, in every tab
+        value = "" if fraction is None else f" value='{min(max(fraction, 0.0), 1.0):.3f}'"
+        self.status[kind].object = (
+            f"<progress class='pidlab-progress' max='1'{value} style='width:220px'></progress> "
+            f"<i>{html.escape(stage)}…</i>"
+        )
 
     def _poll(self) -> None:
         self._attached = True
-        if self._closed():
+        if self.closed():
             self.runner.cancel(self.owner)  # the tab is gone: its background work is not wanted
             return
-        if self._slow_due is not None and time.monotonic() >= self._slow_due:
+        if self._slow_due is not None and time.monotonic() >= self._slow_due and not self.runner.held:
             self._start_slow()
         for u in self.runner.poll(self.owner):
             self._update(u)
@@ -697,8 +796,7 @@ class Tuner:
         if u.state == "running":
             self._running(kind, u.stage, u.fraction)
             return
-        self.progress[kind].visible = False
-        if u.state == "cancelled":
+        if u.state == "cancelled":  # a newer job, or "waiting for the gains to settle", has the status
             return
         if u.state == "error":
             self.status[kind].object = f"<span class='pidlab-msg' {RED}>{html.escape(u.stage)}</span>"
@@ -832,8 +930,9 @@ class Tuner:
                 "'overwrite an existing file' to replace it</span>"
             )
             return
-        try:
-            save_spec(spec, path)  # refuses a read-only file or folder in one line
+        try:  # the one rule of spec writers: the file's lock while replacing it, never a silent overwrite
+            with writing_spec(path, force=path.is_file(), param="name") as write:
+                write(spec)  # refuses a read-only file or folder, or one another command holds, in one line
         except PidlabError as exc:
             self.file_msg.object = f"<span class='pidlab-msg' {RED}>not saved: {html.escape(str(exc))}</span>"
             return

@@ -445,7 +445,7 @@ def tune(
     ] = None,
     port: Annotated[int, typer.Option(help="--ui: local port to serve on.")] = 5006,
     tuning_dir: Annotated[
-        str, typer.Option(help="--ui: where Save writes ENV.NAME.toml and Load looks.")
+        str, typer.Option(help="--ui: where Save writes ENV.NAME.toml and Load looks; it must exist.")
     ] = "tuning",
     animation: Annotated[
         str, typer.Option(help="--ui: rollout frames: auto, mujoco (offscreen OpenGL) or schematic.")
@@ -570,7 +570,7 @@ def _tune_ui(
     """``tune --ui``: check everything, then serve until interrupted (exit 130, as every command)."""
     from pathlib import Path
 
-    from pidlab.app.serve import check_hosts, serve_tuner
+    from pidlab.app.serve import check_hosts, check_tuning_dir, serve_tuner
     from pidlab.checks import MAX_SAMPLES, clip, is_file
     from pidlab.controller.spec import load_spec, validate_against
     from pidlab.experiment.conditions import spec_path
@@ -596,9 +596,7 @@ def _tune_ui(
         _fail(f"--spec {path}: a coach for {coach.env_id}, not {env}")
     card = loaded.require_card()
     validate_against(coach, card.observation_names, loaded.input_names, where=str(path))
-    folder = Path(tuning_dir)
-    if folder.exists() and not folder.is_dir():
-        _fail(f"--tuning-dir {folder}: not a folder")
+    folder = check_tuning_dir(tuning_dir)
     serve_tuner(
         coach,
         str(path),
