@@ -488,14 +488,19 @@ def test_a_killed_sweep_leaves_no_worker_and_starts_no_run(tmp_path):
     children = _descendants(proc.pid)
     started = sorted(str(p.relative_to(runs)) for p in runs.glob("*/seed-*"))
     assert len(children) >= 2 and len(started) == 2
+    _sigkill_and_reap(proc, children, poll=0.2)
+    assert sorted(str(p.relative_to(runs)) for p in runs.glob("*/seed-*")) == started  # no queued run started
+
+
+
+def _sigkill_and_reap(proc: subprocess.Popen, children: list[int], poll: float) -> None:
+    """SIGKILL a sweep's main process; its workers must be gone within 15 s."""
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=30)
     deadline = time.time() + 15
     while any(_alive(pid) for pid in children) and time.time() < deadline:
-        time.sleep(0.2)
+        time.sleep(poll)
     assert not [pid for pid in children if _alive(pid)], "processes of the killed sweep are still alive"
-    assert sorted(str(p.relative_to(runs)) for p in runs.glob("*/seed-*")) == started  # no queued run started
-
 
 ORPHAN_CHILD = """
 import os, signal, sys, time
@@ -589,12 +594,7 @@ def test_a_killed_sweep_keeps_every_runs_progress(tmp_path):
         assert time.time() < deadline, "the sweep did not get both runs under way in time"
         time.sleep(0.1)
     children = _descendants(proc.pid)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=30)
-    deadline = time.time() + 15
-    while any(_alive(pid) for pid in children) and time.time() < deadline:
-        time.sleep(0.1)
-    assert not [pid for pid in children if _alive(pid)], "processes of the killed sweep are still alive"
+    _sigkill_and_reap(proc, children, poll=0.1)
     for run in runs:
         furthest = _furthest_episode(run)
         kept = checkpoint_folders(run)

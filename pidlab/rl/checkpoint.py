@@ -157,10 +157,11 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
     except Exception as exc:  # zipfile, numpy and OS errors on a damaged file
-        raise CheckpointError(f"{path}: damaged ({_reason(exc)})") from None
+        raise CheckpointError(f"{path}: damaged ({short_reason(exc)})") from None
 
 
-def _reason(exc: BaseException) -> str:
+def short_reason(exc: BaseException) -> str:
+    """An exception as a short reason on one line (at most 160 characters)."""
     text = " ".join(str(exc).split()) or type(exc).__name__
     return text if len(text) <= 160 else text[:157] + "..."
 
@@ -243,7 +244,7 @@ def load_weights(path: Path, model: Any) -> None:
     except CheckpointError:
         raise
     except Exception as exc:  # zipfile, torch and SB3 raise many kinds on a damaged or foreign file
-        raise CheckpointError(f"{path}: damaged or not this run's agent ({_reason(exc)})") from None
+        raise CheckpointError(f"{path}: damaged or not this run's agent ({short_reason(exc)})") from None
 
 
 @dataclass(frozen=True)

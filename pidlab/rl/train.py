@@ -54,7 +54,14 @@ from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CheckpointError, OutputError
 from pidlab.files import atomic_write_text, check_output_folder, read_json, write_json
 from pidlab.provenance import hold_lock, read_record
-from pidlab.rl.checkpoint import FINAL, check_manifest, expected_files, load_agent_files, save_agent
+from pidlab.rl.checkpoint import (
+    FINAL,
+    check_manifest,
+    expected_files,
+    load_agent_files,
+    save_agent,
+    short_reason,
+)
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, evaluation_envs, sb3_policy
 from pidlab.rl.recipe import LINEAR_SCHEDULES, Recipe, recipe_to_dict
@@ -250,12 +257,6 @@ WRITING = ".writing"
 """The folder a checkpoint is written into before it is renamed into place."""
 REPLACED = ".replaced"
 """Where a checkpoint of the same env step waits while its successor is renamed into place."""
-
-
-def _reason(exc: BaseException) -> str:
-    """An exception as a short reason on one line."""
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) <= 160 else text[:157] + "..."
 
 
 def load_checkpoint(checkpoint: Path, recipe: Recipe, venv: Any) -> tuple[Any, Any, dict[str, int]]:
@@ -773,11 +774,11 @@ def _finished(run_dir: Path, budget: int) -> TrainResult | None:
         done = finished_summary(run_dir, budget)
         return None if done is None else _result_from_summary(run_dir, done)
     except RunDirError as exc:  # its message names the file
-        _warn(f"{_reason(exc)}; ignored, it is written again at the end")
+        _warn(f"{short_reason(exc)}; ignored, it is written again at the end")
         return None
     except (KeyError, TypeError, ValueError) as exc:
         path = run_dir / "summary.json"
-        _warn(f"{path}: damaged ({_reason(exc)}); ignored, it is written again at the end")
+        _warn(f"{path}: damaged ({short_reason(exc)}); ignored, it is written again at the end")
         return None
 
 
