@@ -7,6 +7,7 @@
 # are copied to docs/results/FOLDER and every number is recomputed from those logs.
 #
 #   bash benchmarks/evidence.sh                       # every env, on this machine's cores
+#   bash benchmarks/evidence.sh --confirm Hopper-v5   # the confirmatory sweep of docs/analysis-plan.md
 #   bash benchmarks/evidence.sh Hopper-v5             # one env
 #   bash benchmarks/evidence.sh Hopper-v5 -- --backend ray --address HOST:6379   # on a Ray cluster
 #
@@ -19,7 +20,8 @@
 # restored first, so the finished runs are skipped and only the unfinished ones train again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-envs=() extra=()
+envs=() extra=() confirm=0
+if [ "${1:-}" = "--confirm" ]; then confirm=1; shift; fi
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
     envs+=("$1"); shift
@@ -27,27 +29,40 @@ done
 [ ${#envs[@]} -gt 0 ] || envs=(InvertedPendulum-v5 InvertedDoublePendulum-v5 Hopper-v5 Walker2d-v5)
 rescue=none,paper,rescue,rescue-penalty,rescue-terminal,rescue-fading
 
-design() {  # design ENV: "FOLDER CONDITIONS STEPS"
+design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
+    if [ "$confirm" = 1 ]; then confirm_design "$1"; return; fi
     case $1 in
-        InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000" ;;
-        InvertedDoublePendulum-v5) echo "InvertedDoublePendulum-v5-rescue $rescue 200000" ;;
-        Hopper-v5) echo "Hopper-v5-300k none,paper,rescue-terminal 300000" ;;
-        Walker2d-v5) echo "Walker2d-v5-evidence none,paper,rescue-terminal 1000000" ;;
+        InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
+        InvertedDoublePendulum-v5) echo "InvertedDoublePendulum-v5-rescue $rescue 200000 10" ;;
+        Hopper-v5) echo "Hopper-v5-300k none,paper,rescue-terminal 300000 10" ;;
+        Walker2d-v5) echo "Walker2d-v5-evidence none,paper,rescue-terminal 1000000 10" ;;
         *) echo "evidence.sh: $1: no evidence design (expected one of the paper's four v5 envs)" >&2; exit 2 ;;
     esac
+}
+
+confirm_design() {  # the confirmatory sweeps fixed by docs/analysis-plan.md (fresh seeds 100-109)
+    local steps
+    case $1 in
+        InvertedPendulum-v5) steps=50000 ;;
+        InvertedDoublePendulum-v5) steps=200000 ;;
+        Hopper-v5) steps=300000 ;;
+        Walker2d-v5) steps=1000000 ;;
+        *) echo "evidence.sh: $1: no confirmatory design (expected one of the paper's four v5 envs)" >&2; exit 2 ;;
+    esac
+    echo "$1-confirm none,paper,rescue-terminal $steps 100-109"
 }
 
 for env in "${envs[@]}"; do design "$env" > /dev/null; done   # a wrong name stops before any work
 bash scripts/setup.sh
 export PATH="$PWD/.venv/bin:$PATH"
 for env in "${envs[@]}"; do
-    read -r folder conditions steps <<< "$(design "$env")"
+    read -r folder conditions steps seeds <<< "$(design "$env")"
     out="results/$folder" dst="docs/results/$folder"
     if [ ! -e "$out/experiment.json" ] && [ -e "$dst/experiment.json" ]; then   # a new machine
         echo "evidence.sh: restoring the finished runs of $folder from $dst"
         mkdir -p "$out" && cp "$dst/experiment.json" "$out/" && cp -r "$dst/runs" "$out/"
     fi
-    args=(--envs "$env" --conditions "$conditions" --seeds 10 --steps "$steps" --out "$out")
+    args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     status=0
     pidlab experiment "${args[@]}" ${extra[@]+"${extra[@]}"} || status=$?
     # 2: bad input, refused before any run (its one line said what). 130: interrupted; 1: a run failed
