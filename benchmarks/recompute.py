@@ -8,7 +8,8 @@ byte with the committed metrics.csv, summary.csv, report.md and report.html; the
 tables of docs/results/README.md (benchmarks/results_table.py) from the summaries. For a pipeline's
 experiment (docs/results/pipeline-ENV/experiment/) it also recomputes the section of the pipeline's
 own report (docs/results/pipeline-ENV/report.md) that reads those runs, "The agent alone" (its
-table, design note and reading; the other sections come from stages whose data is not published),
+table, design note and reading), and its last section, "Why this coaching", from the published
+experiment it cites (the other sections come from stages whose data is not published),
 and checks that the pipeline's report.html is its report.md rendered.
 
 With --write it writes the recomputed files (and that section of a pipeline's report, with its
@@ -25,6 +26,7 @@ Run: .venv/bin/python benchmarks/recompute.py [--write] [FOLDER ...]
 from __future__ import annotations
 
 import difflib
+import re
 import sys
 from pathlib import Path
 
@@ -33,8 +35,9 @@ import numpy as np
 from pidlab.errors import PidlabError
 from pidlab.experiment.analysis import Analysis, analyze, recipes_of_runs
 from pidlab.files import read_json
+from pidlab.pipeline import published_evidence
 from pidlab.report.experiment import figure_names, render_html, report_texts
-from pidlab.report.pipeline import AGENT_ALONE, agent_alone
+from pidlab.report.pipeline import AGENT_ALONE, EVIDENCE_HEADING, agent_alone, evidence_lines
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"
@@ -94,6 +97,13 @@ def pipeline_texts(a: Analysis, report: Path) -> dict[str, str]:
     start = text.index(f"\n{AGENT_ALONE}\n") + 1
     end = text.index("\nThe full experiment report", start) + 1
     text = text[:start] + "\n".join(agent_alone(a, a.envs[0])) + "\n" + text[end:]
+    section = text.index(f"\n{EVIDENCE_HEADING}\n") + 1
+    cond = re.search(r"intervene as the condition `([^`]+)`|compares the condition `([^`]+)`", text[section:])
+    if cond is None:
+        raise ValueError(f"{report}: section 5 names no condition")
+    name = cond.group(1) or cond.group(2)
+    lines = evidence_lines(a.envs[0], name, published_evidence(a.envs[0], name))
+    text = text[:section] + "\n".join(lines).rstrip() + "\n"
     return {"report.md": text, "report.html": render_html(text, f"pidlab run {a.envs[0]}")}
 
 

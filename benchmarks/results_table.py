@@ -1,11 +1,13 @@
 """Write the tables of docs/results/README.md from the committed experiment reports.
 
-Two blocks, each between its own markers: the evidence at budgets where the uncoached agent reaches
-the target (:data:`EVIDENCE`: the folders benchmarks/evidence.sh publishes, with `none`, `paper` and
-the coached condition chosen for it) and the early-phase results (:data:`EARLY`: the folders
-benchmarks/experiments.sh publishes). Reads each folder's summary.csv and experiment.json and the
-paper's published numbers from the model cards (models/ENV.toml, ``[paper]``), and replaces the text
-between the markers, so the numbers there are never typed by hand.
+Three blocks, each between its own markers: the confirmation (:data:`CONFIRM`: the sweeps of
+docs/analysis-plan.md on fresh seeds, `benchmarks/evidence.sh --confirm`), the pilot evidence at
+budgets where the uncoached agent reaches the target (:data:`EVIDENCE`: the folders
+benchmarks/evidence.sh publishes, with `none`, `paper` and the coached condition chosen for it) and
+the early-phase results (:data:`EARLY`: the folders benchmarks/experiments.sh publishes). Reads
+each folder's summary.csv and experiment.json and the paper's published numbers from the model
+cards (models/ENV.toml, ``[paper]``), and replaces the text between the markers, so the numbers
+there are never typed by hand.
 Run: .venv/bin/python benchmarks/results_table.py
 """
 
@@ -17,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pidlab.experiment.analysis import recipes_of_runs
+from pidlab.experiment.plan import ALONE_TARGETS
 from pidlab.experiment.stats import Estimate
 from pidlab.experiment.sweep import finished
 from pidlab.files import atomic_write_text, read_json
@@ -27,6 +30,7 @@ from pidlab.report.experiment import (
     paper_numbers,
     published_numbers,
     recipe_budget,
+    saving_text,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,9 +70,21 @@ EVIDENCE = Block(
      "The honest measures at these budgets", "How the evidence was run"),
     falls=True,
 )  # fmt: skip
-"""The evidence: budgets where the uncoached agent reaches the target; a folder not yet published is
-left out."""
-BLOCKS = (EVIDENCE, EARLY)
+"""The pilot evidence (seeds 0-9): budgets where the uncoached agent reaches the target; a folder not
+yet published is left out."""
+CONFIRM = Block(
+    "<!-- confirmation: begin (benchmarks/results_table.py) -->", "<!-- confirmation: end -->",
+    tuple((env, f"{env}-confirm") for env in ENVS),
+    ("none", "paper", "rescue-terminal"),
+    ("Table II on the confirmatory seeds (env episodes; IQM [95 % CI] (runs that reached it))",
+     "The primary measures on the confirmatory seeds", "How the confirmation was run"),
+    falls=True,
+)  # fmt: skip
+"""The confirmation (docs/analysis-plan.md): fresh seeds 100-109; a folder not yet published is left
+out."""
+BLOCKS = (CONFIRM, EVIDENCE, EARLY)
+TABLE2_ROWS = PAPER_ROWS[:4]
+"""The paper's measures in env episodes (tested) and in agent episodes (described)."""
 
 
 def _num(text: str) -> float:
@@ -93,11 +109,21 @@ def _load(name: str) -> tuple[dict[tuple[str, str], dict[str, str]], dict] | Non
     return rows, read_json(folder / "experiment.json")
 
 
+def _saving(row: dict[str, str]) -> str:
+    """A summary row's saving of the median with its interval ("" for a measure without one)."""
+    if not row.get("saving", ""):
+        return ""
+    saving = Estimate(_num(row["saving"]), _num(row["saving_low"]), _num(row["saving_high"]))
+    return "saving " + saving_text(saving)
+
+
 def _verdict(row: dict[str, str]) -> str:
-    """P(improvement) [CI], exact p, Holm p and the verdict of one summary row."""
+    """P(improvement) [CI], saving [CI], exact p, Holm p and the verdict of one summary row."""
     if not row["p_improvement"]:
         return "-"
     p = f"{float(row['p_improvement']):.2f} [{float(row['p_low']):.2f}, {float(row['p_high']):.2f}]"
+    if _saving(row):
+        p += f"; {_saving(row)}"
     tests = f"p = {p_text(float(row['p_value']))}"
     if row["p_holm"]:
         tests += f", Holm {p_text(float(row['p_holm']))}"
@@ -110,8 +136,12 @@ def _table2(env: str, rows: dict[tuple[str, str], dict[str, str]], conditions: t
         raise SystemExit(f"models/{env}.toml has no [paper] table: the paper's numbers come from there")
     published = published_numbers(env)
     out = []
-    for metric, label in PAPER_ROWS:
-        cells = [*published.get(metric, ("", "", "")), *(_cell(rows.get((c, metric))) for c in conditions)]
+    for metric, label in TABLE2_ROWS:
+        ours = []
+        for c in conditions:
+            row = rows.get((c, metric))
+            ours.append(_cell(row) + (f"; {_saving(row)}" if row is not None and _saving(row) else ""))
+        cells = [*published.get(metric, ("", "", "")), *ours]
         out.append(f"| {env} ({paper.win_target:g}) | {label} | " + " | ".join(cells) + " |")
     return out
 
@@ -123,13 +153,21 @@ def _honest(env: str, rows: dict[tuple[str, str], dict[str, str]], share: str, b
             continue
         dep, never = rows[(c, "coach_dependent")], rows[(c, "never_trained")]
         falls = [_cell(rows[(c, "falls")], False)] if block.falls else []
-        cells = [env, share, c, *falls, _cell(rows[(c, "env_steps_to_target")]),
-                 _cell(rows[(c, "final_score")], False), f"{dep['iqm']}/{dep['runs']}",
+        steps = rows[(c, "env_steps_to_alone_target")]
+        cells = [f"{env} ({_target_text(env)})", share, c, *falls,
+                 _cell(steps), _cell(rows[(c, "final_score")], False), f"{dep['iqm']}/{dep['runs']}",
                  f"{never['iqm']}/{never['runs']}",
-                 _cell(rows[(c, "intervention_rate")], False), _verdict(rows[(c, "env_steps_to_target")]),
+                 _cell(rows[(c, "intervention_rate")], False), _verdict(steps),
                  _verdict(rows[(c, "final_score")])]  # fmt: skip
         out.append("| " + " | ".join(cells + ([_verdict(rows[(c, "falls")])] if block.falls else [])) + " |")
     return out
+
+
+def _target_text(env: str) -> str:
+    """The env's agent-alone target as the honest table's env column shows it."""
+    paper = paper_numbers(env)
+    target = ALONE_TARGETS.get(env, paper.win_target if paper is not None else math.nan)
+    return f"{target:g}"
 
 
 def _budget(env: str, name: str, record: dict) -> int:
@@ -153,10 +191,10 @@ def _progress(name: str, record: dict, budget: int) -> str:
 
 def _honest_head(block: Block) -> list[str]:
     falls = ["falls during training"] if block.falls else []
-    return ["env", "budget, env steps (share of the recipe's)", "condition", *falls,
-            "env steps to target, reached and kept (agent alone)", "final agent-alone score",
+    return ["env (agent-alone target)", "budget, env steps (share of the recipe's)", "condition", *falls,
+            "env steps to the agent-alone target, reached and kept", "final agent-alone score",
             "coach-dependent", "never trained", "intervention rate",
-            "fewer env steps to target than none: P [CI]; exact p; verdict",
+            "fewer env steps to the agent-alone target than none: P [CI]; exact p; verdict",
             "higher final score than none: P [CI]; exact p; verdict",
             *(["fewer falls than none: P [CI]; exact p; verdict"] if block.falls else [])]  # fmt: skip
 
@@ -183,6 +221,8 @@ def tables(block: Block = EARLY) -> str:
         t2 += _table2(env, rows, block.conditions)
         t3 += _honest(env, rows, share, block)
     table2, honest, how = block.headings
+    if not budgets:
+        return f"Not published yet: {', '.join(name for _, name in block.folders)}."
     return "\n".join([
         f"### {table2}", "", *t2, "", f"### {honest}", "", *t3, "", f"### {how}", "", *budgets,
     ])  # fmt: skip

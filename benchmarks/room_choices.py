@@ -15,9 +15,9 @@ Two tables:
    room coach's rescue region and the predictive trigger: a ``pidlab experiment`` of ``--seeds``
    seeds at ``--steps`` env steps each (results/room-choices-ENV, resumable; its report and runs'
    logs are copied to docs/results/room-choices-ENV, where benchmarks/recompute.py checks them).
-   Per choice, the median over seeds of: the coach's share of env steps, the agent's average uninterrupted run
-   (agent steps per takeover: how long the agent acts before its next vetoed action), the falls
-   during training and the agent-alone score at the end.
+   Per choice, the median over seeds, with the lowest and highest seed beside it, of: the coach's share
+   of env steps, the agent's average uninterrupted run (agent steps per takeover: how long the agent
+   acts before its next vetoed action), the falls during training and the agent-alone score at the end.
 """
 
 from __future__ import annotations
@@ -111,8 +111,13 @@ def publish(out: Path, env_id: str) -> Path:
     return dst
 
 
+def spread(values: list[float], fmt: str) -> str:
+    """The median over seeds, then the lowest and highest seed: a median alone hides a seed that fails."""
+    return f"{statistics.median(values):{fmt}} ({min(values):{fmt}} to {max(values):{fmt}})"
+
+
 def choice_rows(out: Path, env_id: str) -> list[str]:
-    """One row per hand-back choice: medians over seeds, read from the runs' summaries and metrics."""
+    """One row per hand-back choice: medians and ranges over seeds, from the runs' summaries and metrics."""
     metrics: dict[str, list[dict[str, str]]] = {}
     with open(out / "metrics.csv", newline="") as f:
         for r in csv.DictReader(f):
@@ -126,13 +131,11 @@ def choice_rows(out: Path, env_id: str) -> list[str]:
                 json.loads((out / "runs" / env_id / name / f"seed-{r['seed']}" / "summary.json").read_text())
                 for r in runs
             ]
-            share = statistics.median(s["coach_step_fraction"] for s in summaries)
-            run_len = statistics.median(s["agent_steps"] / max(s["interventions"], 1) for s in summaries)
-            falls = statistics.median(float(r["falls"]) for r in runs)
-            score = statistics.median(float(r["final_score"]) for r in runs)
-            rows.append(
-                f"| {view} | {h} | {share:.1%} | {run_len:.1f} | {falls:g} | {score:.1f} | {len(runs)} |"
-            )
+            share = spread([s["coach_step_fraction"] for s in summaries], ".1%")
+            run_len = spread([s["agent_steps"] / max(s["interventions"], 1) for s in summaries], ".1f")
+            falls = spread([float(r["falls"]) for r in runs], "g")
+            score = spread([float(r["final_score"]) for r in runs], ".1f")
+            rows.append(f"| {view} | {h} | {share} | {run_len} | {falls} | {score} | {len(runs)} |")
     return rows
 
 
@@ -162,7 +165,8 @@ def section(env_id: str, args: argparse.Namespace, presets: list[str], choices: 
         *presets,
         "",
         f"Hand-back choices, room coach, predictive trigger: medians over {args.seeds} seeds of "
-        f"{args.steps:,} env steps (the experiment's report and runs: docs/results/room-choices-{env_id}).",
+        f"{args.steps:,} env steps, the lowest and highest seed in parentheses (the experiment's report "
+        f"and runs: docs/results/room-choices-{env_id}).",
         "",
         "| view | hand-back fraction | coach share of env steps | agent steps per takeover | "
         "falls during training | agent-alone score at the end | runs |",

@@ -644,23 +644,28 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
     """The published experiment that compares ``condition`` with ``none`` on ``env_id``.
 
     Read from ``docs/results/*/summary.csv`` of a source checkout: the last such folder in name
-    order, else None.
+    order that ran the analysis plan's confirmatory seeds, else the last such folder, else None.
     """
     import csv
 
+    from pidlab.experiment.plan import role
+    from pidlab.files import read_json
     from pidlab.report.pipeline import EVIDENCE_METRICS, Evidence
 
     root = source_root()
     if root is None:
         return None
-    found = None
+    found: dict[str, Evidence] = {}
     for path in sorted((root / "docs" / "results").glob("*/summary.csv")):
         with open(path, newline="") as f:
             rows = {(r["condition"], r["metric"]): r for r in csv.DictReader(f) if r.get("env") == env_id}
         if all((c, m) in rows for c in ("none", condition) for m in EVIDENCE_METRICS):
             kept = {k: v for k, v in rows.items() if k[0] in ("none", condition) and k[1] in EVIDENCE_METRICS}
-            found = Evidence(f"docs/results/{path.parent.name}", kept)
-    return found
+            exp = path.parent / "experiment.json"
+            record = read_json(exp) if exp.exists() else {}
+            seeds = record.get("identity", {}).get("seeds", []) if isinstance(record, dict) else []
+            found[role(seeds)] = Evidence(f"docs/results/{path.parent.name}", kept)
+    return found.get("confirmatory", found.get("pilot"))
 
 
 def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple[Path, Path]:

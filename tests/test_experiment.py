@@ -108,7 +108,12 @@ def test_a_condition_with_coaching_the_recipe_rejects_fails_on_resolve():
     conds = parse_conditions(
         {
             "schema": "pidlab.conditions/1",
-            "condition": {"odd": {"coach": "pidlab-robust", "coaching": {"trigger": {"variable": "hinge_vel", "high": 0.3, "steps": 2}}}},
+            "condition": {
+                "odd": {
+                    "coach": "pidlab-robust",
+                    "coaching": {"trigger": {"variable": "hinge_vel", "high": 0.3, "steps": 2}},
+                }
+            },
         }
     )
     with pytest.raises(ConditionError, match="mode"):
@@ -337,8 +342,11 @@ def test_report_tables_and_figures(tmp_path):
     for needle in (
         "## InvertedPendulum-v5",
         "paper: with coach",
-        "| 5 wins, training returns | 100 | 160 | +37.5 % |",
-        "| average, returns with the coach's rewards |",
+        "| 5 wins, env episodes (training returns) | 100 | 160 | +37.5 % |",
+        "| average, agent episodes (returns with the coach's rewards) |",
+        "#### Primary measures (Holm family of 6)",
+        "#### Secondary: the paper's measures (Holm family of 4)",
+        "Pilot (exploratory) sweep",
         "Honest measures",
         "Accounts per run",
         "Against no coach",

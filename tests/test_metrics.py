@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -92,7 +93,9 @@ def test_coach_dependence_is_good_with_the_coach_and_bad_alone():
     m = run_metrics(logs([950.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200), RULE)
     assert m.coach_dependent and m.env_steps_to_target is None
     # the agent earns little on its own steps, but with the coach's steps the episodes score 1000
-    m = run_metrics(logs([100.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200, [1000.0] * 40), RULE)
+    m = run_metrics(
+        logs([100.0] * 40, [0, 5000], [0, 800], [10.0, 40.0], 5000, 800, 4200, [1000.0] * 40), RULE
+    )
     assert m.final_training_score == 100.0 and m.final_coached_score == 1000.0 and m.coach_dependent
     # the same curves without a coach in the loop are not "coach dependence"
     m0 = run_metrics(logs([950.0] * 40, [0, 5000], [0, 5000], [10.0, 40.0], 5000, 5000, 0), RULE)
@@ -106,7 +109,8 @@ def test_a_run_without_a_policy_update_is_never_trained_not_coach_dependent():
     )
     assert m.never_trained and not m.coach_dependent and m.policy_updates == 0
     unknown = run_metrics(
-        logs([1.3] * 30, [0, 25000], [0, 40], [10.0, 12.0], 25000, 40, 24960, [935.0] * 30, updates=None), RULE
+        logs([1.3] * 30, [0, 25000], [0, 40], [10.0, 12.0], 25000, 40, 24960, [935.0] * 30, updates=None),
+        RULE,
     )
     assert not unknown.never_trained and unknown.coach_dependent and unknown.policy_updates is None
 
@@ -134,9 +138,21 @@ def test_sustained_hit_and_final_score_agree():
 
 
 def test_evaluations_a_few_steps_late_sit_at_their_grid_point():
-    assert grid_points([0, 5000, 10003, 14999, 15000], 5000, 100000).tolist() == [0, 5000, 10000, 10000, 15000]
+    assert grid_points([0, 5000, 10003, 14999, 15000], 5000, 100000).tolist() == [
+        0,
+        5000,
+        10000,
+        10000,
+        15000,
+    ]
     # the final evaluation is due at the budget, also when the budget is off the grid (IDP: 50,000, every 20,000)
-    assert grid_points([0, 20000, 40000, 50000, 50004], 20000, 50000).tolist() == [0, 20000, 40000, 50000, 50000]
+    assert grid_points([0, 20000, 40000, 50000, 50004], 20000, 50000).tolist() == [
+        0,
+        20000,
+        40000,
+        50000,
+        50000,
+    ]
     idp = Rule(target=5500, consecutive=5, window=150, every=20000, budget=50000)
     m = run_metrics(logs([10.0] * 5, [0, 20000, 40000, 50000], [0] * 4, [5.0, 100.0, 200.0, 9000.0], 50000, 50000, 0),
                     idp)  # fmt: skip
@@ -202,7 +218,10 @@ def test_falls_and_env_resets_of_old_and_new_run_logs(tmp_path):
     from pidlab.experiment.analysis import read_logs
 
     old = "episode,env_steps_so_far,agent_steps_so_far,agent_steps,coach_steps,interventions,agent_return,total_return,terminated,env_index\n"
-    rows = [f"{i},{100 * (i + 1)},{100 * (i + 1)},100,0,0,100.0,100.0,{int(i % 3 == 0)},{i % 2}\n" for i in range(7)]
+    rows = [
+        f"{i},{100 * (i + 1)},{100 * (i + 1)},100,0,0,100.0,100.0,{int(i % 3 == 0)},{i % 2}\n"
+        for i in range(7)
+    ]
     (tmp_path / "episodes.csv").write_text(old + "".join(rows))
     (tmp_path / "evaluations.csv").write_text(
         "env_steps_so_far,agent_steps_so_far,episodes_so_far,mean_return,std_return,min_return,max_return,mean_length,returns\n"
@@ -221,3 +240,31 @@ def test_falls_and_env_resets_of_old_and_new_run_logs(tmp_path):
     assert read_logs(tmp_path, summary).env_resets is None  # not derivable without the run's n_envs
     with pytest.raises(ValueError, match="falls = -1"):
         read_logs(tmp_path, {**summary, "falls": -1})
+
+
+def test_the_papers_measures_in_env_episodes():
+    # a terminal-view run: 8 training episodes; episodes 1, 2, 4 and 6 were ended by vetoes, so their
+    # env episodes did not end: env episodes ended so far 0, 0, 1, 1, 2, 2, 3, 4
+    returns = [100, 100, 900, 900, 900, 900, 900, 900]
+    base = logs(returns, [0, 5000], [0, 5000], [0, 0], 5000, 4000, 1000)
+    terminal = dataclasses.replace(base, env_episodes_ended=np.array([0, 0, 1, 1, 2, 2, 3, 4]))
+    rule = Rule(target=800, consecutive=5, window=2, every=5000, budget=5000)
+    m = run_metrics(terminal, rule)
+    assert m.episodes_to_wins == 7 and m.env_episodes_to_wins == 3  # 5 wins at training episode 7
+    assert m.episodes_to_average == 4 and m.env_episodes_to_average == 1  # mean(900, 900) at episode 4
+    assert m.env_episodes == 4
+    # logs from before the terminal view: every training episode was an env episode
+    old = run_metrics(base, rule)
+    assert (old.env_episodes_to_wins, old.env_episodes_to_average, old.env_episodes) == (7, 4, 8)
+
+
+def test_the_agent_alone_target_can_differ_from_the_papers():
+    # Hopper: standing scores about 1000 and reaches the paper's 800; the plan's 1700 needs locomotion
+    means = [10, 990, 995, 1750, 1800]
+    lg = logs(
+        [1.0] * 3, [0, 10000, 20000, 30000, 40000], [0, 10000, 20000, 30000, 40000], means, 40000, 40000, 0
+    )
+    rule = Rule(target=800, consecutive=5, window=2, every=10000, budget=40000, alone_target=1700)
+    m = run_metrics(lg, rule)
+    assert rule.agent_target == 1700 and Rule(800, 5, 2, 10000, 40000).agent_target == 800
+    assert m.env_steps_to_target == 10000 and m.env_steps_to_alone_target == 30000

@@ -255,3 +255,51 @@ def test_the_score_interval_of_the_mann_whitney_probability_against_hand_compute
     assert mann_whitney_interval(1.0, 30, 30)[0] > mann_whitney_interval(1.0, 10, 10)[0]
     with pytest.raises(ValueError):
         mann_whitney_interval(1.2, 10, 10)
+
+
+def test_probability_with_interval_is_u_over_nm_with_the_score_interval():
+    from pidlab.experiment.stats import mann_whitney_interval, probability_with_interval
+
+    x, y = [1.0, 2.0, 3.0, INF], [2.0, 2.0, INF]
+    # pairs: 1 loses to 2, 2; ties 2 with 2 twice; 3 beats 2, 2; INF beats 2, 2 and ties INF; 1, 2, 3 lose to INF
+    u = 0 + (0.5 + 0.5) + 2 + (2 + 0.5)
+    e = probability_with_interval(x, y)
+    assert e.value == pytest.approx(u / 12) and e.level == 0.95
+    assert (e.low, e.high) == pytest.approx(mann_whitney_interval(u / 12, 4, 3))
+    with pytest.raises(ValueError):
+        probability_with_interval([], [1.0])
+
+
+def test_median_saving_hand_computed():
+    from pidlab.experiment.stats import median_saving
+
+    # medians 2 and 4: saving 1 - 2/4
+    e = median_saving([1.0, 2.0, 3.0], [2.0, 4.0, 6.0], reps=2000)
+    assert e.value == 0.5 and e.low <= 0.5 <= e.high
+    # every resample of x is at most 3 and of y at least 2, so no resample saves less than 1 - 3/2
+    assert e.low >= -0.5 and e.high <= 1 - 1 / 6
+    # constant samples: every resample gives the same saving, so the interval is that point
+    flat = median_saving([5.0] * 4, [10.0] * 4, reps=500)
+    assert (flat.value, flat.low, flat.high) == (0.5, 0.5, 0.5)
+    # the same seed gives the same interval
+    assert median_saving([1.0, 2.0, 3.0], [2.0, 4.0, 6.0], reps=2000) == e
+
+
+def test_median_saving_with_runs_that_never_reached():
+    from pidlab.experiment.stats import median_saving
+
+    # the coached median never reached: the saving is -inf, and so is the lower end
+    e = median_saving([INF, INF, 1.0], [2.0, 2.0, 2.0], reps=500)
+    assert e.value == -INF and e.low == -INF
+    # the baseline's median never reached: no saving is defined, and both ends are unbounded
+    n = median_saving([1.0, 1.0, 1.0], [INF, INF, 2.0], reps=500)
+    assert math.isnan(n.value) and n.low == -INF and n.high == INF
+    # one censored run of five in the baseline: the median is finite, but a resample draws it 3 or
+    # more times with probability 0.058 > 0.025, so both ends are left unbounded
+    m = median_saving([1.0] * 5, [2.0, 2.0, 2.0, 2.0, INF], reps=2000)
+    assert m.value == 0.5 and (m.low, m.high) == (-INF, INF)
+    # one of ten: P(Binom(10, 0.1) >= 5) = 0.0016, and every defined resample saves exactly 0.5
+    t = median_saving([1.0] * 10, [2.0] * 9 + [INF], reps=2000)
+    assert (t.value, t.low, t.high) == (0.5, 0.5, 0.5)
+    with pytest.raises(ValueError):
+        median_saving([1.0], [1.0], reps=0)

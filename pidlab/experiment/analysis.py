@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from pidlab.errors import ExperimentError
-from pidlab.experiment.comparison import MEASURES, Comparison, decide, raw_comparison
+from pidlab.experiment import plan
+from pidlab.experiment.comparison import MEASURE, Comparison, decide, raw_comparison
 from pidlab.experiment.metrics import Rule, RunLogs, RunMetrics, grid_points, moving_average, run_metrics
 from pidlab.experiment.stats import Estimate, bootstrap_ci, iqm
 from pidlab.files import load_json, read_toml
@@ -111,6 +112,7 @@ class Analysis:
     conditions: tuple[str, ...]
     cells: dict[tuple[str, str], CellResult]
     targets: dict[str, float]
+    alone_targets: dict[str, float]
     windows: dict[str, int]
     budgets: dict[str, int]
     missing: tuple[str, ...]
@@ -142,6 +144,10 @@ METRICS: dict[str, tuple[bool, bool]] = {
     "evaluation_delay": (False, False),
     "falls": (True, False),
     "env_resets": (True, False),
+    "env_episodes_to_wins": (True, True),
+    "env_episodes_to_average": (True, True),
+    "env_steps_to_alone_target": (True, True),
+    "env_episodes": (False, False),
 }
 
 
@@ -286,7 +292,24 @@ def read_logs(run_dir: Path, summary: Any) -> RunLogs:
         policy_updates=updates,
         falls=_falls(summary, episodes),
         env_resets=_env_resets(run_dir, summary, episodes),
+        env_episodes_ended=_env_episodes_ended(episodes),
     )
+
+
+def _env_episodes_ended(episodes: list[dict[str, str]]) -> np.ndarray | None:
+    """Env episodes ended so far at each training episode's end (None: logs without ``env_end``).
+
+    Logs written before the ``terminal`` view have no ``env_end`` column: each of their training
+    episodes ended its env's episode.
+    """
+    if not episodes or "env_end" not in episodes[0]:
+        return None
+    ends = []
+    for r in episodes:
+        if r["env_end"] not in ("0", "1"):
+            raise ValueError(f"episodes.csv: env_end = {r['env_end']!r}, expected 0 or 1")
+        ends.append(int(r["env_end"]))
+    return np.cumsum(ends)
 
 
 def censored_values(runs: Sequence[RunData], name: str) -> tuple[np.ndarray, int]:
@@ -385,7 +408,8 @@ def _thin_band(rows: np.ndarray, x: np.ndarray, points: int = 150) -> Curve:
 def rule_of(recipe: Any) -> Rule:
     """The :class:`pidlab.experiment.metrics.Rule` of a recipe (its win target and evaluation grid)."""
     win = recipe.win
-    return Rule(win.target, win.consecutive, win.window, recipe.evaluation.every, recipe.steps)
+    alone = plan.alone_target(recipe.env_id, win.target)
+    return Rule(win.target, win.consecutive, win.window, recipe.evaluation.every, recipe.steps, alone)
 
 
 def _load_cells(
@@ -408,24 +432,31 @@ def _load_cells(
 
 
 def compare_env(
-    loaded: dict[tuple[str, str], list[RunData]], env: str, conditions: Sequence[str], reps: int
+    loaded: dict[tuple[str, str], list[RunData]],
+    env: str,
+    conditions: Sequence[str],
+    win_target: float,
+    reps: int = 10000,
 ) -> dict[tuple[str, str], dict[str, Comparison]]:
-    """Every coached condition of ``env`` against no coach, on every measure, with verdicts."""
+    """Every coached condition of ``env`` against no coach, in the plan's two families, with verdicts.
+
+    ``win_target``: the env's paper target (it decides whether the paper's target in env steps is
+    in the secondary family); ``reps``: bootstrap resamples of the savings.
+    """
     base = loaded.get((env, BASELINE), [])
-    raw, values, never = {}, {}, {}
-    for cond in conditions:
-        runs = loaded.get((env, cond), [])
-        if cond == BASELINE or not runs or not base:
-            continue
-        never[cond] = all(r.metrics.never_trained for r in runs)
-        for m in MEASURES:
-            x, _ = censored_values(runs, m.name)
-            y, _ = censored_values(base, m.name)
-            raw[(cond, m.name)] = raw_comparison(x, y, m, reps)
-            values[(cond, m.name)] = (x, y)
+    coached = [c for c in conditions if c != BASELINE and loaded.get((env, c)) and base]
+    never = {c: all(r.metrics.never_trained for r in loaded[(env, c)]) for c in coached}
     out: dict[tuple[str, str], dict[str, Comparison]] = {}
-    for (cond, name), c in decide(raw, values, never).items():
-        out.setdefault((env, cond), {})[name] = c
+    for family, names in (("primary", plan.PRIMARY), ("secondary", plan.secondary_measures(env, win_target))):
+        raw, values = {}, {}
+        for cond in coached:
+            for name in names:
+                x, _ = censored_values(loaded[(env, cond)], name)
+                y, _ = censored_values(base, name)
+                raw[(cond, name)] = raw_comparison(x, y, MEASURE[name], reps)
+                values[(cond, name)] = (x, y)
+        for (cond, name), c in decide(raw, values, never, family).items():
+            out.setdefault((env, cond), {})[name] = c
     return out
 
 
@@ -455,12 +486,13 @@ def analyze(experiment: dict[str, Any], root: Path, recipes: dict[str, Any], rep
                 cells[(env, cond)] = analyze_cell(
                     loaded[(env, cond)], env, cond, r.win.window, r.steps, r.evaluation.every, reps
                 )
-        comparisons.update(compare_env(loaded, env, conditions, reps))
+        comparisons.update(compare_env(loaded, env, conditions, r.win.target))
     return Analysis(
         envs=envs,
         conditions=conditions,
         cells=cells,
         targets={e: recipes[e].win.target for e in envs},
+        alone_targets={e: rule_of(recipes[e]).agent_target for e in envs},
         windows={e: recipes[e].win.window for e in envs},
         budgets={e: recipes[e].steps for e in envs},
         missing=tuple(missing),

@@ -1,26 +1,31 @@
 """Each coached condition against no coach: effect size, exact test, Holm correction, verdict.
 
-For every measure of :data:`MEASURES` a :class:`Comparison` holds
+The families and measures are the pre-registered analysis plan's (docs/analysis-plan.md,
+:mod:`pidlab.experiment.plan`): per env, a **primary** family (falls, env steps to the agent-alone
+target, final agent-alone score) and a **secondary** family (the paper's measures in env episodes,
+and the paper's target in env steps where the agent-alone target differs), each holding every
+coached condition's tests. For every measure a :class:`Comparison` holds
 
-- the probability of improvement P(X better than Y) with its stratified bootstrap interval (the
-  effect size, :func:`pidlab.experiment.stats.probability_of_improvement`);
+- the probability of improvement P(X better than Y), ties half, with the score interval of
+  Newcombe (2006, method 5) (:func:`pidlab.experiment.stats.probability_with_interval`), which does
+  not collapse under complete separation;
+- for a lower-is-better measure, the saving 1 - median(coached) / median(no coach) with its
+  bootstrap interval (:func:`pidlab.experiment.stats.median_saving`);
 - the exact two-sided Wilcoxon-Mann-Whitney permutation test of "no difference"
   (:func:`pidlab.experiment.stats.rank_sum_test`; runs that never reached a target tie at +inf);
-- the Holm-adjusted p-value over every testable comparison of the same env (its family);
+- the Holm-adjusted p-value over the whole family, whose size is fixed: a test that cannot run
+  stays in it with p = 1;
 - a verdict, decided by :func:`decide` in this order:
 
   1. **never trained**: every run of the coached condition made no policy update, so it tests
      the initial policy, not coaching;
   2. **not testable**: every run of both conditions has the same value (no run reached the target
      at this budget, or all scored the same): there is nothing to compare;
-  3. **better** / **worse**: the Holm-adjusted p-value is below :data:`ALPHA`; when the seeds
-     cannot reach it at all, even with every run of one condition beating every run of the other
-     (3 seeds: the smallest exact p is 0.1; 5 seeds: 2/252, times a Holm family of 18 is 0.14), the
-     verdict is read from the bootstrap interval of P instead (it excludes 0.5) and marked *indicative*;
-  4. **no clear difference** otherwise;
-  5. **withdrawn**: a paper's measure on training returns says *worse* while the same measure on
-     the returns with the coach's rewards does not; the training return of a coached episode is
-     capped at the time limit minus its coach steps, so that verdict rests on the cap.
+  3. **no verdict possible**: the seeds cannot reach p < :data:`ALPHA` after Holm even when every
+     run of one condition beats every run of the other (3 against 3 seeds: the smallest exact p
+     is 0.1);
+  4. **better** / **worse**: the Holm-adjusted p-value is below :data:`ALPHA`;
+  5. **no clear difference** otherwise.
 """
 
 from __future__ import annotations
@@ -36,7 +41,8 @@ from pidlab.experiment.stats import (
     RankSumTest,
     detectable_improvement,
     holm,
-    probability_of_improvement,
+    median_saving,
+    probability_with_interval,
     rank_sum_test,
     smallest_p_value,
 )
@@ -58,34 +64,30 @@ class Measure:
     lower_better : bool
     label : str
         How sentences name it.
-    uncapped : str or None
-        For a measure read from capped training returns, the same measure on the returns with the
-        coach's rewards.
     """
 
     name: str
     lower_better: bool
     label: str
-    uncapped: str | None = None
 
 
 MEASURES = (
-    Measure("episodes_to_wins", True, "episodes to 5 wins (training returns)", "episodes_to_wins_with_coach"),
-    Measure(
-        "episodes_to_average",
-        True,
-        "episodes to the moving-average target (training returns)",
-        "episodes_to_average_with_coach",
-    ),
-    Measure("episodes_to_wins_with_coach", True, "episodes to 5 wins (returns with the coach's rewards)"),
-    Measure(
-        "episodes_to_average_with_coach",
-        True,
-        "episodes to the moving-average target (returns with the coach's rewards)",
-    ),
-    Measure("env_steps_to_target", True, "env steps until the agent alone reaches the target and keeps it"),
-    Measure("final_score", False, "final agent-alone score"),
     Measure("falls", True, "falls during training (terminations of the real env, agent or coach acting)"),
+    Measure(
+        "env_steps_to_alone_target",
+        True,
+        "env steps until the agent alone reaches the agent-alone target and keeps it",
+    ),
+    Measure("final_score", False, "final agent-alone score"),
+    Measure("env_episodes_to_wins", True, "env episodes to 5 wins (training returns, the paper's target)"),
+    Measure(
+        "env_episodes_to_average",
+        True,
+        "env episodes to the moving-average target (training returns, the paper's)",
+    ),
+    Measure(
+        "env_steps_to_target", True, "env steps until the agent alone reaches the paper's target and keeps it"
+    ),
 )
 MEASURE = {m.name: m for m in MEASURES}
 
@@ -98,36 +100,40 @@ class Comparison:
     ----------
     measure : str
     improvement : Estimate
-        P(a run of the condition beats a run without coach), ties half; 0.5: no difference.
+        P(a run of the condition beats a run without coach), ties half; 0.5: no difference; with
+        its score interval.
     test : RankSumTest
         The exact two-sided test (``p_value`` unadjusted).
+    saving : Estimate or None
+        ``1 - median(coached) / median(no coach)`` with its bootstrap interval (lower-is-better
+        measures; None otherwise).
     p_holm : float or None
-        Holm-adjusted p-value within the env's family (None: not in it, see ``verdict``).
+        Holm-adjusted p-value within the family (None: before :func:`decide`).
     family : int
-        How many comparisons the env's Holm family holds.
+        How many tests the family holds.
+    family_name : str
+        ``primary`` or ``secondary``.
     verdict : str
         ``better``, ``worse``, ``no clear difference``, ``not testable``, ``never trained`` or
-        ``withdrawn``.
-    indicative : bool
-        The verdict was read from the bootstrap interval because the seeds cannot reach p < ALPHA.
+        ``no verdict possible``.
     reason : str
-        Why, for ``not testable``, ``never trained`` and ``withdrawn`` (empty otherwise).
+        Why, for the last three (empty otherwise).
     """
 
     measure: str
     improvement: Estimate
     test: RankSumTest
+    saving: Estimate | None
     p_holm: float | None
     family: int
+    family_name: str
     verdict: str
-    indicative: bool
     reason: str
 
     @property
     def label(self) -> str:
         """The verdict as tables print it ("not testable at this budget" when every run missed)."""
-        text = self.verdict + (" at this budget" if self.reason == MISSED else "")
-        return text + (" (indicative)" if self.indicative else "")
+        return self.verdict + (" at this budget" if self.reason == MISSED else "")
 
     @property
     def smallest_p(self) -> float:
@@ -146,14 +152,16 @@ def oriented(values: np.ndarray, measure: Measure) -> np.ndarray:
     return -values if measure.lower_better else values
 
 
-def raw_comparison(x: np.ndarray, y: np.ndarray, measure: Measure, reps: int) -> Comparison:
-    """Effect size and exact test of runs ``x`` (coached) against ``y`` (no coach), before any verdict.
+def raw_comparison(x: np.ndarray, y: np.ndarray, measure: Measure, reps: int = 10000) -> Comparison:
+    """Effect size, saving and exact test of ``x`` (coached runs) against ``y`` (no coach), before a verdict.
 
-    ``x`` and ``y`` hold the measure per run, +inf for a run that never reached a target.
+    ``x`` and ``y`` hold the measure per run, +inf for a run that never reached a target;
+    ``reps``: bootstrap resamples of the saving.
     """
     a, b = oriented(x, measure), oriented(y, measure)
-    p = probability_of_improvement([a.tolist()], [b.tolist()], reps=reps)
-    return Comparison(measure.name, p, rank_sum_test(a, b), None, 0, "", False, "")
+    saving = median_saving(x, y, reps=reps) if measure.lower_better else None
+    p = probability_with_interval(a, b)
+    return Comparison(measure.name, p, rank_sum_test(a, b), saving, None, 0, "", "", "")
 
 
 def _untestable_reason(x: np.ndarray, y: np.ndarray) -> str:
@@ -168,25 +176,23 @@ def reachable(smallest_p: float, family: int) -> bool:
     return smallest_p * max(family, 1) < ALPHA
 
 
-def _significance(c: Comparison) -> tuple[str, bool]:
-    """(verdict, indicative) from the Holm-adjusted p, or from the interval when p < ALPHA is out of reach."""
-    if not reachable(c.smallest_p, c.family):
-        if c.improvement.low > 0.5:
-            return "better", True
-        if c.improvement.high < 0.5:
-            return "worse", True
-        return "no clear difference", True
-    if c.p_holm is not None and c.p_holm < ALPHA:
-        return ("better" if c.improvement.value > 0.5 else "worse"), False
-    return "no clear difference", False
+def _unreachable_reason(c: Comparison) -> str:
+    return (
+        f"{c.test.n} against {c.test.m} runs: the smallest exact p, {c.smallest_p:.2g}, times the family of "
+        f"{c.family} is not below {ALPHA:g}"
+    )
 
 
 def decide(
     raw: Mapping[tuple[str, str], Comparison],
     values: Mapping[tuple[str, str], tuple[np.ndarray, np.ndarray]],
     never_trained: Mapping[str, bool],
+    family_name: str,
 ) -> dict[tuple[str, str], Comparison]:
-    """Verdicts for one env's comparisons, keyed by (condition, measure), with Holm over the family.
+    """Verdicts for one family of one env, keyed by (condition, measure), with Holm over the family.
+
+    The family holds every key of ``raw``; a test that cannot run (never trained, not testable)
+    stays in it with p = 1, so the family's size is the design's, not the data's.
 
     Parameters
     ----------
@@ -196,33 +202,24 @@ def decide(
         (condition, measure) -> (coached values, uncoached values), as given to ``raw_comparison``.
     never_trained : mapping
         Condition -> every run of it made no policy update.
+    family_name : str
+        ``primary`` or ``secondary``.
     """
+    keys = list(raw)
+    runnable = {k: raw[k].test.testable and not never_trained.get(k[0], False) for k in keys}
+    adjusted = holm([raw[k].test.p_value if runnable[k] else 1.0 for k in keys])
     out: dict[tuple[str, str], Comparison] = {}
-    family = []
-    for key, c in raw.items():
+    for key, p in zip(keys, adjusted, strict=True):
+        c = replace(raw[key], p_holm=p, family=len(keys), family_name=family_name)
         if never_trained.get(key[0], False):
-            out[key] = replace(c, verdict="never trained", reason=NEVER_TRAINED)
+            c = replace(c, verdict="never trained", reason=NEVER_TRAINED)
         elif not c.test.testable:
-            out[key] = replace(c, verdict="not testable", reason=_untestable_reason(*values[key]))
+            c = replace(c, verdict="not testable", reason=_untestable_reason(*values[key]))
+        elif not reachable(c.smallest_p, c.family):
+            c = replace(c, verdict="no verdict possible", reason=_unreachable_reason(c))
+        elif p < ALPHA:
+            c = replace(c, verdict="better" if c.improvement.value > 0.5 else "worse")
         else:
-            family.append(key)
-    adjusted = holm([raw[k].test.p_value for k in family])
-    for key, p in zip(family, adjusted, strict=True):
-        c = replace(raw[key], p_holm=p, family=len(family))
-        verdict, indicative = _significance(c)
-        out[key] = replace(c, verdict=verdict, indicative=indicative)
-    return {k: _withdraw_capped(k, out) for k in raw}
-
-
-def _withdraw_capped(key: tuple[str, str], out: Mapping[tuple[str, str], Comparison]) -> Comparison:
-    c = out[key]
-    twin = MEASURE[c.measure].uncapped
-    if c.verdict != "worse" or twin is None or (key[0], twin) not in out:
-        return c
-    other = out[(key[0], twin)]
-    if other.verdict == "worse":
-        return c
-    return replace(
-        c, verdict="withdrawn",
-        reason=f"rests on the return cap: with the coach's rewards counted, {other.verdict}",
-    )  # fmt: skip
+            c = replace(c, verdict="no clear difference")
+        out[key] = c
+    return out

@@ -159,6 +159,10 @@ class Rule:
         Env steps between agent-alone evaluations (the evaluation grid).
     budget : int
         The run's budget, env steps (its final evaluation is due there).
+    alone_target : float or None
+        The agent-alone target of the analysis plan (:mod:`pidlab.experiment.plan`) when it
+        differs from ``target`` (Hopper and Walker2d: a return that standing still cannot reach);
+        None: ``target``.
     """
 
     target: float
@@ -166,6 +170,12 @@ class Rule:
     window: int
     every: int
     budget: int
+    alone_target: float | None = None
+
+    @property
+    def agent_target(self) -> float:
+        """The return the agent alone must reach and keep (the primary target)."""
+        return self.target if self.alone_target is None else self.alone_target
 
 
 @dataclass(frozen=True)
@@ -196,6 +206,9 @@ class RunLogs:
         Terminations of the training env, whoever was acting (None: unknown).
     env_resets : int or None
         Real resets of the training envs (None: unknown).
+    env_episodes_ended : ndarray or None
+        Env episodes ended so far at the end of each training episode (None: every training
+        episode ended its env's episode, as before the ``terminal`` view).
     """
 
     returns: np.ndarray
@@ -212,6 +225,14 @@ class RunLogs:
     policy_updates: int | None
     falls: int | None = None
     env_resets: int | None = None
+    env_episodes_ended: np.ndarray | None = None
+
+    @property
+    def env_episode_counts(self) -> np.ndarray:
+        """Env episodes ended so far at the end of each training episode."""
+        if self.env_episodes_ended is None:
+            return np.arange(1, len(self.returns) + 1)
+        return self.env_episodes_ended
 
 
 @dataclass(frozen=True)
@@ -266,6 +287,15 @@ class RunMetrics:
         Real resets of the training envs (each env's first reset of every session included; a
         ``terminal``-view rescue that hands the running env to a new agent episode is none).
         None: not recorded.
+    env_episodes_to_wins, env_episodes_to_average : int or None
+        The paper's two measures counted in **env** episodes: the env episodes that had ended when
+        the training episodes first met the criterion (under the ``terminal`` view a veto ends an
+        agent episode but not the env's).
+    env_steps_to_alone_target : float or None
+        As ``env_steps_to_target``, at the agent-alone target of the analysis plan
+        (:attr:`Rule.agent_target`; the win target on the pendulums).
+    env_episodes : int or None
+        Env episodes that ended during training.
     """
 
     episodes_to_wins: int | None
@@ -291,6 +321,10 @@ class RunMetrics:
     env_steps_per_episode: float
     falls: int | None = None
     env_resets: int | None = None
+    env_episodes_to_wins: int | None = None
+    env_episodes_to_average: int | None = None
+    env_steps_to_alone_target: float | None = None
+    env_episodes: int | None = None
 
 
 def _tail_mean(values: np.ndarray, window: int) -> float:
@@ -300,6 +334,11 @@ def _tail_mean(values: np.ndarray, window: int) -> float:
 
 def _at(values: np.ndarray, index: int | None) -> float | None:
     return None if index is None else float(values[index])
+
+
+def _env_episodes_at(logs: RunLogs, episode: int | None) -> int | None:
+    """Env episodes ended by the end of training episode ``episode`` (1-based; None stays None)."""
+    return None if episode is None else int(logs.env_episode_counts[episode - 1])
 
 
 def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
@@ -318,12 +357,14 @@ def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
     coached = _tail_mean(logs.coached_returns, rule.window)
     grid = grid_points(logs.eval_env_steps, rule.every, rule.budget)
     reached = sustained_hit(logs.eval_means, rule.target)
+    wins = episodes_to_consecutive_wins(logs.returns, rule.target, rule.consecutive)
+    average = episodes_to_average(logs.returns, rule.target, rule.window)
     trained = logs.policy_updates is None or logs.policy_updates > 0
     target, with_coach = rule.target, logs.coached_returns
     dependent = trained and logs.coach_steps > 0 and coached >= target and not final >= target
     return RunMetrics(
-        episodes_to_wins=episodes_to_consecutive_wins(logs.returns, rule.target, rule.consecutive),
-        episodes_to_average=episodes_to_average(logs.returns, rule.target, rule.window),
+        episodes_to_wins=wins,
+        episodes_to_average=average,
         episodes_to_wins_with_coach=episodes_to_consecutive_wins(with_coach, target, rule.consecutive),
         episodes_to_average_with_coach=episodes_to_average(with_coach, target, rule.window),
         env_steps_to_target=_at(grid, reached),
@@ -345,4 +386,8 @@ def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
         env_steps_per_episode=logs.env_steps / len(logs.returns) if len(logs.returns) else float("nan"),
         falls=logs.falls,
         env_resets=logs.env_resets,
+        env_episodes_to_wins=_env_episodes_at(logs, wins),
+        env_episodes_to_average=_env_episodes_at(logs, average),
+        env_steps_to_alone_target=_at(grid, sustained_hit(logs.eval_means, rule.agent_target)),
+        env_episodes=int(logs.env_episode_counts[-1]) if len(logs.returns) else 0,
     )

@@ -19,16 +19,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pidlab.experiment import plan
 from pidlab.experiment.analysis import BASELINE, METRICS, Analysis, CellResult, analyze
-from pidlab.experiment.comparison import (
-    ALPHA,
-    MEASURE,
-    MEASURES,
-    POWER,
-    Comparison,
-    detectable,
-    reachable,
-)
+from pidlab.experiment.comparison import ALPHA, MEASURE, POWER, Comparison, detectable
 from pidlab.experiment.stats import Estimate, detectable_improvement
 from pidlab.experiment.sweep import Plan, check_out_folder
 from pidlab.files import atomic_write_text, read_json, save_figure
@@ -53,6 +46,10 @@ UNITS = {
     "evaluation_delay": "env steps",
     "falls": "falls",
     "env_resets": "resets",
+    "env_episodes_to_wins": "env episodes",
+    "env_episodes_to_average": "env episodes",
+    "env_steps_to_alone_target": "env steps",
+    "env_episodes": "env episodes",
 }
 
 VERSIONS = (
@@ -76,7 +73,8 @@ def format_value(v: float, name: str) -> str:
         return "n/a"
     if name == "intervention_rate":
         return f"{100 * v:.1f} %"
-    if "steps" in name or name in ("episodes", "policy_updates", "evaluation_delay", "falls", "env_resets"):
+    counts = ("policy_updates", "evaluation_delay", "falls", "env_resets")
+    if "steps" in name or "episodes" in name or name in counts:
         return f"{v:,.0f}"
     return f"{v:.0f}" if abs(v) >= 100 else f"{v:.1f}"
 
@@ -151,9 +149,22 @@ def report_header(
     return lines
 
 
-def _saving(with_: float, without: float) -> str:
-    finite = abs(with_) < float("inf") and abs(without) < float("inf")
-    return f"{100 * (without - with_) / without:+.1f} %" if without and finite else "n/a"
+def saving_text(e: Estimate | None) -> str:
+    """A saving ``1 - coached / baseline`` (medians) with its 95 % interval, in percent.
+
+    A coached median that never reached the target reads "never reached"; an interval end that
+    runs which never reached decide reads "unbounded".
+    """
+    if e is None:
+        return "-"
+    if e.value != e.value:
+        return "not estimable (the baseline's median never reached)"
+
+    def pct(v: float) -> str:
+        return "unbounded" if abs(v) == float("inf") else f"{100 * v:+.1f} %"
+
+    point = "never reached" if e.value == float("-inf") else pct(e.value)
+    return f"{point} [{pct(e.low)}, {pct(e.high)}]"
 
 
 def paper_numbers(env: str) -> PaperNumbers | None:
@@ -180,11 +191,14 @@ def recipe_budget(env: str) -> int | None:
 
 
 PAPER_ROWS = (
-    ("episodes_to_wins", "5 wins, training returns"),
-    ("episodes_to_average", "average, training returns"),
-    ("episodes_to_wins_with_coach", "5 wins, returns with the coach's rewards"),
-    ("episodes_to_average_with_coach", "average, returns with the coach's rewards"),
+    ("env_episodes_to_wins", "5 wins, env episodes (training returns)"),
+    ("env_episodes_to_average", "average, env episodes (training returns)"),
+    ("episodes_to_wins", "5 wins, agent episodes (training returns)"),
+    ("episodes_to_average", "average, agent episodes (training returns)"),
+    ("episodes_to_wins_with_coach", "5 wins, agent episodes (returns with the coach's rewards)"),
+    ("episodes_to_average_with_coach", "average, agent episodes (returns with the coach's rewards)"),
 )
+"""The paper's measures: the first two are tested (the plan's secondary family), the rest described."""
 
 
 def published_numbers(env: str) -> dict[str, tuple[str, str, str]]:
@@ -194,22 +208,20 @@ def published_numbers(env: str) -> dict[str, tuple[str, str, str]]:
         return {}
     wins = (str(paper.wins_coached), str(paper.wins_uncoached), f"+{paper.savings_wins:g} %")
     average = (str(paper.average_coached), str(paper.average_uncoached), f"+{paper.savings_average:g} %")
-    return {"episodes_to_wins": wins, "episodes_to_average": average}
+    return {"env_episodes_to_wins": wins, "env_episodes_to_average": average}
 
 
 def _paper_rows(a: Analysis, env: str) -> list[list[str]]:
     rows = []
     published = published_numbers(env)
     conds = [c for c in a.conditions if (env, c) in a.cells]
-    base = a.cells.get((env, BASELINE))
     for name, label in PAPER_ROWS:
         row = [label, *published.get(name, ("", "", ""))]
         for c in conds:
-            cell = a.cells[(env, c)]
-            text = cell_metric(cell, name)
-            if base is not None and c != BASELINE:
-                saving = _saving(cell.metrics[name].estimate.value, base.metrics[name].estimate.value)
-                text += f"; saving {saving} (recomputed)"
+            text = cell_metric(a.cells[(env, c)], name)
+            comp = a.comparisons.get((env, c), {}).get(name)
+            if comp is not None:
+                text += f"; saving {saving_text(comp.saving)}"
             row.append(text)
         rows.append(row)
     return rows
@@ -224,15 +236,15 @@ def verdict_text(c: Comparison) -> str:
     """The verdict of a comparison with the numbers it rests on."""
     e = c.improvement
     effect = f"P = {e.value:.2f} [{e.low:.2f}, {e.high:.2f}]"
+    if c.saving is not None and c.verdict not in ("not testable", "never trained"):
+        effect += f", saving {saving_text(c.saving)}"
     if c.verdict in ("not testable", "never trained"):
         return f"{c.label} ({c.reason})"
-    test = f"exact p = {p_text(c.test.p_value)}"
-    if c.p_holm is not None:
-        test += f", Holm {p_text(c.p_holm)}"
-    if c.verdict == "withdrawn":
-        return f"verdict withdrawn, it {c.reason} ({effect}, {test})"
+    if c.verdict == "no verdict possible":
+        return f"{c.label} ({c.reason}; {effect})"
+    test = f"exact p = {p_text(c.test.p_value)}, Holm {p_text(c.p_holm if c.p_holm is not None else 1.0)}"
     word = {"better": "better than no coach", "worse": "worse than no coach"}.get(c.verdict, c.verdict)
-    return f"{word}{' (indicative)' if c.indicative else ''} ({effect}, {test})"
+    return f"{word} ({effect}, {test})"
 
 
 @functools.lru_cache(maxsize=64)
@@ -241,13 +253,23 @@ def _detectable_at(n: int, m: int, alpha: float) -> float | None:
     return detectable_improvement(n, m, alpha=alpha, power=POWER)
 
 
+def _family_sizes(a: Analysis, env: str) -> dict[str, int]:
+    sizes: dict[str, int] = {}
+    for (e, _), cs in a.comparisons.items():
+        if e == env:
+            for c in cs.values():
+                sizes[c.family_name] = c.family
+    return sizes
+
+
 def design_note(a: Analysis, env: str) -> str:
-    """What the seeds can show: run counts, Holm family, smallest detectable effect, smallest p."""
+    """What the seeds can show: run counts, Holm families, smallest detectable effect, smallest p."""
     comps = [c for (e, _), cs in a.comparisons.items() if e == env for c in cs.values()]
     if not comps:
         return ""
     n, m = comps[0].test.n, comps[0].test.m
-    family = max(c.family for c in comps)
+    sizes = _family_sizes(a, env)
+    primary = sizes.get("primary", 1)
     d = detectable(n, m)
     if d is None:
         power = f"with {n} against {m} seeds no exact test can reach p < {ALPHA:g}"
@@ -256,39 +278,31 @@ def design_note(a: Analysis, env: str) -> str:
             f"with {n} against {m} seeds, one exact two-sided test at {ALPHA:g} (before Holm) detects "
             f"with {100 * POWER:.0f} % power only effects of P >= {d:.2f}"
         )
-        strict = _detectable_at(n, m, ALPHA / family) if family > 1 else None
+        strict = _detectable_at(n, m, ALPHA / primary) if primary > 1 else None
         if strict is not None:
-            power += (
-                f", and one at the Holm family's strictest level, {ALPHA:g}/{family}, only P >= {strict:.2f}"
-            )
+            level = f"{ALPHA:g}/{primary}"
+            power += f", and one at the primary family's strictest level, {level}, only P >= {strict:.2f}"
         power += " (normal location-shift model)"
-    text = (
-        f"Design: {power}; the smallest possible p is {p_text(comps[0].smallest_p)}. "
-        f"{len(comps)} comparisons; the {family} testable ones form one Holm family, and a verdict "
-        f"says better or worse only when its Holm-adjusted p is below {ALPHA:g}."
+    families = " and ".join(f"a {name} family of {size} tests" for name, size in sizes.items())
+    return (
+        f"Design: {power}; the smallest possible p is {p_text(comps[0].smallest_p)}. Holm runs over "
+        f"{families} (fixed sizes: a test that cannot run stays in with p = 1), and a verdict says better "
+        f"or worse only when its Holm-adjusted p is below {ALPHA:g}. 'No clear difference' does not mean "
+        "no difference: read the interval."
     )
-    if not reachable(comps[0].smallest_p, family):
-        low = comps[0].smallest_p
-        held = f", times the Holm family of {family} {p_text(min(1.0, family * low))}" if family > 1 else ""
-        text += (
-            f" **These verdicts are indicative only:** with {n} and {m} seeds the smallest exact p is "
-            f"{p_text(low)}{held}, not below {ALPHA:g}; so they are read from the bootstrap interval of P "
-            "(better or worse when it excludes 0.5)."
-        )
-    return text
 
 
-def reading(a: Analysis, env: str, measures: Sequence[str] | None = None) -> list[str]:
-    """Plain sentences from the numbers (the human reading goes in docs/)."""
+def reading(a: Analysis, env: str, family: str | None = None) -> list[str]:
+    """Plain sentences from the numbers (the human reading goes in docs/); ``family``: only that one."""
     if (env, BASELINE) not in a.cells:
         return ["No uncoached condition in this experiment: no comparison is drawn."]
-    names = [m.name for m in MEASURES] if measures is None else list(measures)
     out = []
     for cond in a.conditions:
         cell, comps = a.cells.get((env, cond)), a.comparisons.get((env, cond))
         if cell is None or cond == BASELINE or not comps:
             continue
-        parts = [f"{MEASURE[n].label}: {verdict_text(comps[n])}" for n in names]
+        parts = [f"{MEASURE[n].label}: {verdict_text(c)}" for n, c in comps.items()
+                 if family is None or c.family_name == family]  # fmt: skip
         facts = [f"{cell.coach_dependent}/{len(cell.runs)} agents coach-dependent"]
         if cell.never_trained:
             facts.append(f"{cell.never_trained}/{len(cell.runs)} never trained (0 policy updates)")
@@ -301,14 +315,19 @@ def reading(a: Analysis, env: str, measures: Sequence[str] | None = None) -> lis
 HOW_TO_READ = (
     "- Every number is the interquartile mean (IQM) over seeds with its 95 % stratified bootstrap "
     "confidence interval in brackets (rliable's method, 2000 resamples).",
-    "- The paper's measures read the *training* returns, episode by episode, as the paper did. A coach's "
-    "steps count toward the env's time limit but pay the agent nothing, so a coached episode's training "
-    "return is capped at the time limit minus its coach steps (InvertedPendulum: 1000 - coach steps): a "
-    "light coach makes wins easier because episodes stay alive, a heavy one makes them impossible. The "
-    "same measures are therefore also given on the returns *with* the coach's rewards, which have no "
-    "cap. (n/N): runs that reached the target; a run that never did ranks below all that did, and the "
-    "IQM reads 'not reached' when more than a quarter of the runs never did. The paper's savings are "
-    "printed as the paper printed them; ours are recomputed from the IQMs.",
+    "- The analysis follows the pre-registered plan (docs/analysis-plan.md). **Primary** measures, one "
+    "Holm family per env: falls during training, env steps until the agent alone reaches the agent-alone "
+    "target and keeps it, and the final agent-alone score. **Secondary**, a second family: the paper's "
+    "measures counted in env episodes (and, on Hopper and Walker2d, env steps to the paper's target, "
+    "which standing still reaches). Everything else is descriptive.",
+    "- The paper's measures read the *training* returns, episode by episode, as the paper did, and are "
+    "counted in **env** episodes: under the `terminal` view every veto ends an agent episode but not the "
+    "env's, so agent episodes overstate how much a coached run experienced; the agent-episode counts are "
+    "shown beside them. A coach's steps count toward the env's time limit but pay the agent nothing, so a "
+    "coached episode's training return is capped at the time limit minus its coach steps; the returns "
+    "*with* the coach's rewards have no cap and are shown, not tested. (n/N): runs that reached the target; "
+    "a run that never did ranks below all that did, and the IQM reads 'not reached' when more than a "
+    "quarter of the runs never did. The paper's savings are printed as the paper printed them.",
     "- The honest measures read the agent alone: deterministic policy, coach off, fixed evaluation "
     "seeds, every `evaluation.every` env steps. Env steps count the coach's steps too. The agent "
     "*reaches* the target at the first evaluation from which it scores at least the target at every "
@@ -318,8 +337,9 @@ HOW_TO_READ = (
     "way at the point, or at the budget, finishes first, so an evaluation can run late and a coached "
     "run can end over its budget, by a few steps or by hundreds; the accounts table gives the largest "
     "delay per run.",
-    "- Agent-alone evaluations are not charged to the budget (for every condition alike); the env steps "
-    "they spent are listed per run in `metrics.csv` (`evaluation_env_steps`) and below.",
+    "- Agent-alone evaluations are not charged to the budget of any condition, and they do not cost the "
+    "same in every condition (an agent that falls early evaluates cheaply): the env steps they spent are "
+    "in the accounts table and per run in `metrics.csv` (`evaluation_env_steps`).",
     "- Falls during training: terminations of the real training env, whoever was acting (agent or "
     "coach). A takeover is not a fall, nor is an agent episode that a `terminal`-view takeover ended when "
     "the coach's rescue succeeded. Env resets: real resets of the training envs (a rescued env handed to "
@@ -330,11 +350,13 @@ HOW_TO_READ = (
     "with the coach over the last window reached the target while it did not alone. Never trained: "
     "the run made no policy update (PPO updates once per full rollout), so it measures the initial "
     "policy, not coaching; such a run is never called coach-dependent.",
-    "- P = probability of improvement over no coach (0.5: no difference), with the exact two-sided "
-    "Wilcoxon-Mann-Whitney p-value and its Holm adjustment over the env's comparisons. "
-    "'Not testable at this budget': every run of both conditions has the same value (for example, none "
-    "reached the target). 'Withdrawn': a verdict on training returns that the returns with the "
-    "coach's rewards do not share, so it rests only on the return cap.",
+    "- P = probability of improvement over no coach (0.5: no difference; ties count half), with its 95 % "
+    "score interval (Newcombe 2006, method 5; it does not collapse when the groups separate completely), "
+    "the exact two-sided Wilcoxon-Mann-Whitney p-value and its Holm adjustment within the family. "
+    "Saving: 1 - median(coached) / median(no coach), with its 95 % percentile bootstrap interval (10,000 "
+    "resamples); 'unbounded' where runs that never reached the target decide that end. 'Not testable "
+    "at this budget': every run of both conditions has the same value (for example, none reached the "
+    "target). 'No verdict possible': too few seeds for any p below 0.05 after Holm.",
 )
 
 FIGURE_TITLES = ("Learning curves", "Table II as bars", "Coach dependence and interventions")
@@ -357,7 +379,8 @@ def _front_matter(a: Analysis, record: Mapping[str, Any]) -> list[str]:
     """The header, the runs counted, the conditions and how to read the numbers."""
     seeds = record["identity"]["seeds"]
     scope = f"Seeds {seeds[0]}..{seeds[-1]} ({len(seeds)}); conditions {', '.join(a.conditions)}"
-    lines = report_header(f"Coaching experiment: {', '.join(a.envs)}", record, scope=scope)
+    lines = report_header(f"Coaching experiment: {', '.join(a.envs)}", record, scope=scope,
+                          notes=[plan.citation(seeds)])  # fmt: skip
     total = sum(len(c.runs) for c in a.cells.values())
     lines.append(f"Finished runs: {total} of {total + len(a.missing)}.{_wall_time(a)}")
     if a.missing:
@@ -369,12 +392,15 @@ def _front_matter(a: Analysis, record: Mapping[str, Any]) -> list[str]:
 
 
 def _honest_table(a: Analysis, env: str, cells: Sequence[CellResult]) -> str:
+    alone = a.alone_targets[env]
+    paper_target = [] if alone == a.targets[env] else [f"env steps to the paper's target {a.targets[env]:g}"]
     header = [
         "condition",
-        "env steps to target, reached and kept (agent alone)",
+        f"env steps to the agent-alone target {alone:g}, reached and kept",
+        *paper_target,
         "falls during training",
-        "agent steps to target",
-        "env steps to a first hit",
+        "agent steps to " + ("the paper's target" if paper_target else "target"),
+        "env steps to a first hit" + (" of the paper's target" if paper_target else ""),
         "final agent-alone score",
         f"training return, last {a.windows[env]} episodes",
         "return with the coach, same episodes",
@@ -382,8 +408,9 @@ def _honest_table(a: Analysis, env: str, cells: Sequence[CellResult]) -> str:
         "never trained",
         "intervention rate",
     ]
-    names = ("env_steps_to_target", "falls", "agent_steps_to_target", "first_hit_env_steps", "final_score",
-             "final_training_score", "final_coached_score")  # fmt: skip
+    names = ("env_steps_to_alone_target", *(["env_steps_to_target"] if paper_target else []), "falls",
+             "agent_steps_to_target", "first_hit_env_steps", "final_score", "final_training_score",
+             "final_coached_score")  # fmt: skip
     rows = [
         [c.condition, *(cell_metric(c, n) for n in names), f"{c.coach_dependent}/{len(c.runs)}",
          f"{c.never_trained}/{len(c.runs)}", cell_metric(c, "intervention_rate")]
@@ -402,40 +429,40 @@ def _range(cell: CellResult, name: str) -> str:
 
 
 def _accounts_table(cells: Sequence[CellResult]) -> str:
-    header = ["condition", "training episodes", "env steps per training episode", "env resets",
-              "policy updates (gradient steps)", "agent-alone evaluation env steps (not charged)",
+    header = ["condition", "training (agent) episodes", "env episodes", "env steps per training episode",
+              "env resets", "policy updates (gradient steps)",
+              "agent-alone evaluation env steps (not charged)",
               "largest evaluation delay (env steps)"]  # fmt: skip
-    names = ("episodes", "env_steps_per_episode", "env_resets", "policy_updates", "evaluation_env_steps",
-             "evaluation_delay")  # fmt: skip
+    names = ("episodes", "env_episodes", "env_steps_per_episode", "env_resets", "policy_updates",
+             "evaluation_env_steps", "evaluation_delay")  # fmt: skip
     rows = [[c.condition, *(_range(c, n) for n in names)] for c in cells]
     return markdown_table(header, rows)
 
 
-def _comparison_rows(a: Analysis, env: str, cells: Sequence[CellResult]) -> list[list[str]]:
+def _comparison_rows(a: Analysis, env: str, cells: Sequence[CellResult], family: str) -> list[list[str]]:
     rows = []
     for cell in cells:
         for name, c in a.comparisons.get((env, cell.condition), {}).items():
+            if c.family_name != family:
+                continue
             e = c.improvement
             holm_p = "-" if c.p_holm is None else p_text(c.p_holm)
             rows.append([cell.condition, MEASURE[name].label, f"{e.value:.2f} [{e.low:.2f}, {e.high:.2f}]",
-                         p_text(c.test.p_value), holm_p, c.label])  # fmt: skip
+                         saving_text(c.saving), p_text(c.test.p_value), holm_p, c.label])  # fmt: skip
     return rows
 
 
 def _improvement_section(a: Analysis, env: str, cells: Sequence[CellResult]) -> list[str]:
-    header = ["condition", "measure", "P(better than no coach) [95 % CI]", "exact p", "Holm p", "verdict"]
-    return [
-        "### Against no coach",
-        "",
-        design_note(a, env),
-        "",
-        markdown_table(header, _comparison_rows(a, env, cells)),
-        "",
-        "### In words (generated from the numbers above)",
-        "",
-        *(f"- {s}" for s in reading(a, env)),
-        "",
-    ]
+    header = ["condition", "measure", "P(better than no coach) [95 % CI]", "saving of the median [95 % CI]",
+              "exact p", "Holm p", "verdict"]  # fmt: skip
+    sizes = _family_sizes(a, env)
+    lines = ["### Against no coach", "", design_note(a, env), ""]
+    for family, title in (("primary", "Primary measures"), ("secondary", "Secondary: the paper's measures")):
+        if family in sizes:
+            lines += [f"#### {title} (Holm family of {sizes[family]})", "",
+                      markdown_table(header, _comparison_rows(a, env, cells, family)), ""]  # fmt: skip
+    words = [f"- {s}" for s in reading(a, env)]
+    return [*lines, "### In words (generated from the numbers above)", "", *words, ""]
 
 
 def budget_share(a: Analysis, env: str) -> str:
@@ -452,6 +479,16 @@ def budget_text(a: Analysis, env: str) -> str:
     return f"budget {a.budgets[env]:,} env steps per run" + (f", {share} (coach/{env}.toml)" if share else "")
 
 
+def _alone_text(a: Analysis, env: str) -> str:
+    alone = a.alone_targets[env]
+    if alone == a.targets[env]:
+        return "the agent-alone target is the same"
+    return (
+        f"the agent-alone target {alone:g} (a return that standing still cannot reach; "
+        "docs/analysis-plan.md, section 3)"
+    )
+
+
 def _env_section(a: Analysis, env: str, figures: Sequence[str]) -> list[str]:
     """One env's tables, reading and figures (nothing when no condition of it has a run)."""
     cells = [a.cells[(env, c)] for c in a.conditions if (env, c) in a.cells]
@@ -462,7 +499,8 @@ def _env_section(a: Analysis, env: str, figures: Sequence[str]) -> list[str]:
     lines = [
         f"## {env}",
         "",
-        f"Target {a.targets[env]:g}, moving-average window {a.windows[env]} episodes, {budget_text(a, env)}. "
+        f"The paper's target {a.targets[env]:g}; {_alone_text(a, env)}; moving-average window "
+        f"{a.windows[env]} episodes, {budget_text(a, env)}. "
         "Every conclusion below holds at this budget only.",
         "",
         "### The paper's measures, beside its Table II",
@@ -546,12 +584,18 @@ def metrics_rows(a: Analysis) -> list[dict[str, Any]]:
     return rows
 
 
+COMPARISON_FIELDS = ("family", "family_size", "p_improvement", "p_low", "p_high", "saving", "saving_low",
+                     "saving_high", "p_value", "p_holm", "verdict")  # fmt: skip
+
+
 def _comparison_fields(c: Comparison | None) -> dict[str, Any]:
     if c is None:
-        return dict.fromkeys(("p_improvement", "p_low", "p_high", "p_value", "p_holm", "verdict"), "")
-    e = c.improvement
-    return {"p_improvement": e.value, "p_low": e.low, "p_high": e.high, "p_value": c.test.p_value,
-            "p_holm": "" if c.p_holm is None else c.p_holm,
+        return dict.fromkeys(COMPARISON_FIELDS, "")
+    e, sv = c.improvement, c.saving
+    saving = ("", "", "") if sv is None else (sv.value, sv.low, sv.high)
+    return {"family": c.family_name, "family_size": c.family, "p_improvement": e.value, "p_low": e.low,
+            "p_high": e.high, "saving": saving[0], "saving_low": saving[1], "saving_high": saving[2],
+            "p_value": c.test.p_value, "p_holm": "" if c.p_holm is None else c.p_holm,
             "verdict": c.label}  # fmt: skip
 
 

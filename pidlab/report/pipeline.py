@@ -53,7 +53,7 @@ class PipelineFacts:
     evidence: Evidence | None = None
 
 
-EVIDENCE_METRICS = ("falls", "env_steps_to_target", "final_score")
+EVIDENCE_METRICS = ("falls", "env_steps_to_alone_target", "final_score")
 """What the choice of the coached condition rests on: falls during training, env steps until the
 agent alone reaches the target, and its final score."""
 
@@ -422,8 +422,8 @@ def agent_alone(a: Analysis, env: str) -> list[str]:
         "",
         "Deterministic policy, coach off, fixed evaluation seeds. IQM over seeds with its 95 % "
         "stratified bootstrap interval; P: probability of improvement over no coach (0.5: no difference), "
-        "with the exact two-sided Wilcoxon-Mann-Whitney p-value and its Holm adjustment over the env's "
-        "comparisons.",
+        "with its 95 % score interval, the exact two-sided Wilcoxon-Mann-Whitney p-value and its Holm "
+        "adjustment over the primary family (docs/analysis-plan.md).",
         "",
     ]
     rows = []
@@ -440,7 +440,7 @@ def agent_alone(a: Analysis, env: str) -> list[str]:
             p, exact = f"{e.value:.2f} [{e.low:.2f}, {e.high:.2f}]", p_text(c.test.p_value)
             holm = "-" if c.p_holm is None else p_text(c.p_holm)
         rows.append(
-            [cond, cell_metric(cell, "final_score"), per_seed, cell_metric(cell, "env_steps_to_target"),
+            [cond, cell_metric(cell, "final_score"), per_seed, cell_metric(cell, "env_steps_to_alone_target"),
              cell_metric(cell, "intervention_rate"), cell_metric(cell, "falls"),
              f"{cell.coach_dependent}/{len(cell.runs)}", p, exact, holm]
         )  # fmt: skip
@@ -463,7 +463,7 @@ def agent_alone(a: Analysis, env: str) -> list[str]:
         "",
         design_note(a, env),
         "",
-        *(f"- {s}" for s in reading(a, env, ("env_steps_to_target", "final_score"))),
+        *(f"- {s}" for s in reading(a, env, "primary")),
         "",
     ]
     return lines
@@ -476,19 +476,29 @@ def _estimate(row: dict[str, str] | None) -> str:
     if not row["iqm"]:
         return f"not reached ({row['reached']}/{row['runs']})"
     text = f"{float(row['iqm']):,.1f} [{float(row['ci_low']):,.1f}, {float(row['ci_high']):,.1f}]"
-    return text + (f" ({row['reached']}/{row['runs']})" if row["metric"] == "env_steps_to_target" else "")
+    counted = row["metric"] == "env_steps_to_alone_target"
+    return text + (f" ({row['reached']}/{row['runs']})" if counted else "")
+
+
+EVIDENCE_HEADING = "## 5. Why this coaching"
 
 
 def evidence_section(f: PipelineFacts) -> list[str]:
     """Why the coached runs intervene as they do: the published experiment behind the choice."""
-    cond = f.settings.condition
-    head = ["## 5. Why this coaching", ""]
-    ev = f.evidence
+    return evidence_lines(f.env_id, f.settings.condition, f.evidence)
+
+
+def evidence_lines(env_id: str, cond: str, ev: Evidence | None) -> list[str]:
+    """Section 5 of a pipeline report from the published experiment ``ev`` (Markdown lines).
+
+    A pure function of the published summary, so that ``benchmarks/recompute.py`` can check it.
+    """
+    head = [EVIDENCE_HEADING, ""]
     if ev is None:
         return [
             *head,
             f"No published experiment in docs/results compares the condition `{cond}` with `none` on "
-            f"{f.env_id}: the choice is the recipe's, not the evidence's.",
+            f"{env_id}: the choice is the recipe's, not the evidence's.",
             "",
         ]
     rows = [[c] + [_estimate(ev.rows.get((c, m))) for m in EVIDENCE_METRICS] for c in (BASELINE, cond)]
@@ -498,7 +508,7 @@ def evidence_section(f: PipelineFacts) -> list[str]:
         *head,
         f"The coached runs intervene as the condition `{cond}` (the recipe's `[pipeline]` table). The "
         f"published experiment `{ev.folder}` (in pidlab's source tree) measured it against `none` on "
-        f"{f.env_id} (IQM over its seeds with 95 % intervals):",
+        f"{env_id} (IQM over its seeds with 95 % intervals):",
         "",
         markdown_table(header, rows),
         "",
@@ -509,13 +519,13 @@ def evidence_section(f: PipelineFacts) -> list[str]:
 
 def evidence_reading(ev: Evidence, cond: str) -> str:
     """One plain sentence: what ``cond`` beat ``none`` on there, and what the coach bought."""
-    names = {"falls": "falls during training", "env_steps_to_target": "env steps until the agent alone "
+    names = {"falls": "falls during training", "env_steps_to_alone_target": "env steps until the agent alone "
              "keeps the target", "final_score": "the final agent-alone score"}  # fmt: skip
 
     def verdict(m: str) -> str:
         return ev.rows.get((cond, m), {}).get("verdict", "") or "not tested"
 
-    alone = ("env_steps_to_target", "final_score")
+    alone = ("env_steps_to_alone_target", "final_score")
     better = [names[m] for m in alone if verdict(m) == "better"]
     worse = [names[m] for m in alone if verdict(m) == "worse"]
     if better:

@@ -1,0 +1,76 @@
+"""The pre-registered analysis plan (docs/analysis-plan.md) as the reports apply it.
+
+The plan was committed before the confirmatory runs it governs (:data:`PLAN_COMMIT`); every
+report cites that commit and says whether its sweep is confirmatory (the plan's fresh seeds,
+:data:`CONFIRMATORY_SEEDS`) or a pilot. The numbers here are the plan's; ``tests/test_plan.py``
+checks that the document says the same.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+PLAN_FILE = "docs/analysis-plan.md"
+PLAN_COMMIT = "f00fabfb1e3c5a3c571ad8f09bca77b761ebdc91"
+CONFIRMATORY_SEEDS = tuple(range(100, 110))
+
+CONFIRMATORY_CONDITIONS = ("none", "paper", "rescue-terminal")
+
+BUDGETS: dict[str, int] = {
+    "InvertedPendulum-v5": 50_000,
+    "InvertedDoublePendulum-v5": 200_000,
+    "Hopper-v5": 300_000,
+    "Walker2d-v5": 1_000_000,
+}
+"""Env id -> the confirmatory budget, env steps (coach steps included)."""
+
+EVALUATION_EVERY: dict[str, int] = {
+    "InvertedPendulum-v5": 2_500,
+    "InvertedDoublePendulum-v5": 10_000,
+    "Hopper-v5": 10_000,
+    "Walker2d-v5": 10_000,
+}
+"""Env id -> env steps between agent-alone evaluations (the shipped recipes' ``evaluation.every``)."""
+
+ALONE_TARGETS: dict[str, float] = {"Hopper-v5": 1700.0, "Walker2d-v5": 2200.0}
+"""Env id -> the agent-alone (locomotion) target, where the paper's target is reached by standing."""
+
+PRIMARY = ("falls", "env_steps_to_alone_target", "final_score")
+"""The primary measures: one Holm family per env (with every coached condition's tests)."""
+
+SECONDARY = ("env_episodes_to_wins", "env_episodes_to_average")
+"""The paper's measures in env episodes (a second family; plus the paper's target in env steps
+where the agent-alone target differs from it)."""
+
+PAPER_TARGET_STEPS = "env_steps_to_target"
+
+
+def alone_target(env_id: str, win_target: float) -> float | None:
+    """The plan's agent-alone target of ``env_id`` when it differs from ``win_target`` (else None)."""
+    target = ALONE_TARGETS.get(env_id)
+    return None if target is None or target == win_target else target
+
+
+def secondary_measures(env_id: str, win_target: float) -> tuple[str, ...]:
+    """The secondary family's measures of ``env_id``."""
+    extra = (PAPER_TARGET_STEPS,) if alone_target(env_id, win_target) is not None else ()
+    return SECONDARY + extra
+
+
+def role(seeds: Sequence[int]) -> str:
+    """``confirmatory`` for a sweep on exactly the plan's fresh seeds, else ``pilot``."""
+    return "confirmatory" if tuple(sorted(seeds)) == CONFIRMATORY_SEEDS else "pilot"
+
+
+def citation(seeds: Sequence[int]) -> str:
+    """The sentence a report opens its analysis with."""
+    text = (
+        f"Analysed under the pre-registered analysis plan ({PLAN_FILE}, committed in {PLAN_COMMIT[:7]} "
+        "before the confirmatory runs)."
+    )
+    if role(seeds) == "confirmatory":
+        return text + " **Confirmatory sweep**: the plan's fresh seeds 100-109; its verdicts are the plan's."
+    return text + (
+        " **Pilot (exploratory) sweep**: these seeds are not the plan's confirmatory seeds 100-109, so its "
+        "verdicts describe these runs and confirm nothing."
+    )

@@ -1,0 +1,98 @@
+"""The analysis plan: the document, the code that applies it and the sweeps that run it agree."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from pidlab.experiment import plan
+from pidlab.rl.recipe import default_recipe_path, load_recipe
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / plan.PLAN_FILE
+
+
+def _number(text: str) -> int:
+    return int(text.replace(",", ""))
+
+
+def _table_rows(heading: str) -> list[list[str]]:
+    """The rows of the first Markdown table after ``heading`` in the plan."""
+    text = DOC.read_text()
+    section = text[text.index(heading) :]
+    rows = []
+    for line in section.splitlines()[1:]:
+        if line.startswith("|"):
+            rows.append([c.strip().strip("*") for c in line.strip("|").split("|")])
+        elif rows:
+            break
+    return rows[2:]  # header and rule
+
+
+def test_the_design_table_is_the_codes_and_the_recipes():
+    rows = _table_rows("## 2. Design")
+    assert [r[0] for r in rows] == list(plan.BUDGETS)
+    for env, budget, every, episodes in rows:
+        assert _number(budget) == plan.BUDGETS[env]
+        assert (
+            _number(every)
+            == plan.EVALUATION_EVERY[env]
+            == load_recipe(default_recipe_path(env)).evaluation.every
+        )
+        assert _number(episodes) == load_recipe(default_recipe_path(env)).evaluation.episodes
+
+
+def test_the_targets_table_is_the_codes():
+    for env, paper, alone, _ in _table_rows("## 3. Targets"):
+        win = load_recipe(default_recipe_path(env)).win.target
+        assert _number(paper) == win
+        assert _number(alone) == plan.ALONE_TARGETS.get(env, win)
+        assert (plan.alone_target(env, win) is None) == (env not in plan.ALONE_TARGETS)
+
+
+def test_the_confirmatory_sweeps_are_the_plans():
+    script = (ROOT / "benchmarks" / "evidence.sh").read_text()
+    body = script[script.index("confirm_design() {") :]
+    budgets = dict(re.findall(r"^\s+([\w-]+)\) steps=(\d+) ;;", body, re.M))
+    assert {env: int(v) for env, v in budgets.items()} == plan.BUDGETS
+    conditions, seeds = re.search(r'echo "\$1-confirm ([\w,-]+) \$steps (\d+-\d+)"', body).groups()
+    assert tuple(conditions.split(",")) == plan.CONFIRMATORY_CONDITIONS
+    low, high = map(int, seeds.split("-"))
+    assert tuple(range(low, high + 1)) == plan.CONFIRMATORY_SEEDS
+    assert "Seeds**: 100-109" in DOC.read_text()
+
+
+def test_roles_and_citation():
+    assert plan.role(range(100, 110)) == "confirmatory"
+    assert plan.role(range(10)) == "pilot" and plan.role(range(100, 105)) == "pilot"
+    assert plan.PLAN_COMMIT[:7] in plan.citation(range(100, 110)) and "Confirmatory" in plan.citation(
+        range(100, 110)
+    )
+    assert "Pilot" in plan.citation(range(3))
+
+
+def _git(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=False)
+
+
+def test_the_plan_was_committed_before_and_only_amended_since():
+    try:
+        shallow = _git("rev-parse", "--is-shallow-repository")
+    except OSError:
+        pytest.skip("git is not installed")
+    if shallow.returncode != 0:
+        pytest.skip("not a git checkout")
+    if shallow.stdout.strip() == "true":
+        pytest.skip("a shallow clone has no history to check the plan's commit in")
+    committed = _git("show", f"{plan.PLAN_COMMIT}:{plan.PLAN_FILE}")
+    assert committed.returncode == 0, f"the plan's commit {plan.PLAN_COMMIT} does not hold {plan.PLAN_FILE}"
+    # the commit introduced the plan
+    assert _git("cat-file", "-e", f"{plan.PLAN_COMMIT}^:{plan.PLAN_FILE}").returncode != 0
+    # everything above the amendments is as committed; amendments are only appended
+    head = "## Amendments"
+    then, now = committed.stdout, DOC.read_text()
+    assert now[: now.index(head)] == then[: then.index(head)]
+    assert now.startswith(then[: then.index(head) + len(head)])
