@@ -46,7 +46,10 @@ TINY: dict[str, dict[str, object]] = {
     "bounds": {"--samples": "40"},
     "analyze": {"--episodes": "1"},
 }
-PYTHON_TINY = ((re.compile(r"samples=\d+"), "samples=40"),)
+PYTHON_TINY = (
+    (re.compile(r"samples=\d+"), "samples=40"),
+    (re.compile(r'"demonstrations": \{"steps": \d+'), '"demonstrations": {"steps": 200'),  # under the tiny budget
+)
 
 
 def blocks(page: str) -> list[tuple[str, str]]:

@@ -266,6 +266,7 @@ def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | N
     where = f"condition {condition.name} on {env_id}"
     resolved = with_coaching(recipe, c.coaching, where)
     if c.coach == "none":
+        _check_couplings(resolved, None, where)
         return resolved, None, None
     path = spec_path(env_id, c.coach)
     if not exists(path):
@@ -286,7 +287,18 @@ def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | N
             spec = parse_spec(data, where)
         except SpecError as exc:
             raise ConditionError(str(exc)) from None
+    _check_couplings(resolved, spec, where)
     return resolved, spec, str(path)
+
+
+def _check_couplings(recipe: Recipe, spec: CoachSpec | None, where: str) -> None:
+    from pidlab.errors import CoachingError
+    from pidlab.rl.couplings import check_couplings
+
+    try:
+        check_couplings(recipe, spec)
+    except CoachingError as exc:
+        raise ConditionError(f"{where}: {exc}") from None
 
 
 def check_plan_arguments(

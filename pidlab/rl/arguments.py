@@ -49,6 +49,9 @@ def check_train_arguments(
             f"spec={spec.name!r}: a coach for {spec.env_id}, but the recipe is for {recipe.env_id}",
             param="spec",
         )
+    from pidlab.rl.couplings import check_couplings
+
+    check_couplings(recipe, spec)
     folder = path_argument(run_dir, "run_dir", RunDirError, what="the run's folder")
     if coach_source is not None and not isinstance(coach_source, str):
         raise RunDirError(f"coach_source={shown(coach_source)}: expected a str or None", param="coach_source")

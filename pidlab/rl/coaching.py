@@ -46,6 +46,12 @@ Schedules
     factor on the region's size (box and ellipsoid only); ``off_after``: progress from which the
     coach never intervenes. :meth:`CoachingWrapper.set_progress` (called by the trainer) moves them.
 
+Demonstrations
+    :meth:`CoachingWrapper.demonstrate` puts the wrapper in demonstration mode: each ``step()``
+    ignores the agent's action and runs one coach step with Gaussian noise on the coach's action
+    (DART); ``info["demonstration_action"]`` holds the executed action, ``info["demonstration"]``
+    is True, and the step counts as a coach step (no agent step). ``demonstrate(None)`` ends it.
+
 No coach
     ``spec=None`` gives a pass-through that only keeps the accounts (the uncoached condition
     logs exactly like the coached ones).
@@ -316,6 +322,8 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._seeded = seed is not None
         self._rescued: tuple[Any, dict[str, Any]] | None = None
         self._last_obs: Any = None
+        self._demo: tuple[float, np.random.Generator] | None = None
+        self._demo_started = False
         self._reset_counters()
         self.total_agent_steps = 0
         self.total_coach_steps = 0
@@ -364,6 +372,43 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.episode_agent_return = 0.0
         self.episode_coach_return = 0.0
         self.episode_paid_return = 0.0
+
+    def demonstrate(self, noise: float | None, seed: int = 0) -> None:
+        """Start (``noise`` >= 0, a fraction of half the action range) or end (None) demonstration mode.
+
+        Raises
+        ------
+        CoachingError
+            No coach, or a negative noise.
+        """
+        if noise is None:
+            self._demo = None
+            return
+        if self.coach is None:
+            raise CoachingError("demonstrations need a coach; this env has none (--coach none)")
+        if not (math.isfinite(noise) and noise >= 0):
+            raise CoachingError(f"demonstration noise {noise!r}: expected a finite number >= 0")
+        self._demo = (float(noise), np.random.default_rng(seed))
+        self._demo_started = False
+
+    def _demonstration_step(self) -> tuple[Any, float, bool, bool, dict]:
+        """One coach step with noise on its action, in the agent's place (demonstration mode)."""
+        coach, (noise, rng) = self.coach, self._demo or (0.0, self._rng)
+        if coach is None:  # pragma: no cover - demonstrate() refuses a wrapper without a coach
+            raise CoachingError("no coach to demonstrate")
+        if not self._demo_started or self.episode_agent_steps + self.episode_coach_steps == 0:
+            coach.reset(self._last_obs)
+            self._demo_started = True
+        space: Any = self.env.action_space
+        low, high = np.asarray(space.low, dtype=np.float64), np.asarray(space.high, dtype=np.float64)
+        action = np.asarray(coach.act(self._last_obs), dtype=float)
+        action = np.clip(action + noise * (high - low) / 2 * rng.standard_normal(action.shape), low, high)
+        executed = action.astype(space.dtype)
+        obs, reward, terminated, truncated, info = self.env.step(executed)
+        self._observe(obs)
+        run = _Run(obs, 1, float(reward), terminated, truncated, obs, float(reward), info)
+        info = {**info, "demonstration": True, "demonstration_action": executed}
+        return self._finish(obs, float(reward), terminated, truncated, info, 0.0, run, demonstration=True)
 
     def set_progress(self, progress: float) -> None:
         """Training progress in [0, 1] (fraction of the budget spent), read by the schedules."""
@@ -454,6 +499,8 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         """One agent step, then the coach's steps if the trigger fired (or the coach's, if vetoed)."""
         self._rescued = None  # a step after a terminal-view takeover without a reset: the env went on
+        if self._demo is not None:
+            return self._demonstration_step()
         if self._predictor is not None:
             if self._vetoed(action):
                 self._predictor.discard()
@@ -501,11 +548,11 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _finish(
         self, obs: Any, paid: float, terminated: bool, truncated: bool, info: dict[str, Any],
         agent_reward: float, run: _Run | None, vetoed: bool = False, env_end: bool | None = None,
-        fell: bool | None = None,
+        fell: bool | None = None, demonstration: bool = False,
     ) -> tuple[Any, float, bool, bool, dict]:  # fmt: skip
-        """Keep the accounts of one agent step and report them in ``info``."""
+        """Keep the accounts of one agent step (or demonstration step) and report them in ``info``."""
         coach_steps, coach_reward = (run.steps, run.reward) if run is not None else (0, 0.0)
-        if run is not None:
+        if run is not None and not demonstration:
             self.episode_interventions += 1
             self.total_interventions += 1
         self.episode_coach_steps += coach_steps
@@ -522,7 +569,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             "agent_reward": agent_reward,
             "coach_reward": coach_reward,
             "coach_steps": coach_steps,
-            "intervened": run is not None,
+            "intervened": run is not None and not demonstration,
             "vetoed": vetoed,
             "env_ended": env_end,
             "fell": fell,

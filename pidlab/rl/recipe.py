@@ -151,6 +151,39 @@ class Evaluation:
 
 
 @dataclass(frozen=True)
+class Demonstrations:
+    """Coach demonstrations at the start of a run (:mod:`pidlab.rl.demonstrations`).
+
+    Attributes
+    ----------
+    steps : int
+        Env steps the coach acts alone before the agent's first action (charged to the budget).
+    noise : float
+        Standard deviation of the Gaussian noise added to each coach action (DART), as a fraction
+        of half the actuator's range; the noisy action is the one executed and recorded.
+    """
+
+    steps: int
+    noise: float = 0.1
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """Behaviour cloning of the agent on the demonstrations before RL (:mod:`pidlab.rl.cloning`).
+
+    Attributes
+    ----------
+    epochs : int
+        Passes over the demonstrations for the policy (and for the critic).
+    critic : bool
+        Also fit the value function to the demonstrations' discounted returns (PPO).
+    """
+
+    epochs: int = 30
+    critic: bool = True
+
+
+@dataclass(frozen=True)
 class Coaching:
     """How the coach intervenes (see :class:`pidlab.rl.coaching.CoachingWrapper`).
 
@@ -170,6 +203,8 @@ class Coaching:
     view: str = "hidden"
     cost: float | None = None
     handback: float = 1.0
+    demonstrations: Demonstrations | None = None
+    warm_start: WarmStart | None = None
 
 
 @dataclass(frozen=True)
@@ -515,7 +550,7 @@ def check_rollout(kwargs: dict[str, Any], n_envs: int, where: str, param: str | 
 
 
 _COACHING = {"mode", "region", "nudge_steps", "max_coach_steps", "reward", "probability", "width",
-             "off_after", "trigger", "view", "cost", "handback"}  # fmt: skip
+             "off_after", "trigger", "view", "cost", "handback", "demonstrations", "warm_start"}  # fmt: skip
 
 
 def _coaching(data: dict[str, Any], where: str) -> Coaching:
@@ -562,7 +597,32 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
         view=view,
         cost=_num(c, "cost", w, low=0.0) if "cost" in c else None,
         handback=_num(c, "handback", w, 1.0, low=0.0, low_open=True, high=1.0),
+        **_teaching(c, w),
     )
+
+
+def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
+    """``[coaching] demonstrations`` and ``warm_start`` (a warm start needs demonstrations)."""
+    out: dict[str, Any] = {"demonstrations": None, "warm_start": None}
+    if "demonstrations" in c:
+        d = _table(c, "demonstrations", w, {"steps", "noise"})
+        where = f"{w}.demonstrations"
+        if "steps" not in d:
+            raise RecipeError(f"{where}.steps: missing; the env steps the coach demonstrates, e.g. 5000")
+        steps = _int(d, "steps", where, low=1, high=10**9)
+        noise = _num(d, "noise", where, 0.1, low=0.0, high=10.0)
+        out["demonstrations"] = Demonstrations(steps=steps, noise=noise)
+    if "warm_start" in c:
+        t = _table(c, "warm_start", w, {"epochs", "critic"})
+        if out["demonstrations"] is None:
+            raise RecipeError(
+                f"{w}.warm_start: a warm start clones the coach's demonstrations, and there are none; "
+                f"add {w}.demonstrations = {{ steps = N }}"
+            )
+        critic = _bool(t["critic"], f"{w}.warm_start.critic") if "critic" in t else True
+        epochs = _int(t, "epochs", f"{w}.warm_start", 30, low=1, high=10**5)
+        out["warm_start"] = WarmStart(epochs=epochs, critic=critic)
+    return out
 
 
 def _region(
@@ -939,6 +999,10 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
         coaching["view"] = c.view
     if c.cost is not None:
         coaching["cost"] = c.cost
+    if c.demonstrations is not None:
+        coaching["demonstrations"] = {"steps": c.demonstrations.steps, "noise": c.demonstrations.noise}
+    if c.warm_start is not None:
+        coaching["warm_start"] = {"epochs": c.warm_start.epochs, "critic": c.warm_start.critic}
     out: dict[str, Any] = {
         "schema": RECIPE_SCHEMA,
         "env_id": recipe.env_id,

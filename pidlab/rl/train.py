@@ -63,6 +63,7 @@ from pidlab.rl.checkpoint import (
     short_reason,
 )
 from pidlab.rl.coaching import CoachingWrapper
+from pidlab.rl.couplings import couplings_of
 from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, evaluation_envs, sb3_policy
 from pidlab.rl.recipe import LINEAR_SCHEDULES, Recipe, recipe_to_dict
 from pidlab.rl.rundir import (
@@ -437,6 +438,7 @@ class _Trainer:
     sb3_logger: Any = None
     eval_envs: list[Any] = field(default_factory=list)
     moving: bool = False
+    envs_running: bool = False  # a coupling stepped the envs: learning goes on without resetting them
     _progress_tick: int = -1
 
     # -- setup
@@ -468,18 +470,22 @@ class _Trainer:
 
     # -- SB3 hooks
     def on_start(self) -> None:
-        # SB3 resets every training env when learning starts (a new run, or new envs on resume)
-        self.counters.env_resets += self.recipe.n_envs
+        # SB3 resets every training env when learning starts (a new run, or new envs on resume),
+        # unless a coupling left them running
+        if not self.envs_running:
+            self.counters.env_resets += self.recipe.n_envs
         if self.counters.evaluations == 0:
             self.evaluate()
         self._set_progress(force=True)
         self._bar_update()
 
-    def on_step(self, infos: list[dict[str, Any]]) -> bool:
+    def on_step(self, infos: list[dict[str, Any]], evaluating: bool = True) -> bool:
+        """Count one step of every env; evaluate when a grid point is due (and ``evaluating``)."""
         c = self.counters
         for i, info in enumerate(infos):
             coach_steps = int(info.get("coach_steps", 0))
-            agent = 0 if info.get("vetoed", False) else 1  # a vetoed action ran no env step
+            # a vetoed action ran no env step; a demonstration step is the coach's
+            agent = 0 if info.get("vetoed", False) or info.get("demonstration", False) else 1
             c.agent_steps += agent
             c.coach_steps += coach_steps
             c.env_steps += agent + coach_steps
@@ -492,7 +498,7 @@ class _Trainer:
             if episode is not None:
                 self.log_episode(i, episode)
         self._set_progress()
-        if c.env_steps >= c.next_evaluation:
+        if evaluating and c.env_steps >= c.next_evaluation:
             self.evaluate()
         self._bar_update()
         if self.stop is not None and self.stop.requested:
@@ -853,7 +859,11 @@ def _run(
         _set_counters(trainer, state)
         _count_policy_updates(model, c)
         model.set_logger(trainer.sb3_logger)
-        stopped = _learn(trainer, resumed=state is not None) if c.env_steps < recipe.steps else False
+        if state is None:
+            for coupling in couplings_of(recipe, spec):
+                coupling.before_learning(trainer)
+        going_on = state is not None or trainer.envs_running
+        stopped = _learn(trainer, resumed=going_on) if c.env_steps < recipe.steps else False
         completed = not stopped and c.env_steps >= recipe.steps
         final: dict[str, str] = {}
         if completed:
