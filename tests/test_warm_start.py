@@ -198,3 +198,36 @@ def test_a_cloned_pendulum_balances_alone_before_any_rl_update(tmp_path: Path) -
     after = next(e for e in evals if int(e["env_steps_so_far"]) == 5000)
     assert int(after["agent_steps_so_far"]) == 0
     assert float(after["mean_length"]) == 1000.0 and float(after["mean_return"]) == 1000.0
+
+
+def test_sigterm_during_the_demonstrations_stops_after_the_warm_start(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from pidlab.rl.train import resume
+
+    coaching = {"demonstrations": {"steps": 40000, "noise": 0.1}, "warm_start": {"epochs": 1}}
+    path = _recipe_file(tmp_path, 41000, coaching, every=100000)
+    run = tmp_path / "run"
+    pidlab = str(Path(sys.executable).parent / "pidlab")
+    cmd = [pidlab, "train", IP, "--coach", "pidlab-rescue", "--recipe", str(path), "--run-dir", str(run),
+           "--no-progress"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        if (run / "episodes.csv").exists() and len(_rows(run / "episodes.csv")) >= 2:  # demonstrating
+            proc.send_signal(signal.SIGTERM)
+            break
+        time.sleep(0.02)
+    proc.wait(timeout=120)
+    assert proc.returncode == 130, proc.stderr.read() if proc.stderr else ""
+    s = json.loads((run / "summary.json").read_text())
+    # the demonstrations were finished, cloned and checkpointed; the agent never acted
+    assert not s["completed"] and s["coach_steps"] == 40000 and s["agent_steps"] == 0
+    assert (run / "warm_start.json").exists()
+    before = (run / demo.FILE).read_bytes()
+    done = resume(run, progress_bar=False)
+    assert done.completed and done.coach_steps == 40000 and done.agent_steps >= 1000
+    assert (run / demo.FILE).read_bytes() == before

@@ -859,11 +859,7 @@ def _run(
         _set_counters(trainer, state)
         _count_policy_updates(model, c)
         model.set_logger(trainer.sb3_logger)
-        if state is None:
-            for coupling in couplings_of(recipe, spec):
-                coupling.before_learning(trainer)
-        going_on = state is not None or trainer.envs_running
-        stopped = _learn(trainer, resumed=going_on) if c.env_steps < recipe.steps else False
+        stopped = _learn(trainer, resumed=state is not None) if c.env_steps < recipe.steps else False
         completed = not stopped and c.env_steps >= recipe.steps
         final: dict[str, str] = {}
         if completed:
@@ -944,7 +940,12 @@ def _derive_env_counters(trainer: _Trainer, state: dict[str, int]) -> None:
 
 
 def _learn(trainer: _Trainer, resumed: bool) -> bool:
-    """Train until the budget is spent or a signal stops it; True when stopped by a signal."""
+    """Train until the budget is spent or a signal stops it; True when stopped by a signal.
+
+    A new run first calls its couplings (:func:`pidlab.rl.couplings.couplings_of`) under the same
+    signal handler and progress bar; a stop asked for meanwhile takes effect once they are done
+    (they end with a checkpoint).
+    """
     from tqdm.auto import tqdm
 
     recipe, spec, c, model = trainer.recipe, trainer.spec, trainer.counters, trainer.model
@@ -962,10 +963,15 @@ def _learn(trainer: _Trainer, resumed: bool) -> bool:
     ):
         trainer.stop = stop
         trainer.bar = bar
+        if not resumed:
+            for coupling in couplings_of(recipe, spec):
+                coupling.before_learning(trainer)
+        if stop.requested:
+            return True
         model.learn(
             total_timesteps=max(recipe.steps - int(model.num_timesteps), 1),
             callback=_make_callback(trainer),
-            reset_num_timesteps=not resumed,
+            reset_num_timesteps=not (resumed or trainer.envs_running),
             progress_bar=False,
         )
         return stop.requested
