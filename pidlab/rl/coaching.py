@@ -46,6 +46,13 @@ Schedules
     factor on the region's size (box and ellipsoid only); ``off_after``: progress from which the
     coach never intervenes. :meth:`CoachingWrapper.set_progress` (called by the trainer) moves them.
 
+Blend
+    ``blend(progress)``: the coach's weight ``w`` in the executed action. Each agent action ``a``
+    runs as ``clip(w * coach(s) + (1 - w) * a)`` (a second instance of the coach acts at every
+    agent step, so its filters follow the episode); ``info["executed_action"]`` and
+    ``info["blend_weight"]`` report it. The agent's transition holds its own sample ``a``; the
+    blend is part of the environment it learns in, which becomes its own as ``w`` fades to 0.
+
 Demonstrations
     :meth:`CoachingWrapper.demonstrate` puts the wrapper in demonstration mode: each ``step()``
     ignores the agent's action and runs one coach step with Gaussian noise on the coach's action
@@ -285,6 +292,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         view: str = "hidden",
         cost: float | None = None,
         handback: float = 1.0,
+        blend: ProgressFn | None = None,
     ) -> None:
         instance(env, gym.Env, "env", CoachingError)
         if spec is not None:
@@ -293,6 +301,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self, spec=spec, mode=mode, region=region, trigger=trigger, nudge_steps=nudge_steps,
             max_coach_steps=max_coach_steps, reward=reward, probability=probability, width=width,
             off_after=off_after, loaded=loaded, seed=seed, view=view, cost=cost, handback=handback,
+            blend=blend,
         )  # fmt: skip
         gym.Wrapper.__init__(self, env)
         _check_options(mode, reward, nudge_steps, max_coach_steps, trigger, view, cost, handback)
@@ -324,6 +333,12 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._last_obs: Any = None
         self._demo: tuple[float, np.random.Generator] | None = None
         self._demo_started = False
+        self.blend = blend
+        self._blend_coach: Coach | None = None
+        if blend is not None:
+            if spec is None:
+                raise CoachingError("blend: blending the coach's action needs a coach; this env has none")
+            self._blend_coach = Coach(spec, self.loaded)
         self._reset_counters()
         self.total_agent_steps = 0
         self.total_coach_steps = 0
@@ -444,6 +459,8 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._reset_counters()
         self._history.clear()
         self._observe(obs)
+        if self._blend_coach is not None:
+            self._blend_coach.reset(obs)
         return obs, info
 
     def _observe(self, obs: np.ndarray) -> None:
@@ -501,6 +518,29 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._rescued = None  # a step after a terminal-view takeover without a reset: the env went on
         if self._demo is not None:
             return self._demonstration_step()
+        blended = self._blended(action)
+        if blended is not None:
+            return self._with_blend(self._agent_step(blended[0]), blended)
+        return self._agent_step(action)
+
+    def _blended(self, action: Any) -> tuple[Any, float] | None:
+        """The executed action ``clip(w coach + (1 - w) action)`` and ``w`` (None: no blend)."""
+        if self._blend_coach is None or self.blend is None:
+            return None
+        coach_action = np.asarray(self._blend_coach.act(self._last_obs), dtype=np.float64)
+        w = float(min(max(self.blend(self.progress), 0.0), 1.0))
+        space: Any = self.env.action_space
+        mixed = w * coach_action + (1.0 - w) * np.asarray(action, dtype=np.float64)
+        return np.clip(mixed, space.low, space.high).astype(space.dtype), w
+
+    @staticmethod
+    def _with_blend(out: tuple[Any, float, bool, bool, dict], blended: tuple[Any, float]) -> tuple:
+        obs, reward, terminated, truncated, info = out
+        info["executed_action"], info["blend_weight"] = blended
+        return obs, reward, terminated, truncated, info
+
+    def _agent_step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        """The agent's (possibly blended) action, then the coach's steps if the trigger fired."""
         if self._predictor is not None:
             if self._vetoed(action):
                 self._predictor.discard()

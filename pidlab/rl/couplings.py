@@ -102,12 +102,14 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
     Raises
     ------
     CoachingError
-        Demonstrations without a coach, or as long as the budget; a warm start with an algorithm
-        other than PPO.
+        Demonstrations or a blend without a coach; demonstrations as long as the budget; a warm
+        start with an algorithm other than PPO.
     """
     from pidlab.errors import CoachingError
 
     c = recipe.coaching
+    if c.blend is not None and spec is None:
+        raise CoachingError("coaching.blend: blending the coach's action needs a coach; this run has none")
     if c.demonstrations is None:
         return
     if spec is None:

@@ -205,6 +205,7 @@ class Coaching:
     handback: float = 1.0
     demonstrations: Demonstrations | None = None
     warm_start: WarmStart | None = None
+    blend: Schedule | None = None
 
 
 @dataclass(frozen=True)
@@ -550,7 +551,8 @@ def check_rollout(kwargs: dict[str, Any], n_envs: int, where: str, param: str | 
 
 
 _COACHING = {"mode", "region", "nudge_steps", "max_coach_steps", "reward", "probability", "width",
-             "off_after", "trigger", "view", "cost", "handback", "demonstrations", "warm_start"}  # fmt: skip
+             "off_after", "trigger", "view", "cost", "handback", "demonstrations", "warm_start",
+             "blend"}  # fmt: skip
 
 
 def _coaching(data: dict[str, Any], where: str) -> Coaching:
@@ -601,9 +603,27 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
     )
 
 
+def _blend(c: dict[str, Any], w: str) -> Schedule | None:
+    """``[coaching] blend``: the coach's weight in the executed action, fading to 0 by the end."""
+    if "blend" not in c:
+        return None
+    try:
+        blend = parse_schedule(c["blend"], f"{w}.blend")
+    except ScheduleError as exc:
+        raise RecipeError(str(exc)) from None
+    if blend.start > 1 or blend.end > 1:
+        raise RecipeError(f"{w}.blend: the coach's weight cannot exceed 1; expected start and end in [0, 1]")
+    if blend(1.0) != 0.0:
+        raise RecipeError(
+            f"{w}.blend: the coach's weight must fade to 0 by the end of the budget, so that the agent ends "
+            "up acting alone; expected end = 0 (and finish <= 1)"
+        )
+    return blend
+
+
 def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
     """``[coaching] demonstrations`` and ``warm_start`` (a warm start needs demonstrations)."""
-    out: dict[str, Any] = {"demonstrations": None, "warm_start": None}
+    out: dict[str, Any] = {"demonstrations": None, "warm_start": None, "blend": _blend(c, w)}
     if "demonstrations" in c:
         d = _table(c, "demonstrations", w, {"steps", "noise"})
         where = f"{w}.demonstrations"
@@ -1003,6 +1023,8 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
         coaching["demonstrations"] = {"steps": c.demonstrations.steps, "noise": c.demonstrations.noise}
     if c.warm_start is not None:
         coaching["warm_start"] = {"epochs": c.warm_start.epochs, "critic": c.warm_start.critic}
+    if c.blend is not None:
+        coaching["blend"] = schedule_to_dict(c.blend)
     out: dict[str, Any] = {
         "schema": RECIPE_SCHEMA,
         "env_id": recipe.env_id,

@@ -187,6 +187,7 @@ class EnvFactory:
             view=c.view,
             cost=c.cost,
             handback=c.handback,
+            blend=c.blend if self.spec is not None else None,
         )
         return Monitor(wrapped)
 
@@ -195,6 +196,7 @@ def _schedules_move(recipe: Recipe, spec: CoachSpec | None) -> bool:
     c = recipe.coaching
     return spec is not None and (
         c.probability.shape != "constant" or c.width.shape != "constant" or c.off_after is not None
+        or c.blend is not None
     )
 
 
