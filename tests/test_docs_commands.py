@@ -205,7 +205,7 @@ def test_pages_have_commands_and_only_known_ones():
                 ), f"{page}: {command!r} is neither a pidlab command nor one of the two scripts"
     assert any("bash scripts/main.sh" in t for _, t in blocks("README.md"))
     assert any("bash scripts/test.sh" in t for _, t in blocks("README.md"))
-    assert len(PAGES) == 5
+    assert len(PAGES) == 6
 
 
 def test_tiny_rewrites():

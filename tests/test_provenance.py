@@ -49,9 +49,13 @@ PUBLISHED = sorted((ROOT / "docs" / "results").glob("*/experiment.json"))
 RECIPES_THEN = ROOT / "tests" / "data" / "legacy" / "recipes"
 
 
-def recipes_then(envs: list[str]) -> list[str]:
+RECIPES_BEFORE_PLAN = ROOT / "tests" / "data" / "legacy" / "recipes-before-plan"
+"""The recipes as shipped before the analysis plan refined the evaluation grid (commit f00fabf^)."""
+
+
+def recipes_then(envs: list[str], folder: Path = RECIPES_THEN) -> list[str]:
     """The recipes of ``envs`` as shipped then."""
-    return [str(RECIPES_THEN / f"{env}.toml") for env in envs]
+    return [str(folder / f"{env}.toml") for env in envs]
 ARGV = ["pidlab", "test"]
 
 
@@ -87,8 +91,9 @@ def test_published_experiments_plan_to_their_recorded_identity(tmp_path, path):
     """`pidlab experiment` with a published experiment's own command and recipes still accepts its folder.
 
     The experiments published before the recipes vectorized PPO ran with the recipes of
-    tests/data/legacy; the later ones with the shipped recipes, and a conditions file of their
-    command (a path in pidlab's tree).
+    tests/data/legacy/recipes; those published before the analysis plan refined the evaluation grid
+    with tests/data/legacy/recipes-before-plan; the later ones with the shipped recipes, and a
+    conditions file of their command (a path in pidlab's tree).
     """
     record = read_json(path)
     ident, command = record["identity"], record["command"]
@@ -103,8 +108,9 @@ def test_published_experiments_plan_to_their_recorded_identity(tmp_path, path):
     args = (ident["envs"], ident["conditions"], ident["seeds"], out)
     p = plan(*args, **kw)
     legacy = p.identity() != ident
-    if legacy:
-        p = plan(*args, recipe_files=recipes_then(ident["envs"]), **kw)
+    for folder in (RECIPES_BEFORE_PLAN, RECIPES_THEN):
+        if p.identity() != ident:
+            p = plan(*args, recipe_files=recipes_then(ident["envs"], folder), **kw)
     assert p.identity() == ident
     out.mkdir()
     shutil.copy(path, out / "experiment.json")
