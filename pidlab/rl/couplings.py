@@ -26,7 +26,7 @@ from typing import Any, Protocol
 
 from pidlab.controller.spec import CoachSpec
 from pidlab.files import write_json
-from pidlab.rl.recipe import Demonstrations, Recipe, WarmStart
+from pidlab.rl.recipe import DemonstrationSettings, Recipe, WarmStart
 
 RECORD = "warm_start.json"
 
@@ -42,7 +42,7 @@ class Coupling(Protocol):
 class WarmStartCoupling:
     """Coach demonstrations and, optionally, behaviour cloning on them (see the module docstring)."""
 
-    demonstrations: Demonstrations
+    demonstrations: DemonstrationSettings
     warm_start: WarmStart | None
 
     def before_learning(self, trainer: Any) -> None:

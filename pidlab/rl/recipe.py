@@ -151,7 +151,7 @@ class Evaluation:
 
 
 @dataclass(frozen=True)
-class Demonstrations:
+class DemonstrationSettings:
     """Coach demonstrations at the start of a run (:mod:`pidlab.rl.demonstrations`).
 
     Attributes
@@ -203,7 +203,7 @@ class Coaching:
     view: str = "hidden"
     cost: float | None = None
     handback: float = 1.0
-    demonstrations: Demonstrations | None = None
+    demonstrations: DemonstrationSettings | None = None
     warm_start: WarmStart | None = None
     blend: Schedule | None = None
 
@@ -631,7 +631,7 @@ def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
             raise RecipeError(f"{where}.steps: missing; the env steps the coach demonstrates, e.g. 5000")
         steps = _int(d, "steps", where, low=1, high=10**9)
         noise = _num(d, "noise", where, 0.1, low=0.0, high=10.0)
-        out["demonstrations"] = Demonstrations(steps=steps, noise=noise)
+        out["demonstrations"] = DemonstrationSettings(steps=steps, noise=noise)
     if "warm_start" in c:
         t = _table(c, "warm_start", w, {"epochs", "critic"})
         if out["demonstrations"] is None:
