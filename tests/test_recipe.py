@@ -96,7 +96,6 @@ def base() -> dict:
         ({"coaching": {"handback": 1.5}}, "coaching.handback = 1.5: expected a finite number in (0, 1]"),
         ({"coaching": {"trigger": "later"}}, "coaching.trigger = 'later': expected one of exit, predictive"),
         ({"coaching": {"trigger": 3}}, "coaching.trigger = 3: expected one of exit, predictive"),
-        ({"coaching": {"trigger": "predictive", "mode": "nudge"}}, "'predictive' needs mode = 'takeover'"),
         ({"coaching": {"trigger": "predictive", "region": "box"}}, "expected region = 'rescue'"),
         ({"coaching": {"region": "rescue", "width": {"shape": "linear", "start": 1.0, "end": 2.0}}},
          "coaching.width: a rescue region (a lookup grid) cannot be scaled"),

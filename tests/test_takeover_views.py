@@ -346,7 +346,6 @@ def test_refusals(narrow, wide):
         CoachingWrapper(gym.make(IP), narrow[IP], region="rescue", width=Schedule("linear", 1.0, 2.0))
     CoachingWrapper(gym.make(IP), narrow[IP], region="rescue", width=Schedule("constant", 1.0, 1.0))
     for kw, message in [
-        ({"trigger": "predictive", "mode": "nudge"}, "needs mode = takeover"),
         ({"trigger": "predictive", "region": "box"}, "tests the rescue region"),
         ({"view": "peek"}, "view 'peek': expected one of hidden, penalty, terminal"),
         ({"view": "penalty", "cost": -1.0}, "cost -1.0: expected a finite number >= 0"),

@@ -248,8 +248,10 @@ def test_a_run_written_before_the_provenance_module_resumes(tmp_path):
     assert new["resumes"][1]["budget_env_steps"] == 600 and all("time" not in r for r in new["resumes"])
 
 
-def test_a_run_logged_before_env_episodes_were_counted_resumes_and_derives_them(tmp_path):
-    """episodes.csv without env_end/fell and state.json without the env counters: upgraded on resume."""
+@pytest.mark.parametrize("cut", [4, 2])
+def test_a_run_logged_before_env_episodes_were_counted_resumes_and_derives_them(tmp_path, cut):
+    """episodes.csv without env_end/fell (cut 4) or without the runs (cut 2), and state.json without
+    the env counters: upgraded on resume."""
     import json
 
     from pidlab.rl.rundir import EPISODE_COLUMNS, LEGACY_EPISODE_COLUMNS
@@ -260,7 +262,7 @@ def test_a_run_logged_before_env_episodes_were_counted_resumes_and_derives_them(
     train(load_recipe(path), None, run, progress_bar=False)
     lines = (run / "episodes.csv").read_text().splitlines()
     assert lines[0] == ",".join(EPISODE_COLUMNS)
-    (run / "episodes.csv").write_text("".join(",".join(line.split(",")[:-2]) + "\n" for line in lines))
+    (run / "episodes.csv").write_text("".join(",".join(line.split(",")[:-cut]) + "\n" for line in lines))
     state_file = latest_checkpoint(run) / "state.json"
     state = json.loads(state_file.read_text())
     state_file.write_text(
@@ -274,6 +276,9 @@ def test_a_run_logged_before_env_episodes_were_counted_resumes_and_derives_them(
         != ",".join(LEGACY_EPISODE_COLUMNS)
     )
     assert all(r["env_end"] == "1" and r["fell"] == r["terminated"] for r in eps)  # no terminal view then
+    kept = [r for r in eps if r["runs"] == "nan"]  # the episodes before the checkpoint: runs unknown
+    assert kept and all(r["longest_run"] == "nan" for r in kept)
+    assert all(r["runs"] == "1" for r in eps[len(kept):])  # no coach: one run per episode
     s = read_json(run / "summary.json")
     assert s["falls"] == sum(int(r["terminated"]) for r in eps)
     assert s["env_episodes"] == len(eps) and s["env_resets"] == len(eps) + 2  # one env, two sessions

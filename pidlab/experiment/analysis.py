@@ -148,6 +148,8 @@ METRICS: dict[str, tuple[bool, bool]] = {
     "env_episodes_to_average": (True, True),
     "env_steps_to_alone_target": (True, True),
     "env_episodes": (False, False),
+    "mean_run_length": (False, False),
+    "wall_s_to_alone_target": (True, False),  # inf: not reached; None: not logged
 }
 
 
@@ -293,7 +295,28 @@ def read_logs(run_dir: Path, summary: Any) -> RunLogs:
         falls=_falls(summary, episodes),
         env_resets=_env_resets(run_dir, summary, episodes),
         env_episodes_ended=_env_episodes_ended(episodes),
+        episode_agent_steps=np.array([float(r["agent_steps"]) for r in episodes]),
+        episode_runs=np.array([_number(r.get("runs")) for r in episodes]),
+        eval_wall_s=_wall_clock(run_dir, evals),
     )
+
+
+def _number(text: str | None) -> float:
+    """A logged number, ``nan`` when missing or not a number."""
+    try:
+        return float(text) if text else float("nan")
+    except ValueError:
+        return float("nan")
+
+
+def _wall_clock(run_dir: Path, evals: list[dict[str, str]]) -> np.ndarray:
+    """``timing.csv``'s wall-clock seconds at each evaluation's env step (``nan`` where not logged)."""
+    at: dict[int, float] = {}
+    for row in read_csv_rows(run_dir / "timing.csv"):
+        step, wall = _number(row.get("env_steps_so_far")), _number(row.get("wall_s"))
+        if np.isfinite(step) and np.isfinite(wall):
+            at[int(step)] = wall
+    return np.array([at.get(int(r["env_steps_so_far"]), float("nan")) for r in evals])
 
 
 def _env_episodes_ended(episodes: list[dict[str, str]]) -> np.ndarray | None:

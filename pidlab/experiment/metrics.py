@@ -209,6 +209,12 @@ class RunLogs:
     env_episodes_ended : ndarray or None
         Env episodes ended so far at the end of each training episode (None: every training
         episode ended its env's episode, as before the ``terminal`` view).
+    episode_agent_steps : ndarray or None
+        Agent steps of each training episode (None: not read).
+    episode_runs : ndarray or None
+        The agent's uninterrupted runs in each training episode (``nan``: not logged).
+    eval_wall_s : ndarray or None
+        Wall-clock seconds since the run started at each evaluation (``nan``: not logged).
     """
 
     returns: np.ndarray
@@ -226,6 +232,9 @@ class RunLogs:
     falls: int | None = None
     env_resets: int | None = None
     env_episodes_ended: np.ndarray | None = None
+    episode_agent_steps: np.ndarray | None = None
+    episode_runs: np.ndarray | None = None
+    eval_wall_s: np.ndarray | None = None
 
     @property
     def env_episode_counts(self) -> np.ndarray:
@@ -296,6 +305,14 @@ class RunMetrics:
         (:attr:`Rule.agent_target`; the win target on the pendulums).
     env_episodes : int or None
         Env episodes that ended during training.
+    mean_run_length : float or None
+        The agent's mean uninterrupted run, agent actions: its steps over its runs, in the training
+        episodes that logged runs (None: none did). A takeover or veto ends a run, and so does an
+        episode's end.
+    wall_s_to_alone_target : float or None
+        Wall-clock seconds since the run started (demonstrations, cloning and evaluations included)
+        at the evaluation of ``env_steps_to_alone_target`` (``inf``: not reached; None: the run did
+        not log its timing).
     """
 
     episodes_to_wins: int | None
@@ -325,6 +342,8 @@ class RunMetrics:
     env_episodes_to_average: int | None = None
     env_steps_to_alone_target: float | None = None
     env_episodes: int | None = None
+    mean_run_length: float | None = None
+    wall_s_to_alone_target: float | None = None
 
 
 def _tail_mean(values: np.ndarray, window: int) -> float:
@@ -339,6 +358,36 @@ def _at(values: np.ndarray, index: int | None) -> float | None:
 def _env_episodes_at(logs: RunLogs, episode: int | None) -> int | None:
     """Env episodes ended by the end of training episode ``episode`` (1-based; None stays None)."""
     return None if episode is None else int(logs.env_episode_counts[episode - 1])
+
+
+def mean_run_length(agent_steps: np.ndarray | None, runs: np.ndarray | None) -> float | None:
+    """Agent steps per uninterrupted run over the episodes whose runs are known (None: none are).
+
+    Parameters
+    ----------
+    agent_steps, runs : ndarray, shape (n_episodes,)
+        Per training episode; ``runs`` is ``nan`` where the log did not record it.
+
+    Examples
+    --------
+    >>> mean_run_length(np.array([6.0, 4.0, 9.0]), np.array([2.0, 3.0, np.nan]))
+    2.0
+    """
+    if agent_steps is None or runs is None:
+        return None
+    known = np.isfinite(runs)
+    total = float(np.sum(runs[known]))
+    return float(np.sum(agent_steps[known])) / total if total > 0 else None
+
+
+def _wall_at(logs: RunLogs, index: int | None) -> float | None:
+    """Wall-clock seconds at evaluation ``index`` (``inf``: never reached; None: not logged)."""
+    wall = logs.eval_wall_s
+    if wall is None or not np.any(np.isfinite(wall)):
+        return None
+    if index is None:
+        return float("inf")
+    return float(wall[index]) if np.isfinite(wall[index]) else None
 
 
 def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
@@ -362,6 +411,7 @@ def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
     trained = logs.policy_updates is None or logs.policy_updates > 0
     target, with_coach = rule.target, logs.coached_returns
     dependent = trained and logs.coach_steps > 0 and coached >= target and not final >= target
+    alone = sustained_hit(logs.eval_means, rule.agent_target)
     return RunMetrics(
         episodes_to_wins=wins,
         episodes_to_average=average,
@@ -388,6 +438,8 @@ def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
         env_resets=logs.env_resets,
         env_episodes_to_wins=_env_episodes_at(logs, wins),
         env_episodes_to_average=_env_episodes_at(logs, average),
-        env_steps_to_alone_target=_at(grid, sustained_hit(logs.eval_means, rule.agent_target)),
+        env_steps_to_alone_target=_at(grid, alone),
         env_episodes=int(logs.env_episode_counts[-1]) if len(logs.returns) else 0,
+        mean_run_length=mean_run_length(logs.episode_agent_steps, logs.episode_runs),
+        wall_s_to_alone_target=_wall_at(logs, alone),
     )

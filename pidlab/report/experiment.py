@@ -50,6 +50,8 @@ UNITS = {
     "env_episodes_to_average": "env episodes",
     "env_steps_to_alone_target": "env steps",
     "env_episodes": "env episodes",
+    "mean_run_length": "agent actions",
+    "wall_s_to_alone_target": "s",
 }
 
 VERSIONS = (
@@ -428,13 +430,24 @@ def _range(cell: CellResult, name: str) -> str:
     return f"{iqm_text} ({format_value(min(known), name)} to {format_value(max(known), name)})"
 
 
+LOGGED_LATER = {
+    "mean_run_length": "mean uninterrupted agent run (agent actions)",
+    "wall_s_to_alone_target": "wall time to the agent-alone target (s, all included)",
+}
+"""Accounts that runs log since issue 35: a column only where some run of the env logged them."""
+
+
 def _accounts_table(cells: Sequence[CellResult]) -> str:
     header = ["condition", "training (agent) episodes", "env episodes", "env steps per training episode",
               "env resets", "policy updates (gradient steps)",
               "agent-alone evaluation env steps (not charged)",
               "largest evaluation delay (env steps)"]  # fmt: skip
-    names = ("episodes", "env_episodes", "env_steps_per_episode", "env_resets", "policy_updates",
-             "evaluation_env_steps", "evaluation_delay")  # fmt: skip
+    names = ["episodes", "env_episodes", "env_steps_per_episode", "env_resets", "policy_updates",
+             "evaluation_env_steps", "evaluation_delay"]  # fmt: skip
+    for name, title in LOGGED_LATER.items():
+        if any(getattr(r.metrics, name) is not None for c in cells for r in c.runs):
+            names.append(name)
+            header.append(title)
     rows = [[c.condition, *(_range(c, n) for n in names)] for c in cells]
     return markdown_table(header, rows)
 
@@ -573,15 +586,15 @@ def _csv(rows: list[dict[str, Any]]) -> str:
 
 
 def metrics_rows(a: Analysis) -> list[dict[str, Any]]:
-    """One row per run."""
-    rows = []
-    for cell in a.cells.values():
-        for r in cell.runs:
-            m = r.metrics
-            rows.append({"env": r.env_id, "condition": r.condition, "seed": r.seed, **{
-                k: ("" if v is None else v) for k, v in vars(m).items()
-            }})  # fmt: skip
-    return rows
+    """One row per run (the columns of :data:`LOGGED_LATER` only when some run logged them)."""
+    runs = [r for cell in a.cells.values() for r in cell.runs]
+    unlogged = {k for k in LOGGED_LATER if all(getattr(r.metrics, k) is None for r in runs)}
+    return [
+        {"env": r.env_id, "condition": r.condition, "seed": r.seed, **{
+            k: ("" if v is None else v) for k, v in vars(r.metrics).items() if k not in unlogged
+        }}
+        for r in runs
+    ]  # fmt: skip
 
 
 COMPARISON_FIELDS = ("family", "family_size", "p_improvement", "p_low", "p_high", "saving", "saving_low",
@@ -600,11 +613,13 @@ def _comparison_fields(c: Comparison | None) -> dict[str, Any]:
 
 
 def summary_rows(a: Analysis) -> list[dict[str, Any]]:
-    """One row per (env, condition, metric)."""
+    """One row per (env, condition, metric) (those of :data:`LOGGED_LATER` where some run logged them)."""
     rows = []
     for cell in a.cells.values():
         comps = a.comparisons.get((cell.env_id, cell.condition), {})
         for name, m in cell.metrics.items():
+            if name in LOGGED_LATER and all(getattr(r.metrics, name) is None for r in cell.runs):
+                continue
             rows.append({
                 "env": cell.env_id, "condition": cell.condition, "metric": name, "unit": UNITS[name],
                 "iqm": m.estimate.value, "ci_low": m.estimate.low, "ci_high": m.estimate.high,

@@ -13,8 +13,11 @@ Intervention modes
 Triggers
     ``exit`` (default, reactive): the agent's step left the region. ``predictive``: before the
     agent's action runs, the state after it is predicted on a copy of the env's MuJoCo data; an
-    action that would leave the region is vetoed (it never runs) and the coach takes over from
-    the current state (``takeover`` only, the spec's rescue region). ``growth`` (the paper's
+    action that would leave the region is vetoed (it never runs) and the coach acts from the
+    current state (the spec's rescue region): under ``takeover`` until the hand-back, under
+    ``nudge`` for ``nudge_steps`` steps only, so that with ``nudge_steps = 1`` the coach replaces
+    just the vetoed action and the agent's next action is checked again (a minimal shield: the
+    agent acts whenever its action keeps the state in the region). ``growth`` (the paper's
     code, see :class:`GrowthTrigger`, ``nudge`` only): a variable's magnitude lies in a band and
     has grown with the same sign for a number of consecutive steps.
 
@@ -52,6 +55,20 @@ Blend
     agent step, so its filters follow the episode); ``info["executed_action"]`` and
     ``info["blend_weight"]`` report it. The agent's transition holds its own sample ``a``; the
     blend is part of the environment it learns in, which becomes its own as ``w`` fades to 0.
+
+Roll-in (Jump-Start RL)
+    :meth:`CoachingWrapper.set_rollin` sets ``h``: after each real reset the coach acts alone for the
+    first ``h`` steps of the env's episode, and the agent's first observation is the state after them
+    (a ``terminal``-view rescue, which does not reset the env, has none). Those steps belong to the
+    episode (its ``coach_steps``); they are reported once, in ``info["rollin"]`` of the agent's next
+    step (``steps``, and ``episodes``: the records of env episodes that ended during a roll-in, by a
+    fall or the time limit; the env was then reset, and that episode starts without a roll-in).
+    :meth:`CoachingWrapper.take_rollin` hands over a report that no step carried yet (the run's end).
+
+Uninterrupted runs
+    A run is a stretch of consecutive agent actions that ran with no coach step between them; an
+    intervention or a veto ends it, and so does the episode's end. Each episode record gives its
+    ``runs`` and ``longest_run`` (the agent's run length, which a takeover that starves it cuts short).
 
 Demonstrations
     :meth:`CoachingWrapper.demonstrate` puts the wrapper in demonstration mode: each ``step()``
@@ -161,10 +178,6 @@ def _check_options(
         )
     if isinstance(trigger, str) and trigger not in TRIGGERS:
         raise CoachingError(f"trigger {trigger!r}: expected one of {', '.join(TRIGGERS)} or a growth trigger")
-    if trigger == "predictive" and mode != "takeover":
-        raise CoachingError(
-            "trigger 'predictive' needs mode = takeover (the coach acts in the agent's place)"
-        )
     if view not in VIEWS:
         raise CoachingError(f"view {view!r}: expected one of {', '.join(VIEWS)}")
     if cost is not None and not (math.isfinite(cost) and cost >= 0):
@@ -333,6 +346,8 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._last_obs: Any = None
         self._demo: tuple[float, np.random.Generator] | None = None
         self._demo_started = False
+        self.rollin_steps = 0
+        self._pending_rollin: dict[str, Any] | None = None
         self.blend = blend
         self._blend_coach: Coach | None = None
         if blend is not None:
@@ -387,6 +402,9 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.episode_agent_return = 0.0
         self.episode_coach_return = 0.0
         self.episode_paid_return = 0.0
+        self.episode_runs = 0
+        self.episode_longest_run = 0
+        self._run_length = 0
 
     def demonstrate(self, noise: float | None, seed: int = 0) -> None:
         """Start (``noise`` >= 0, a fraction of half the action range) or end (None) demonstration mode.
@@ -453,15 +471,76 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         rescued, self._rescued = self._rescued, None
         if rescued is not None and seed is None and options is None:
             obs, info = rescued
+            self._start_episode(obs)
         else:
-            obs, info = self.env.reset(seed=seed, options=options)
-            self.total_env_resets += 1
-        self._reset_counters()
-        self._history.clear()
-        self._observe(obs)
+            obs, info = self._real_reset(seed, options)
         if self._blend_coach is not None:
             self._blend_coach.reset(obs)
         return obs, info
+
+    def _start_episode(self, obs: Any) -> None:
+        self._reset_counters()
+        self._history.clear()
+        self._observe(obs)
+
+    def _real_reset(self, seed: int | None, options: dict[str, Any] | None) -> tuple[Any, dict]:
+        """Reset the env, then the roll-in (if any); a roll-in that ends the episode resets it again."""
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.total_env_resets += 1
+        self._start_episode(obs)
+        if self.rollin_steps <= 0 or self._demo is not None or self.coach is None:
+            return obs, info
+        run = self._roll_in(obs)
+        self.total_coach_steps += run.steps
+        self.episode_coach_steps += run.steps
+        self.episode_coach_return += run.reward
+        report = self._pending_rollin or {"steps": 0, "episodes": []}  # joins a report no step carried
+        report["steps"] += run.steps
+        self._pending_rollin = report
+        if not run.ended:
+            return run.obs, {**info, "rollin_steps": run.steps}
+        self.total_falls += int(run.terminated)
+        report["episodes"].append(self._episode_record(run.terminated, True, run.terminated))
+        obs, info = self.env.reset()
+        self.total_env_resets += 1
+        self._start_episode(obs)
+        return obs, info
+
+    def _roll_in(self, obs: Any) -> _Run:
+        """The coach alone for up to ``rollin_steps`` steps from ``obs`` (less if the episode ends)."""
+        coach = self.coach
+        if coach is None:  # pragma: no cover - _real_reset checks it
+            raise CoachingError("no coach to roll in")
+        coach.reset(obs)
+        steps, total, terminated, truncated = 0, 0.0, False, False
+        first: tuple[Any, float, dict[str, Any]] = (obs, 0.0, {})
+        while steps < self.rollin_steps and not (terminated or truncated):
+            obs, r, terminated, truncated, info = self.env.step(coach.act(obs))
+            self._observe(obs)
+            steps += 1
+            total += float(r)
+            if steps == 1:
+                first = (obs, float(r), info)
+        return _Run(obs, steps, total, terminated, truncated, *first)
+
+    def set_rollin(self, steps: int) -> None:
+        """The roll-in: the coach's steps at the start of each env episode (0: none).
+
+        Raises
+        ------
+        CoachingError
+            A negative count, or a roll-in (> 0) without a coach.
+        """
+        if isinstance(steps, bool) or not isinstance(steps, int | np.integer) or steps < 0:
+            raise CoachingError(f"roll-in steps {steps!r}: expected an integer >= 0")
+        if steps > 0 and self.coach is None:
+            raise CoachingError("a roll-in needs a coach; this env has none (--coach none)")
+        self.rollin_steps = int(steps)
+
+    def take_rollin(self) -> dict[str, Any] | None:
+        """The roll-in report no step has carried yet (then forgotten), or None."""
+        report, self._pending_rollin = self._pending_rollin, None
+        return report
 
     def _observe(self, obs: np.ndarray) -> None:
         self._last_obs = obs
@@ -553,6 +632,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.episode_agent_steps += 1
         self.total_agent_steps += 1
         self.episode_agent_return += float(reward)
+        self._count_run()
         if self.predictive or terminated or truncated or not self._triggered(obs):
             return self._finish(obs, float(reward), terminated, truncated, info, float(reward), None)
         run = self._coach_run(obs)
@@ -592,6 +672,8 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ) -> tuple[Any, float, bool, bool, dict]:  # fmt: skip
         """Keep the accounts of one agent step (or demonstration step) and report them in ``info``."""
         coach_steps, coach_reward = (run.steps, run.reward) if run is not None else (0, 0.0)
+        if run is not None:
+            self._run_length = 0  # a coach step ends the agent's uninterrupted run
         if run is not None and not demonstration:
             self.episode_interventions += 1
             self.total_interventions += 1
@@ -622,7 +704,16 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         })  # fmt: skip
         if terminated or truncated:
             info["coaching_episode"] = self._episode_record(terminated, env_end, fell)
+        rollin, self._pending_rollin = self._pending_rollin, None
+        if rollin is not None:
+            info["rollin"] = rollin
         return obs, paid, terminated, truncated, info
+
+    def _count_run(self) -> None:
+        """One more agent action in the current uninterrupted run (a new run starts at 1)."""
+        self._run_length += 1
+        self.episode_runs += int(self._run_length == 1)
+        self.episode_longest_run = max(self.episode_longest_run, self._run_length)
 
     def _episode_record(self, terminated: bool, env_end: bool, fell: bool) -> dict[str, Any]:
         """The ended agent episode's summary (``info["coaching_episode"]``)."""
@@ -641,4 +732,6 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             "terminated": bool(terminated),
             "env_end": bool(env_end),
             "fell": bool(fell),
+            "runs": self.episode_runs,
+            "longest_run": self.episode_longest_run,
         }

@@ -2,12 +2,16 @@
 
 The coaching wrapper (:mod:`pidlab.rl.coaching`) is the coupling that acts during training: the
 coach shields the agent (takeover, veto) and what the agent sees of it is the wrapper's ``view``.
-A coupling here acts at the points the trainer offers:
+A coupling here acts at the points the trainer offers (:class:`Coupling`, each a no-op by default):
 
 ``before_learning(trainer)``
     Once, when a new run starts, before the agent's first action (never again on resume: the
     checkpoint it leaves holds its result). It may step the training envs (every step is charged
     to the budget and logged through the trainer's accounts) and change the agent.
+``on_session(trainer)``
+    At the start of every session (new or resumed), after ``before_learning``, before learning.
+``after_evaluation(trainer, evaluation)``
+    After each evaluation of the agent alone.
 
 :func:`couplings_of` lists a run's couplings from its recipe; adding one touches no other.
 
@@ -17,29 +21,48 @@ Warm start (:class:`WarmStartCoupling`)
     ``warm_start`` table the agent is then behaviour-cloned on them and its critic warmed up
     (:mod:`pidlab.rl.cloning`). The agent alone is evaluated at env step 0 and right after the
     warm start; learning then goes on from the envs' current states (no reset).
+Roll-in (:class:`RollInCoupling`, Jump-Start RL)
+    The coach acts alone for the first ``h`` steps of every env episode (the wrapper's
+    :meth:`~pidlab.rl.coaching.CoachingWrapper.set_rollin`). The agent takes the episode over in
+    ``stages`` equal shares of the env's horizon ``H`` (its time limit): at stage ``k`` the coach
+    rolls in for ``h_k = H (stages - 1 - k) / stages`` steps (rounded up), so the agent plays the
+    last share from the start and the whole episode from the last stage on. At an evaluation after
+    env step 0 the stage advances by one when the agent alone, from the env's reset, lasts on average
+    at least ``(1 - tolerance) (H - h_k)`` steps: it plays from the start the share it plays in
+    training (JSRL advances when the mixed policy keeps the guide's score; the agent alone is the
+    stricter test and needs no extra evaluation). The stage is a checkpointed counter
+    (``rollin_stage``); ``rollin.json`` lists its changes.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
-from typing import Any, Protocol
+from typing import Any
 
 from pidlab.controller.spec import CoachSpec
-from pidlab.files import write_json
-from pidlab.rl.recipe import DemonstrationSettings, Recipe, WarmStart
+from pidlab.files import load_json, write_json
+from pidlab.rl.recipe import DemonstrationSettings, Recipe, RollIn, WarmStart
 
 RECORD = "warm_start.json"
+ROLLIN_RECORD = "rollin.json"
 
 
-class Coupling(Protocol):
-    """A coupling the trainer calls before learning starts."""
+class Coupling:
+    """A coupling: the trainer calls each method at its point (see the module docstring)."""
 
     def before_learning(self, trainer: Any) -> None:
         """Act once before the agent's first action of a new run."""
 
+    def on_session(self, trainer: Any) -> None:
+        """Act at the start of every session, new or resumed, before learning."""
+
+    def after_evaluation(self, trainer: Any, evaluation: Any) -> None:
+        """Act on an evaluation of the agent alone."""
+
 
 @dataclass(frozen=True)
-class WarmStartCoupling:
+class WarmStartCoupling(Coupling):
     """Coach demonstrations and, optionally, behaviour cloning on them (see the module docstring)."""
 
     demonstrations: DemonstrationSettings
@@ -88,12 +111,88 @@ def _identity(x: Any) -> Any:
     return x
 
 
-def couplings_of(recipe: Recipe, spec: CoachSpec | None) -> list[Coupling]:
-    """The couplings a new run of ``recipe`` calls before learning (none without a coach)."""
-    c = recipe.coaching
-    if spec is None or c.demonstrations is None:
+def episode_horizon(env_id: str) -> int | None:
+    """The env's time limit in steps (``max_episode_steps`` of its registration), or None."""
+    import gymnasium as gym
+
+    try:
+        steps = gym.spec(env_id).max_episode_steps
+    except gym.error.Error:
+        return None
+    return int(steps) if steps else None
+
+
+@dataclass(frozen=True)
+class RollInCoupling(Coupling):
+    """The coach rolls in for the first ``h`` steps of each env episode; ``h`` shrinks by stages."""
+
+    settings: RollIn
+    horizon: int
+
+    def steps_at(self, stage: int) -> int:
+        """``h`` at ``stage``: ``H (stages - 1 - stage) / stages`` rounded up (0 from the last stage)."""
+        n = self.settings.stages
+        return math.ceil(self.horizon * (n - 1 - min(stage, n - 1)) / n)
+
+    def threshold(self, stage: int) -> float:
+        """The agent-alone mean episode length that moves ``stage`` to the next one."""
+        return (1.0 - self.settings.tolerance) * (self.horizon - self.steps_at(stage))
+
+    def on_session(self, trainer: Any) -> None:
+        """Set every training env's roll-in; forget recorded changes after the checkpoint resumed from."""
+        c = trainer.counters
+        path = trainer.run_dir / ROLLIN_RECORD
+        kept = [e for e in _changes(path) if e["env_steps"] <= c.env_steps and e["stage"] <= c.rollin_stage]
+        if not kept:
+            kept = [{"env_steps": 0, "stage": 0, "steps": self.steps_at(0)}]
+        write_json(path, {"horizon": self.horizon, "stages": self.settings.stages, "changes": kept})
+        trainer.venv.env_method("set_rollin", self.steps_at(c.rollin_stage))
+
+    def after_evaluation(self, trainer: Any, evaluation: Any) -> None:
+        """Advance one stage when the agent alone lasted long enough (never at env step 0)."""
+        c = trainer.counters
+        if c.env_steps == 0 or c.rollin_stage >= self.settings.stages - 1:
+            return
+        if evaluation.mean_length < self.threshold(c.rollin_stage):
+            return
+        c.rollin_stage += 1
+        steps = self.steps_at(c.rollin_stage)
+        trainer.venv.env_method("set_rollin", steps)
+        path = trainer.run_dir / ROLLIN_RECORD
+        changes = [*_changes(path), {"env_steps": c.env_steps, "stage": c.rollin_stage, "steps": steps}]
+        write_json(path, {"horizon": self.horizon, "stages": self.settings.stages, "changes": changes})
+        trainer.tb.add_scalar("coaching/rollin_steps", steps, c.env_steps)
+
+
+def _changes(path: Any) -> list[dict[str, int]]:
+    """The recorded roll-in changes (none if the record is missing or not pidlab's)."""
+    from pidlab.errors import RunDirError
+
+    if not path.is_file():
         return []
-    return [WarmStartCoupling(c.demonstrations, c.warm_start)]
+    try:
+        data = load_json(path, "roll-in record", RunDirError)
+    except RunDirError:
+        return []
+    changes = data.get("changes") if isinstance(data, dict) else None
+    keys = ("env_steps", "stage", "steps")
+    ok = isinstance(changes, list) and all(
+        isinstance(e, dict) and all(type(e.get(k)) is int for k in keys) for e in changes
+    )
+    return list(changes) if ok and changes is not None else []
+
+
+def couplings_of(recipe: Recipe, spec: CoachSpec | None) -> list[Coupling]:
+    """The couplings of a run of ``recipe`` (none without a coach)."""
+    c = recipe.coaching
+    if spec is None:
+        return []
+    out: list[Coupling] = []
+    if c.demonstrations is not None:
+        out.append(WarmStartCoupling(c.demonstrations, c.warm_start))
+    if c.rollin is not None:
+        out.append(RollInCoupling(c.rollin, episode_horizon(recipe.env_id) or 0))
+    return out
 
 
 def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
@@ -102,14 +201,16 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
     Raises
     ------
     CoachingError
-        Demonstrations or a blend without a coach; demonstrations as long as the budget; a warm
-        start with an algorithm other than PPO.
+        Demonstrations, a blend or a roll-in without a coach; demonstrations as long as the budget;
+        a warm start with an algorithm other than PPO; a roll-in on an env without a time limit.
     """
     from pidlab.errors import CoachingError
 
     c = recipe.coaching
     if c.blend is not None and spec is None:
         raise CoachingError("coaching.blend: blending the coach's action needs a coach; this run has none")
+    if c.rollin is not None:
+        _check_rollin(recipe, spec)
     if c.demonstrations is None:
         return
     if spec is None:
@@ -125,4 +226,17 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
         raise CoachingError(
             f"coaching.warm_start with algo = {recipe.algo!r}: the warm start clones a PPO agent "
             "(its policy's mean and spread, and its critic); use algo = 'ppo'"
+        )
+
+
+def _check_rollin(recipe: Recipe, spec: CoachSpec | None) -> None:
+    from pidlab.errors import CoachingError
+
+    if spec is None:
+        raise CoachingError("coaching.rollin: a roll-in is the coach acting first, and this run has no coach")
+    horizon = episode_horizon(recipe.env_id)
+    if horizon is None or horizon < 2:
+        raise CoachingError(
+            f"coaching.rollin: {recipe.env_id} has no time limit of at least 2 steps (max_episode_steps), "
+            "and a roll-in's length is a share of it; register the env with one"
         )

@@ -184,6 +184,23 @@ class WarmStart:
 
 
 @dataclass(frozen=True)
+class RollIn:
+    """Roll-ins (Jump-Start RL): the coach acts first in each episode (:mod:`pidlab.rl.couplings`).
+
+    Attributes
+    ----------
+    stages : int
+        The agent takes each episode over in this many equal shares of the horizon, the last
+        share first; from the last stage on the coach does not roll in.
+    tolerance : float
+        The agent alone must last ``1 - tolerance`` of its current share for the next stage.
+    """
+
+    stages: int = 10
+    tolerance: float = 0.1
+
+
+@dataclass(frozen=True)
 class Coaching:
     """How the coach intervenes (see :class:`pidlab.rl.coaching.CoachingWrapper`).
 
@@ -206,6 +223,7 @@ class Coaching:
     demonstrations: DemonstrationSettings | None = None
     warm_start: WarmStart | None = None
     blend: Schedule | None = None
+    rollin: RollIn | None = None
 
 
 @dataclass(frozen=True)
@@ -552,7 +570,7 @@ def check_rollout(kwargs: dict[str, Any], n_envs: int, where: str, param: str | 
 
 _COACHING = {"mode", "region", "nudge_steps", "max_coach_steps", "reward", "probability", "width",
              "off_after", "trigger", "view", "cost", "handback", "demonstrations", "warm_start",
-             "blend"}  # fmt: skip
+             "blend", "rollin"}  # fmt: skip
 
 
 def _coaching(data: dict[str, Any], where: str) -> Coaching:
@@ -578,7 +596,7 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
         raise RecipeError(
             f"{w}.trigger: a growth trigger needs mode = 'nudge' (takeover is triggered by the region)"
         )
-    region = _region(c, w, trigger, mode, width)
+    region = _region(c, w, trigger, width)
     reward = _choice(c, "reward", w, REWARDS, "agent")
     view = _choice(c, "view", w, VIEWS, "hidden")
     if view == "terminal" and reward == "total":
@@ -621,9 +639,20 @@ def _blend(c: dict[str, Any], w: str) -> Schedule | None:
     return blend
 
 
+def _rollin(c: dict[str, Any], w: str) -> RollIn | None:
+    """``[coaching] rollin = { stages, tolerance }`` (an empty table takes the defaults)."""
+    if "rollin" not in c:
+        return None
+    t = _table(c, "rollin", w, {"stages", "tolerance"})
+    where = f"{w}.rollin"
+    stages = _int(t, "stages", where, 10, low=2, high=1000)
+    return RollIn(stages=stages, tolerance=_num(t, "tolerance", where, 0.1, low=0.0, high=1.0))
+
+
 def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
     """``[coaching] demonstrations`` and ``warm_start`` (a warm start needs demonstrations)."""
-    out: dict[str, Any] = {"demonstrations": None, "warm_start": None, "blend": _blend(c, w)}
+    out: dict[str, Any] = {"demonstrations": None, "warm_start": None, "blend": _blend(c, w),
+                           "rollin": _rollin(c, w)}  # fmt: skip
     if "demonstrations" in c:
         d = _table(c, "demonstrations", w, {"steps", "noise"})
         where = f"{w}.demonstrations"
@@ -645,15 +674,9 @@ def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
     return out
 
 
-def _region(
-    c: dict[str, Any], w: str, trigger: GrowthTrigger | str | None, mode: str, width: Schedule
-) -> str:
+def _region(c: dict[str, Any], w: str, trigger: GrowthTrigger | str | None, width: Schedule) -> str:
     """``[coaching] region``, checked against the trigger (predictive: rescue) and the width schedule."""
     predictive = trigger == "predictive"
-    if predictive and mode != "takeover":
-        raise RecipeError(
-            f"{w}.trigger = 'predictive' needs mode = 'takeover' (the coach acts in the agent's place)"
-        )
     region = _choice(c, "region", w, REGIONS, "rescue" if predictive else "box")
     if predictive and region != "rescue":
         raise RecipeError(
@@ -1025,6 +1048,8 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
         coaching["warm_start"] = {"epochs": c.warm_start.epochs, "critic": c.warm_start.critic}
     if c.blend is not None:
         coaching["blend"] = schedule_to_dict(c.blend)
+    if c.rollin is not None:
+        coaching["rollin"] = {"stages": c.rollin.stages, "tolerance": c.rollin.tolerance}
     out: dict[str, Any] = {
         "schema": RECIPE_SCHEMA,
         "env_id": recipe.env_id,

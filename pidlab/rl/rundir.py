@@ -49,15 +49,26 @@ EPISODE_COLUMNS = (
     "env_index",
     "env_end",
     "fell",
+    "runs",
+    "longest_run",
 )
 """One row per ended *agent* episode. ``terminated``: the agent's episode ended as terminated (a
 fall, or a ``terminal``-view takeover); ``env_end``: the env's episode ended with it (0: a
 ``terminal``-view rescue handed the running env to the next agent episode); ``fell``: the env
-terminated (a fall, whoever was acting)."""
-LEGACY_EPISODE_COLUMNS = EPISODE_COLUMNS[:-2]
+terminated (a fall, whoever was acting); ``runs`` and ``longest_run``: the agent's uninterrupted
+runs of actions in the episode (see :mod:`pidlab.rl.coaching`), ``nan`` in logs written before
+pidlab counted them."""
+LEGACY_EPISODE_COLUMNS = EPISODE_COLUMNS[:-4]
 """``episodes.csv`` as pidlab wrote it before agent and env episodes were told apart: every episode
 ended the env's, and ``terminated`` was the env's. Such a log is read with ``env_end = 1`` and
 ``fell = terminated`` (a resume rewrites it so)."""
+RUNLESS_EPISODE_COLUMNS = EPISODE_COLUMNS[:-2]
+"""``episodes.csv`` as pidlab wrote it before it counted the agent's uninterrupted runs: read with
+``runs`` and ``longest_run`` unknown (``nan``)."""
+TIMING_COLUMNS = ("env_steps_so_far", "wall_s")
+"""``timing.csv``: the wall-clock seconds since the run started (all its sessions, demonstrations,
+cloning and evaluations included) at each evaluation. Kept apart from ``evaluations.csv``, which
+the same seed reproduces exactly; wall-clock time never repeats."""
 EVALUATION_COLUMNS = (
     "env_steps_so_far",
     "agent_steps_so_far",
@@ -102,10 +113,19 @@ def _row_problem(row: list[str], columns: tuple[str, ...], index: int) -> str | 
     return None
 
 
-def _upgrade_legacy(rows: list[list[str]]) -> list[list[str]]:
-    """Rows of a legacy ``episodes.csv`` with ``env_end = 1`` and ``fell = terminated`` added."""
-    terminated = LEGACY_EPISODE_COLUMNS.index("terminated")
-    return [[*row, "1", row[terminated]] for row in rows]
+def _upgrade_legacy(rows: list[list[str]], written: tuple[str, ...]) -> list[list[str]]:
+    """Rows of an older ``episodes.csv`` in today's columns (see :data:`LEGACY_EPISODE_COLUMNS`)."""
+    if written == LEGACY_EPISODE_COLUMNS:
+        terminated = LEGACY_EPISODE_COLUMNS.index("terminated")
+        rows = [[*row, "1", row[terminated]] for row in rows]
+    return [[*row, "nan", "nan"] for row in rows]
+
+
+def _written_columns(columns: tuple[str, ...], header: tuple[str, ...]) -> tuple[str, ...]:
+    """The columns a log was written in: today's, or an older ``episodes.csv``'s that is read upgraded."""
+    if columns == EPISODE_COLUMNS and header in (LEGACY_EPISODE_COLUMNS, RUNLESS_EPISODE_COLUMNS):
+        return header
+    return columns
 
 
 def check_log(path: Path, columns: tuple[str, ...], keep: int) -> list[list[str]]:
@@ -130,8 +150,7 @@ def check_log(path: Path, columns: tuple[str, ...], keep: int) -> list[list[str]
         parsed = list(csv.reader(lines[: keep + 1]))
     except csv.Error as exc:
         raise CheckpointError(f"{path}: damaged ({exc})") from None
-    legacy = columns == EPISODE_COLUMNS and bool(parsed) and tuple(parsed[0]) == LEGACY_EPISODE_COLUMNS
-    written = LEGACY_EPISODE_COLUMNS if legacy else columns
+    written = _written_columns(columns, tuple(parsed[0])) if parsed else columns
     if not parsed or tuple(parsed[0]) != written:
         raise CheckpointError(f"{path}: damaged (its first line is not the header {','.join(columns)})")
     rows = parsed[1:]
@@ -143,7 +162,7 @@ def check_log(path: Path, columns: tuple[str, ...], keep: int) -> list[list[str]
             )
     if len(rows) < keep:
         raise CheckpointError(f"{path}: holds {len(rows)} complete rows, the checkpoint recorded {keep}")
-    return _upgrade_legacy(rows) if legacy else rows
+    return _upgrade_legacy(rows, written) if written != columns else rows
 
 
 def truncate_csv(path: Path, columns: tuple[str, ...], keep: int) -> None:
@@ -157,6 +176,24 @@ def truncate_csv(path: Path, columns: tuple[str, ...], keep: int) -> None:
         As :func:`check_log`; nothing is written then.
     """
     atomic_write_text(path, _csv_text(columns, check_log(path, columns, keep)))
+
+
+def truncate_timing(path: Path, env_steps: int) -> None:
+    """Keep ``timing.csv``'s rows up to ``env_steps`` (a resume's checkpoint); damaged rows go.
+
+    Timing is not part of what a checkpoint vouches for: a missing file stays missing.
+    """
+    if not path.is_file():
+        return
+    kept = []
+    for row in read_csv_rows(path):
+        try:
+            step, wall = int(row.get("env_steps_so_far") or ""), float(row.get("wall_s") or "")
+        except ValueError:
+            continue
+        if step <= env_steps:
+            kept.append([str(step), repr(wall)])
+    atomic_write_text(path, _csv_text(TIMING_COLUMNS, kept))
 
 
 def _fmt(value: Any) -> str:
@@ -220,9 +257,9 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 
 STATE_KEYS = ("env_steps", "agent_steps", "coach_steps", "interventions", "episodes", "evaluations",
               "next_evaluation", "next_checkpoint", "resumes", "num_timesteps", "policy_updates",
-              "env_episodes", "env_resets", "falls")  # fmt: skip
+              "env_episodes", "env_resets", "falls", "rollin_stage")  # fmt: skip
 """The counters a checkpoint's ``state.json`` holds (``pidlab.rl.train.Counters`` and SB3's)."""
-LATER_KEYS = ("policy_updates", "env_episodes", "env_resets", "falls")
+LATER_KEYS = ("policy_updates", "env_episodes", "env_resets", "falls", "rollin_stage")
 """Counters that checkpoints written by earlier versions of pidlab lack (the trainer derives them)."""
 
 

@@ -63,13 +63,14 @@ from pidlab.rl.checkpoint import (
     short_reason,
 )
 from pidlab.rl.coaching import CoachingWrapper
-from pidlab.rl.couplings import couplings_of
+from pidlab.rl.couplings import RollInCoupling, couplings_of
 from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, evaluation_envs, sb3_policy
 from pidlab.rl.recipe import LINEAR_SCHEDULES, Recipe, recipe_to_dict
 from pidlab.rl.rundir import (
     EPISODE_COLUMNS,
     EVALUATION_COLUMNS,
     RUN_SCHEMA,
+    TIMING_COLUMNS,
     CsvLog,
     RunDirError,
     check_log,
@@ -84,6 +85,7 @@ from pidlab.rl.rundir import (
     read_state,
     record_resume,
     truncate_csv,
+    truncate_timing,
 )
 
 ACTIVATION_CLASSES = {
@@ -104,7 +106,8 @@ class Counters:
     ``episodes`` are agent episodes, ``env_episodes`` the env's ended episodes (fewer when a
     ``terminal``-view rescue hands the running env to the next agent episode); ``env_resets``
     count every real reset of a training env (each env's first of every session included);
-    ``falls`` the env's terminations, whoever was acting.
+    ``falls`` the env's terminations, whoever was acting; ``rollin_stage`` the roll-in's stage
+    (:class:`pidlab.rl.couplings.RollInCoupling`, 0 without one).
     """
 
     env_steps: int = 0
@@ -120,6 +123,7 @@ class Counters:
     env_episodes: int = 0
     env_resets: int = 0
     falls: int = 0
+    rollin_stage: int = 0
 
     def to_dict(self) -> dict[str, int]:
         """Plain dict for JSON."""
@@ -195,7 +199,9 @@ class EnvFactory:
 def _schedules_move(recipe: Recipe, spec: CoachSpec | None) -> bool:
     c = recipe.coaching
     return spec is not None and (
-        c.probability.shape != "constant" or c.width.shape != "constant" or c.off_after is not None
+        c.probability.shape != "constant"
+        or c.width.shape != "constant"
+        or c.off_after is not None
         or c.blend is not None
     )
 
@@ -441,6 +447,9 @@ class _Trainer:
     eval_envs: list[Any] = field(default_factory=list)
     moving: bool = False
     envs_running: bool = False  # a coupling stepped the envs: learning goes on without resetting them
+    couplings: list[Any] = field(default_factory=list)
+    timing_log: Any = None
+    clock: Callable[[], float] = time.perf_counter  # wall-clock seconds since the run started
     _progress_tick: int = -1
 
     # -- setup
@@ -449,6 +458,7 @@ class _Trainer:
 
         self.episodes_log = CsvLog(self.run_dir / "episodes.csv", EPISODE_COLUMNS)
         self.evaluations_log = CsvLog(self.run_dir / "evaluations.csv", EVALUATION_COLUMNS)
+        self.timing_log = CsvLog(self.run_dir / "timing.csv", TIMING_COLUMNS)
         self.tb = SummaryWriter(str(self.run_dir / "tb"), purge_step=purge_env_step)
         from stable_baselines3.common.logger import Logger, TensorBoardOutputFormat
 
@@ -465,8 +475,8 @@ class _Trainer:
         self.moving = _schedules_move(self.recipe, self.spec)
 
     def close(self) -> None:
-        for closable in (self.episodes_log, self.evaluations_log, self.tb, self.sb3_logger, *self.eval_envs,
-                         self.venv):  # fmt: skip
+        for closable in (self.episodes_log, self.evaluations_log, self.timing_log, self.tb, self.sb3_logger,
+                         *self.eval_envs, self.venv):  # fmt: skip
             if closable is not None:
                 closable.close()
 
@@ -485,6 +495,8 @@ class _Trainer:
         """Count one step of every env; evaluate when a grid point is due (and ``evaluating``)."""
         c = self.counters
         for i, info in enumerate(infos):
+            if "rollin" in info:
+                self.count_rollin(i, info["rollin"])
             coach_steps = int(info.get("coach_steps", 0))
             # a vetoed action ran no env step; a demonstration step is the coach's
             agent = 0 if info.get("vetoed", False) or info.get("demonstration", False) else 1
@@ -507,6 +519,25 @@ class _Trainer:
             return False
         return c.env_steps < self.recipe.steps
 
+    def count_rollin(self, env_index: int, report: dict[str, Any]) -> None:
+        """Charge a roll-in's coach steps, and log the env episodes that ended in it (falls included)."""
+        c = self.counters
+        c.coach_steps += int(report["steps"])
+        c.env_steps += int(report["steps"])
+        for episode in report["episodes"]:
+            c.falls += int(bool(episode["fell"]))
+            c.env_episodes += 1
+            c.env_resets += 1  # the wrapper reset the env again
+            self.log_episode(env_index, episode)
+
+    def settle_rollins(self) -> None:
+        """Charge the roll-ins that ran after the last step (the envs' resets at the budget's end)."""
+        if not any(isinstance(k, RollInCoupling) for k in self.couplings):
+            return
+        for i, report in enumerate(self.venv.env_method("take_rollin")):
+            if report is not None:
+                self.count_rollin(i, report)
+
     # -- pieces
     def log_episode(self, env_index: int, ep: dict[str, Any]) -> None:
         c = self.counters
@@ -523,6 +554,8 @@ class _Trainer:
             env_index,
             bool(ep.get("env_end", True)),
             bool(ep.get("fell", ep["terminated"])),
+            int(ep.get("runs", 0)),
+            int(ep.get("longest_run", 0)),
         ]
         self.episodes_log.write(row)
         c.episodes += 1
@@ -552,12 +585,15 @@ class _Trainer:
             c.env_steps, c.agent_steps, c.episodes, result.mean, result.std, float(r.min()), float(r.max()),
             result.mean_length, ";".join(repr(float(v)) for v in r),
         ])  # fmt: skip
+        self.timing_log.write([c.env_steps, self.clock()])
         c.evaluations += 1
         every = self.recipe.evaluation.every
         c.next_evaluation = (c.env_steps // every + 1) * every
         self.tb.add_scalar("eval/mean_return", result.mean, c.env_steps)
         self.tb.add_scalar("eval/std_return", result.std, c.env_steps)
         self.last_evaluation = result
+        for coupling in self.couplings:
+            coupling.after_evaluation(self, result)
         return result
 
     def _set_progress(self, force: bool = False) -> None:
@@ -610,6 +646,7 @@ class _Trainer:
         files = save_agent(folder, self.model, self.venv)
         self.episodes_log.sync()
         self.evaluations_log.sync()
+        self.timing_log.sync()
         self.tb.flush()
         sb3 = {"n_updates": int(self.model._n_updates), "episode_num": int(self.model._episode_num)}
         state = {**self.counters.to_dict(), "num_timesteps": int(self.model.num_timesteps), "files": files,
@@ -829,6 +866,7 @@ def _commit_resume(run_dir: Path, config: dict[str, Any], recipe: Recipe, r: _Re
                 shutil.rmtree(entry, ignore_errors=True)
     truncate_csv(run_dir / "episodes.csv", EPISODE_COLUMNS, r.state["episodes"] if r.state else 0)
     truncate_csv(run_dir / "evaluations.csv", EVALUATION_COLUMNS, r.state["evaluations"] if r.state else 0)
+    truncate_timing(run_dir / "timing.csv", at)
     if config["recipe"].get("steps") != recipe.steps:  # a new budget: the config says so
         atomic_write_text(
             run_dir / "config.toml", tomli_w.dumps({**config, "recipe": recipe_to_dict(recipe)})
@@ -853,6 +891,8 @@ def _run(
     earlier_s = _earlier_wall_s(Path(run_dir))
     torch.set_num_threads(recipe.threads)
     trainer = _Trainer(recipe, spec, run_dir, progress_bar)
+    trainer.clock = lambda: earlier_s + time.perf_counter() - started
+    trainer.couplings = couplings_of(recipe, spec)
     c = trainer.counters
     try:
         trainer.venv = make_vec_env(recipe, spec)
@@ -862,6 +902,7 @@ def _run(
         _count_policy_updates(model, c)
         model.set_logger(trainer.sb3_logger)
         stopped = _learn(trainer, resumed=state is not None) if c.env_steps < recipe.steps else False
+        trainer.settle_rollins()
         completed = not stopped and c.env_steps >= recipe.steps
         final: dict[str, str] = {}
         if completed:
@@ -966,10 +1007,12 @@ def _learn(trainer: _Trainer, resumed: bool) -> bool:
         trainer.stop = stop
         trainer.bar = bar
         if not resumed:
-            for coupling in couplings_of(recipe, spec):
+            for coupling in trainer.couplings:
                 coupling.before_learning(trainer)
         if stop.requested:
             return True
+        for coupling in trainer.couplings:
+            coupling.on_session(trainer)
         model.learn(
             total_timesteps=max(recipe.steps - int(model.num_timesteps), 1),
             callback=_make_callback(trainer),
