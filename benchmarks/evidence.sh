@@ -8,6 +8,9 @@
 #
 #   bash benchmarks/evidence.sh                       # every env, on this machine's cores
 #   bash benchmarks/evidence.sh --confirm Hopper-v5   # the confirmatory sweep of docs/analysis-plan.md
+#   bash benchmarks/evidence.sh --teach Hopper-v5     # the teaching couplings, its Amendment 1
+#   bash benchmarks/evidence.sh --teach2 Hopper-v5    # and its Amendment 2 (none and rescue-terminal
+#                                                     # run again: the same runs, a check of determinism)
 #   bash benchmarks/evidence.sh Hopper-v5             # one env
 #   bash benchmarks/evidence.sh Hopper-v5 -- --backend ray --address HOST:6379   # on a Ray cluster
 #
@@ -20,8 +23,12 @@
 # restored first, so the finished runs are skipped and only the unfinished ones train again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-envs=() extra=() confirm=0
-if [ "${1:-}" = "--confirm" ]; then confirm=1; shift; fi
+envs=() extra=() mode=evidence
+case "${1:-}" in
+    --confirm) mode=confirm; shift ;;
+    --teach) mode=teach; shift ;;
+    --teach2) mode=teach2; shift ;;
+esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
     envs+=("$1"); shift
@@ -30,7 +37,10 @@ done
 rescue=none,paper,rescue,rescue-penalty,rescue-terminal,rescue-fading
 
 design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
-    if [ "$confirm" = 1 ]; then confirm_design "$1"; return; fi
+    case $mode in
+        confirm) confirm_design "$1"; return ;;
+        teach|teach2) teach_design "$1"; return ;;
+    esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
         InvertedDoublePendulum-v5) echo "InvertedDoublePendulum-v5-rescue $rescue 200000 10" ;;
@@ -50,6 +60,17 @@ confirm_design() {  # the confirmatory sweeps fixed by docs/analysis-plan.md (fr
         *) echo "evidence.sh: $1: no confirmatory design (expected one of the paper's four v5 envs)" >&2; exit 2 ;;
     esac
     echo "$1-confirm none,paper,rescue-terminal $steps 100-109"
+}
+
+teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amendments 1 and 2)
+    local line
+    line=$(confirm_design "$1")
+    read -r _ _ steps seeds <<< "$line"
+    if [ "$mode" = teach ]; then
+        echo "$1-teach none,rescue-terminal,warm-start,warm-start-shield $steps $seeds"
+    else
+        echo "$1-teach2 none,rescue-terminal,blend,rollin,rescue-veto,warm-start-veto $steps $seeds"
+    fi
 }
 
 for env in "${envs[@]}"; do design "$env" > /dev/null; done   # a wrong name stops before any work

@@ -150,6 +150,8 @@ METRICS: dict[str, tuple[bool, bool]] = {
     "env_episodes": (False, False),
     "mean_run_length": (False, False),
     "wall_s_to_alone_target": (True, False),  # inf: not reached; None: not logged
+    "clone_score": (False, False),
+    "dip_score": (False, False),
 }
 
 
@@ -298,7 +300,20 @@ def read_logs(run_dir: Path, summary: Any) -> RunLogs:
         episode_agent_steps=np.array([float(r["agent_steps"]) for r in episodes]),
         episode_runs=np.array([_number(r.get("runs")) for r in episodes]),
         eval_wall_s=_wall_clock(run_dir, evals),
+        warm_start_at=_warm_start_at(run_dir),
     )
+
+
+def _warm_start_at(run_dir: Path) -> int | None:
+    """Env steps when the run's warm start ended (``warm_start.json``), None without one."""
+    path = run_dir / "warm_start.json"
+    if not path.is_file():
+        return None
+    record = load_json(path, "warm-start record", ExperimentError)
+    at = record.get("env_steps_after") if isinstance(record, dict) else None
+    if type(at) is not int or at < 0:
+        raise ValueError(f"warm_start.json: env_steps_after = {at!r}, expected an integer >= 0")
+    return at
 
 
 def _number(text: str | None) -> float:

@@ -215,6 +215,8 @@ class RunLogs:
         The agent's uninterrupted runs in each training episode (``nan``: not logged).
     eval_wall_s : ndarray or None
         Wall-clock seconds since the run started at each evaluation (``nan``: not logged).
+    warm_start_at : int or None
+        Env steps when the warm start ended (``warm_start.json``; None: no warm start).
     """
 
     returns: np.ndarray
@@ -235,6 +237,7 @@ class RunLogs:
     episode_agent_steps: np.ndarray | None = None
     episode_runs: np.ndarray | None = None
     eval_wall_s: np.ndarray | None = None
+    warm_start_at: int | None = None
 
     @property
     def env_episode_counts(self) -> np.ndarray:
@@ -309,6 +312,11 @@ class RunMetrics:
         The agent's mean uninterrupted run, agent actions: its steps over its runs, in the training
         episodes that logged runs (None: none did). A takeover or veto ends a run, and so does an
         episode's end.
+    clone_score : float or None
+        The agent alone right after a warm start, before any RL update (None: no warm start).
+    dip_score : float or None
+        The lowest agent-alone score over the :data:`DIP_EVALUATIONS` evaluations after it: the
+        "unlearning dip" of RL fine-tuning from a clone (None: no warm start, or none after it).
     wall_s_to_alone_target : float or None
         Wall-clock seconds since the run started (demonstrations, cloning and evaluations included)
         at the evaluation of ``env_steps_to_alone_target`` (``inf``: not reached; None: the run did
@@ -344,6 +352,36 @@ class RunMetrics:
     env_episodes: int | None = None
     mean_run_length: float | None = None
     wall_s_to_alone_target: float | None = None
+    clone_score: float | None = None
+    dip_score: float | None = None
+
+
+DIP_EVALUATIONS = 5
+"""Evaluations after a warm start over which its unlearning dip is read."""
+
+
+def warm_start_scores(
+    eval_env_steps: np.ndarray, eval_agent_steps: np.ndarray, eval_means: np.ndarray, at: int | None,
+    after: int = DIP_EVALUATIONS,
+) -> tuple[float | None, float | None]:  # fmt: skip
+    """The agent-alone score right after a warm start, and the lowest of the ``after`` that follow.
+
+    The warm start's evaluation is the last one at env step ``at`` with no agent step yet.
+
+    Examples
+    --------
+    >>> warm_start_scores(np.array([0, 500, 500, 1000, 1500]), np.array([0, 0, 0, 400, 900]),
+    ...                   np.array([9.0, 30.0, 1000.0, 120.0, 700.0]), at=500)
+    (1000.0, 120.0)
+    """
+    if at is None:
+        return None, None
+    rows = np.flatnonzero((eval_env_steps == at) & (eval_agent_steps == 0))
+    if rows.size == 0:
+        return None, None
+    i = int(rows[-1])
+    later = eval_means[i + 1 : i + 1 + after]
+    return float(eval_means[i]), (float(np.min(later)) if later.size else None)
 
 
 def _tail_mean(values: np.ndarray, window: int) -> float:
@@ -412,6 +450,9 @@ def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
     target, with_coach = rule.target, logs.coached_returns
     dependent = trained and logs.coach_steps > 0 and coached >= target and not final >= target
     alone = sustained_hit(logs.eval_means, rule.agent_target)
+    clone, dip = warm_start_scores(
+        logs.eval_env_steps, logs.eval_agent_steps, logs.eval_means, logs.warm_start_at
+    )
     return RunMetrics(
         episodes_to_wins=wins,
         episodes_to_average=average,
@@ -442,4 +483,6 @@ def run_metrics(logs: RunLogs, rule: Rule) -> RunMetrics:
         env_episodes=int(logs.env_episode_counts[-1]) if len(logs.returns) else 0,
         mean_run_length=mean_run_length(logs.episode_agent_steps, logs.episode_runs),
         wall_s_to_alone_target=_wall_at(logs, alone),
+        clone_score=clone,
+        dip_score=dip,
     )

@@ -52,6 +52,8 @@ UNITS = {
     "env_episodes": "env episodes",
     "mean_run_length": "agent actions",
     "wall_s_to_alone_target": "s",
+    "clone_score": "return",
+    "dip_score": "return",
 }
 
 VERSIONS = (
@@ -433,6 +435,8 @@ def _range(cell: CellResult, name: str) -> str:
 LOGGED_LATER = {
     "mean_run_length": "mean uninterrupted agent run (agent actions)",
     "wall_s_to_alone_target": "wall time to the agent-alone target (s, all included)",
+    "clone_score": "agent alone right after the warm start",
+    "dip_score": "lowest agent-alone score in the 5 evaluations after it",
 }
 """Accounts that runs log since issue 35: a column only where some run of the env logged them."""
 
