@@ -1,13 +1,14 @@
 """Write the tables of docs/results/README.md from the committed experiment reports.
 
-Three blocks, each between its own markers: the confirmation (:data:`CONFIRM`: the sweeps of
-docs/analysis-plan.md on fresh seeds, `benchmarks/evidence.sh --confirm`), the pilot evidence at
-budgets where the uncoached agent reaches the target (:data:`EVIDENCE`: the folders
-benchmarks/evidence.sh publishes, with `none`, `paper` and the coached condition chosen for it) and
-the early-phase results (:data:`EARLY`: the folders benchmarks/experiments.sh publishes). Reads
-each folder's summary.csv and experiment.json and the paper's published numbers from the model
-cards (models/ENV.toml, ``[paper]``), and replaces the text between the markers, so the numbers
-there are never typed by hand.
+Four blocks, each between its own markers: the teaching couplings (:func:`teaching_tables`: the
+sweeps of the plan's Amendments 1 and 2, `benchmarks/evidence.sh --teach` and `--teach2`), the
+confirmation (:data:`CONFIRM`: the sweeps of docs/analysis-plan.md on fresh seeds,
+`benchmarks/evidence.sh --confirm`), the pilot evidence at budgets where the uncoached agent
+reaches the target (:data:`EVIDENCE`: the folders benchmarks/evidence.sh publishes, with `none`,
+`paper` and the coached condition chosen for it) and the early-phase results (:data:`EARLY`: the
+folders benchmarks/experiments.sh publishes). Reads each folder's summary.csv and experiment.json
+and the paper's published numbers from the model cards (models/ENV.toml, ``[paper]``), and replaces
+the text between the markers, so the numbers there are never typed by hand.
 Run: .venv/bin/python benchmarks/results_table.py
 """
 
@@ -228,14 +229,76 @@ def tables(block: Block = EARLY) -> str:
     ])  # fmt: skip
 
 
+TEACH_BEGIN = "<!-- teaching: begin (benchmarks/results_table.py) -->"
+TEACH_END = "<!-- teaching: end -->"
+TEACH_SWEEPS = ("teach", "teach2")
+"""The folders ENV-teach (Amendment 1) and ENV-teach2 (Amendment 2) of each env."""
+AIM = {"falls": 0.9, "env_steps_to_alone_target": 0.5}
+"""Issue 35's aim as savings of the median against none: at least 90 % fewer falls, half the env steps."""
+
+
+def aim_text(row: dict[str, str], threshold: float) -> str:
+    """The aim read from a saving's interval: met (above the threshold), missed (below), undecided."""
+    if not row.get("saving", ""):
+        return "no saving (none never reached it)"
+    low, high = _num(row["saving_low"]), _num(row["saving_high"])
+    word = "met" if low >= threshold else "missed" if high < threshold else "undecided"
+    return f"{_saving(row)}: **{word}** (aim {100 * threshold:.0f} %)"
+
+
+def _teach_row(env: str, sweep: str, c: str, rows: dict[tuple[str, str], dict[str, str]]) -> str:
+    def cell(metric: str, to_target: bool = False) -> str:
+        row = rows.get((c, metric))
+        return _cell(row, to_target) if row is not None else "-"
+
+    aims = [aim_text(rows[(c, m)], t) if c != "none" else "-" for m, t in AIM.items()]
+    verdicts = [rows[(c, m)]["verdict"] or "-" for m in ("falls", "env_steps_to_alone_target", "final_score")]
+    clone = f"{cell('clone_score')} / {cell('dip_score')}" if (c, "clone_score") in rows else "-"
+    cells = [env, sweep, c, cell("falls"), aims[0], cell("env_steps_to_alone_target", True), aims[1],
+             cell("final_score"), cell("wall_s_to_alone_target"), cell("mean_run_length"), clone,
+             cell("intervention_rate"), " / ".join(verdicts)]  # fmt: skip
+    return "| " + " | ".join(cells) + " |"
+
+
+def teaching_tables() -> str:
+    """The teaching couplings against none: the primary measures, the aim, cost and the dip."""
+    head = ["env", "sweep", "condition", "falls during training", "fewer falls (aim)",
+            "env steps to the agent-alone target, reached and kept", "fewer env steps (aim)",
+            "final agent-alone score", "wall time to the target (s)", "mean uninterrupted agent run",
+            "agent alone after the warm start / lowest in the next 5 evaluations", "intervention rate",
+            "verdicts: falls / env steps / final score (Holm)"]  # fmt: skip
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    how = []
+    for env in ENVS:
+        for sweep in TEACH_SWEEPS:
+            name = f"{env}-{sweep}"
+            loaded = _load(name)
+            if loaded is None:
+                continue
+            rows, record = loaded
+            budget = _budget(env, name, record)
+            conds = record["identity"]["conditions"]
+            out += [_teach_row(env, sweep, c, rows) for c in conds if (c, "final_score") in rows]
+            ident = record["identity"]
+            how.append(f"- **{env}, {sweep}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} "
+                       f"conditions, {_share(env, budget)} env steps per run; "
+                       f"`{' '.join(record['command'])}`{_progress(name, record, budget)}")  # fmt: skip
+    if not how:
+        names = ", ".join(f"{env}-{s}" for env in ENVS for s in TEACH_SWEEPS)
+        return f"Not published yet: {names}."
+    return "\n".join(["### The couplings against none", "", *out, "", "### How they were run", "", *how])
+
+
 def main() -> None:
     """Replace the marked blocks of docs/results/README.md."""
     readme = RESULTS / "README.md"
     text = readme.read_text()
-    for block in BLOCKS:
-        a, b = text.index(block.begin) + len(block.begin), text.index(block.end)
-        text = text[:a] + "\n\n" + tables(block) + "\n\n" + text[b:]
-        print(tables(block), end="\n\n")
+    for begin, end, body in [(b.begin, b.end, tables(b)) for b in BLOCKS] + [
+        (TEACH_BEGIN, TEACH_END, teaching_tables())
+    ]:
+        a, b = text.index(begin) + len(begin), text.index(end)
+        text = text[:a] + "\n\n" + body + "\n\n" + text[b:]
+        print(body, end="\n\n")
     atomic_write_text(readme, text)
 
 
