@@ -11,6 +11,7 @@
 #   bash benchmarks/evidence.sh --teach Hopper-v5     # the teaching couplings, its Amendment 1
 #   bash benchmarks/evidence.sh --teach2 Hopper-v5    # and its Amendment 2 (none and rescue-terminal
 #                                                     # run again: the same runs, a check of determinism)
+#   bash benchmarks/evidence.sh --teach3 Hopper-v5    # and its Amendment 3 (the demonstrations kept)
 #   bash benchmarks/evidence.sh Hopper-v5             # one env
 #   bash benchmarks/evidence.sh Hopper-v5 -- --backend ray --address HOST:6379   # on a Ray cluster
 #
@@ -28,6 +29,7 @@ case "${1:-}" in
     --confirm) mode=confirm; shift ;;
     --teach) mode=teach; shift ;;
     --teach2) mode=teach2; shift ;;
+    --teach3) mode=teach3; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -39,7 +41,7 @@ rescue=none,paper,rescue,rescue-penalty,rescue-terminal,rescue-fading
 design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
     case $mode in
         confirm) confirm_design "$1"; return ;;
-        teach|teach2) teach_design "$1"; return ;;
+        teach|teach2|teach3) teach_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -66,11 +68,11 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
     local line
     line=$(confirm_design "$1")
     read -r _ _ steps seeds <<< "$line"
-    if [ "$mode" = teach ]; then
-        echo "$1-teach none,rescue-terminal,warm-start,warm-start-shield $steps $seeds"
-    else
-        echo "$1-teach2 none,rescue-terminal,blend,rollin,rescue-veto,warm-start-veto $steps $seeds"
-    fi
+    case $mode in
+        teach) echo "$1-teach none,rescue-terminal,warm-start,warm-start-shield $steps $seeds" ;;
+        teach2) echo "$1-teach2 none,rescue-terminal,blend,rollin,rescue-veto,warm-start-veto $steps $seeds" ;;
+        teach3) echo "$1-teach3 none,rescue-terminal,warm-start-keep,warm-start-keep-shield $steps $seeds" ;;
+    esac
 }
 
 for env in "${envs[@]}"; do design "$env" > /dev/null; done   # a wrong name stops before any work

@@ -231,3 +231,57 @@ def test_sigterm_during_the_demonstrations_stops_after_the_warm_start(tmp_path: 
     done = resume(run, progress_bar=False)
     assert done.completed and done.coach_steps == 40000 and done.agent_steps >= 1000
     assert (run / demo.FILE).read_bytes() == before
+
+
+# ------------------------------------------------------------------------------- the demonstrations kept
+
+KEEP = {"shape": "linear", "start": 1.0, "end": 0.0, "begin": 0.0, "finish": 1.0}
+
+
+@pytest.mark.parametrize(
+    ("keep", "message"),
+    [(0.5, "must fade to 0"), ({"shape": "linear", "start": 1.0, "end": 0.2}, "must fade to 0"),
+     ({"shape": "linear", "start": -1.0, "end": 0.0}, "warm_start.keep")],
+)  # fmt: skip
+def test_a_kept_demonstration_weight_that_does_not_fade_is_refused(keep, message: str) -> None:
+    coaching = {"demonstrations": {"steps": 100}, "warm_start": {"keep": keep}}
+    with pytest.raises(RecipeError, match="warm_start.keep") as err:
+        parse_recipe(_recipe_data(1000, coaching))
+    assert message in str(err.value)
+
+
+def _kept_run(folder: Path, steps: int) -> Path:
+    coaching = {"demonstrations": {"steps": 400, "noise": 0.1}, "warm_start": {"epochs": 2, "keep": KEEP}}
+    data = _recipe_data(steps, coaching)
+    data["checkpoint"] = {"every": 800}
+    path = folder / "keep.toml"
+    path.write_text(tomli_w.dumps(data))
+    train(load_recipe(path), load_spec(TUNING / f"{IP}.pidlab-rescue.toml"), folder / "run", progress_bar=False)
+    return folder / "run"
+
+
+def _gradient_steps_add_up(run: Path) -> dict:
+    """Each kept round takes as many gradient steps as a PPO update: 5 epochs x 1 batch of 32."""
+    s = json.loads((run / "summary.json").read_text())
+    from pidlab.rl.rundir import latest_checkpoint
+
+    state = json.loads((latest_checkpoint(run) / "state.json").read_text())
+    updates = state["sb3"]["n_updates"] // 5  # PPO's train() calls (SB3 counts epochs)
+    assert s["kept_rounds"] >= 1 and updates - 1 <= s["kept_rounds"] <= updates
+    assert s["policy_updates"] == 5 * (updates + s["kept_rounds"])
+    return s
+
+
+def test_kept_demonstrations_take_one_round_after_each_update(tmp_path: Path) -> None:
+    s = _gradient_steps_add_up(_kept_run(tmp_path, 1200))
+    assert s["kept_at"] > 0
+
+
+def test_a_resumed_run_does_not_repeat_a_kept_round(tmp_path: Path) -> None:
+    from pidlab.rl.train import resume
+
+    run = _kept_run(tmp_path, 1200)
+    before = json.loads((run / "summary.json").read_text())["kept_rounds"]
+    resume(run, steps=2000, progress_bar=False)
+    s = _gradient_steps_add_up(run)
+    assert s["kept_rounds"] > before

@@ -187,3 +187,49 @@ def _targets(demos: Demonstrations, rewards: np.ndarray, values: np.ndarray, gam
         cut[-1] = not demos.terminated[rows][-1]  # the data end inside an episode: bootstrap there
         out[rows] = discounted_returns(rewards[rows], demos.terminated[rows], cut, values[rows], gamma)
     return out
+
+
+def keep_step(model: Any, demos: Demonstrations, normalize_obs: Any, weight: float, batches: int,
+              seed: int) -> float:  # fmt: skip
+    """Behaviour-cloning steps on the demonstrations during RL (the demonstrations kept in the updates).
+
+    ``batches`` minibatches of :data:`BATCH` demonstration steps, each a gradient step of
+    ``weight * -mean log pi(a_demo | s)`` with the policy's own optimizer (DAPG's augmented
+    gradient, taken after PPO's update rather than inside it). The observations are normalized with
+    the run's normalizer as it stands.
+
+    Parameters
+    ----------
+    model : stable_baselines3.PPO
+    demos : Demonstrations
+    normalize_obs : callable
+    weight : float
+        The term's weight, > 0.
+    batches : int
+        Gradient steps.
+    seed : int
+        Seed of the minibatches' draw.
+
+    Returns
+    -------
+    float
+        The mean negative log-likelihood over the steps (before weighting).
+    """
+    import torch
+
+    policy = _policy(model)
+    obs = torch.as_tensor(np.asarray(normalize_obs(demos.obs), dtype=np.float32), device=policy.device)
+    actions = torch.as_tensor(demos.actions, device=policy.device)
+    gen = torch.Generator().manual_seed(seed)
+    policy.set_training_mode(True)
+    total = 0.0
+    for _ in range(batches):
+        idx = torch.randint(len(demos), (min(BATCH, len(demos)),), generator=gen)
+        _, log_prob, _ = policy.evaluate_actions(obs[idx], actions[idx])
+        loss = -log_prob.mean()
+        policy.optimizer.zero_grad()
+        (weight * loss).backward()
+        policy.optimizer.step()
+        total += float(loss.detach())
+    policy.set_training_mode(False)
+    return total / max(batches, 1)

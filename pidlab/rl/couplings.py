@@ -12,6 +12,9 @@ A coupling here acts at the points the trainer offers (:class:`Coupling`, each a
     At the start of every session (new or resumed), after ``before_learning``, before learning.
 ``after_evaluation(trainer, evaluation)``
     After each evaluation of the agent alone.
+``before_rollout(trainer)``
+    Before each of the agent's rollouts (after the update that ended the previous one), before
+    the trainer's checkpoint there, so that a checkpoint holds what the coupling did.
 
 :func:`couplings_of` lists a run's couplings from its recipe; adding one touches no other.
 
@@ -20,7 +23,12 @@ Warm start (:class:`WarmStartCoupling`)
     (:mod:`pidlab.rl.demonstrations`, kept in the run folder as ``demonstrations.npz``); with a
     ``warm_start`` table the agent is then behaviour-cloned on them and its critic warmed up
     (:mod:`pidlab.rl.cloning`). The agent alone is evaluated at env step 0 and right after the
-    warm start; learning then goes on from the envs' current states (no reset).
+    warm start; learning then goes on from the envs' current states (no reset). With
+    ``warm_start.keep`` the demonstrations stay in the updates: after each PPO update, as many
+    behaviour-cloning steps as the update took gradient steps, weighted by ``keep(progress)``
+    (:func:`pidlab.rl.cloning.keep_step`; DAPG's augmented gradient, Rajeswaran et al. 2018). The
+    rounds are checkpointed counters (``kept_rounds``, and ``kept_at``: SB3's update count at the
+    last round, so a resume does not repeat one).
 Roll-in (:class:`RollInCoupling`, Jump-Start RL)
     The coach acts alone for the first ``h`` steps of every env episode (the wrapper's
     :meth:`~pidlab.rl.coaching.CoachingWrapper.set_rollin`). The agent takes the episode over in
@@ -60,6 +68,9 @@ class Coupling:
     def after_evaluation(self, trainer: Any, evaluation: Any) -> None:
         """Act on an evaluation of the agent alone."""
 
+    def before_rollout(self, trainer: Any) -> None:
+        """Act before a rollout, after the update that ended the previous one."""
+
 
 @dataclass(frozen=True)
 class WarmStartCoupling(Coupling):
@@ -90,6 +101,32 @@ class WarmStartCoupling(Coupling):
         record["env_steps_after"] = c.env_steps
         write_json(trainer.run_dir / RECORD, record)
         trainer.checkpoint()
+
+    def before_rollout(self, trainer: Any) -> None:
+        """Behaviour-cloning steps on the kept demonstrations after a PPO update (``keep``)."""
+        keep = self.warm_start.keep if self.warm_start is not None else None
+        c, model = trainer.counters, trainer.model
+        if keep is None or int(model._n_updates) <= c.kept_at:
+            return
+        c.kept_at = int(model._n_updates)
+        weight = float(keep(min(c.env_steps / trainer.recipe.steps, 1.0)))
+        if weight <= 0.0:
+            return
+        from pidlab.rl import demonstrations as demo
+        from pidlab.rl.cloning import keep_step
+
+        demos = trainer.cache.get("demonstrations")
+        if demos is None:
+            demos = trainer.cache["demonstrations"] = demo.load(trainer.run_dir / demo.FILE)
+        venv = trainer.venv
+        normalize = getattr(venv, "normalize_obs", None) if getattr(venv, "norm_obs", False) else None
+        batches = int(model.n_epochs) * -(-int(model.n_steps) * int(model.n_envs) // int(model.batch_size))
+        loss = keep_step(
+            model, demos, normalize or _identity, weight, batches, trainer.recipe.seed + c.kept_at
+        )
+        c.kept_rounds += 1
+        trainer.tb.add_scalar("coaching/kept_weight", weight, c.env_steps)
+        trainer.tb.add_scalar("coaching/kept_nll", loss, c.env_steps)
 
     def _clone(self, trainer: Any, demos: Any) -> Any:
         from pidlab.rl.cloning import clone

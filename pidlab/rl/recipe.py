@@ -177,10 +177,15 @@ class WarmStart:
         Passes over the demonstrations for the policy (and for the critic).
     critic : bool
         Also fit the value function to the demonstrations' discounted returns (PPO).
+    keep : Schedule or None
+        Keep the demonstrations in the updates: after each PPO update, behaviour-cloning steps on
+        them with this weight (a schedule of training progress that ends at 0; DAPG-style), so that
+        RL fine-tuning does not unlearn the clone. None: the demonstrations are used once.
     """
 
     epochs: int = 30
     critic: bool = True
+    keep: Schedule | None = None
 
 
 @dataclass(frozen=True)
@@ -623,20 +628,27 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
 
 def _blend(c: dict[str, Any], w: str) -> Schedule | None:
     """``[coaching] blend``: the coach's weight in the executed action, fading to 0 by the end."""
-    if "blend" not in c:
+    return _fading(c, "blend", w, "the coach's weight", high=1.0)
+
+
+def _fading(c: dict[str, Any], key: str, w: str, what: str, high: float | None) -> Schedule | None:
+    """A schedule field that must reach 0 by the end of the budget (None when absent)."""
+    if key not in c:
         return None
     try:
-        blend = parse_schedule(c["blend"], f"{w}.blend")
+        value = parse_schedule(c[key], f"{w}.{key}")
     except ScheduleError as exc:
         raise RecipeError(str(exc)) from None
-    if blend.start > 1 or blend.end > 1:
-        raise RecipeError(f"{w}.blend: the coach's weight cannot exceed 1; expected start and end in [0, 1]")
-    if blend(1.0) != 0.0:
+    if high is not None and (value.start > high or value.end > high):
         raise RecipeError(
-            f"{w}.blend: the coach's weight must fade to 0 by the end of the budget, so that the agent ends "
+            f"{w}.{key}: {what} cannot exceed {high:g}; expected start and end in [0, {high:g}]"
+        )
+    if value(1.0) != 0.0:
+        raise RecipeError(
+            f"{w}.{key}: {what} must fade to 0 by the end of the budget, so that the agent ends "
             "up acting alone; expected end = 0 (and finish <= 1)"
         )
-    return blend
+    return value
 
 
 def _rollin(c: dict[str, Any], w: str) -> RollIn | None:
@@ -662,7 +674,7 @@ def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
         noise = _num(d, "noise", where, 0.1, low=0.0, high=10.0)
         out["demonstrations"] = DemonstrationSettings(steps=steps, noise=noise)
     if "warm_start" in c:
-        t = _table(c, "warm_start", w, {"epochs", "critic"})
+        t = _table(c, "warm_start", w, {"epochs", "critic", "keep"})
         if out["demonstrations"] is None:
             raise RecipeError(
                 f"{w}.warm_start: a warm start clones the coach's demonstrations, and there are none; "
@@ -670,7 +682,8 @@ def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
             )
         critic = _bool(t["critic"], f"{w}.warm_start.critic") if "critic" in t else True
         epochs = _int(t, "epochs", f"{w}.warm_start", 30, low=1, high=10**5)
-        out["warm_start"] = WarmStart(epochs=epochs, critic=critic)
+        keep = _fading(t, "keep", f"{w}.warm_start", "the behaviour-cloning term's weight", high=None)
+        out["warm_start"] = WarmStart(epochs=epochs, critic=critic, keep=keep)
     return out
 
 
@@ -1046,6 +1059,8 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
         coaching["demonstrations"] = {"steps": c.demonstrations.steps, "noise": c.demonstrations.noise}
     if c.warm_start is not None:
         coaching["warm_start"] = {"epochs": c.warm_start.epochs, "critic": c.warm_start.critic}
+        if c.warm_start.keep is not None:
+            coaching["warm_start"]["keep"] = schedule_to_dict(c.warm_start.keep)
     if c.blend is not None:
         coaching["blend"] = schedule_to_dict(c.blend)
     if c.rollin is not None:

@@ -107,7 +107,8 @@ class Counters:
     ``terminal``-view rescue hands the running env to the next agent episode); ``env_resets``
     count every real reset of a training env (each env's first of every session included);
     ``falls`` the env's terminations, whoever was acting; ``rollin_stage`` the roll-in's stage
-    (:class:`pidlab.rl.couplings.RollInCoupling`, 0 without one).
+    (:class:`pidlab.rl.couplings.RollInCoupling`, 0 without one); ``kept_rounds`` and ``kept_at``
+    the warm start's rounds on the kept demonstrations and SB3's update count at the last one.
     """
 
     env_steps: int = 0
@@ -124,6 +125,8 @@ class Counters:
     env_resets: int = 0
     falls: int = 0
     rollin_stage: int = 0
+    kept_rounds: int = 0
+    kept_at: int = 0
 
     def to_dict(self) -> dict[str, int]:
         """Plain dict for JSON."""
@@ -407,6 +410,8 @@ def _make_callback(trainer: _Trainer) -> Any:
             trainer.on_start()
 
         def _on_rollout_start(self) -> None:
+            for coupling in trainer.couplings:
+                coupling.before_rollout(trainer)
             trainer.maybe_checkpoint()
 
         def _on_step(self) -> bool:
@@ -448,6 +453,7 @@ class _Trainer:
     moving: bool = False
     envs_running: bool = False  # a coupling stepped the envs: learning goes on without resetting them
     couplings: list[Any] = field(default_factory=list)
+    cache: dict[str, Any] = field(default_factory=dict)  # what couplings keep between calls
     timing_log: Any = None
     clock: Callable[[], float] = time.perf_counter  # wall-clock seconds since the run started
     _progress_tick: int = -1
