@@ -96,3 +96,16 @@ def test_the_plan_was_committed_before_and_only_amended_since():
     then, now = committed.stdout, DOC.read_text()
     assert now[: now.index(head)] == then[: then.index(head)]
     assert now.startswith(then[: then.index(head) + len(head)])
+
+
+def test_every_condition_an_amendment_governs_is_named_in_its_amendment():
+    text = (ROOT / plan.PLAN_FILE).read_text()
+    amendments = text[text.index("## Amendments") :]
+    for condition, k in plan.AMENDMENTS.items():
+        section = amendments[amendments.index(f"### Amendment {k} ") :]
+        following = section.find("### Amendment", 5)
+        section = section if following < 0 else section[:following]
+        assert f"`{condition}`" in section, (condition, k)
+    cited = plan.citation(range(100, 110), ["none", "rescue-terminal", "rollin", "warm-start"])
+    assert "Amendment 1 and Amendment 2" in cited and "Confirmatory" in cited
+    assert "Amendment" not in plan.citation(range(100, 110), ["none", "paper", "rescue-terminal"])

@@ -62,12 +62,34 @@ def role(seeds: Sequence[int]) -> str:
     return "confirmatory" if tuple(sorted(seeds)) == CONFIRMATORY_SEEDS else "pilot"
 
 
-def citation(seeds: Sequence[int]) -> str:
-    """The sentence a report opens its analysis with."""
+AMENDMENTS: dict[str, int] = {
+    "warm-start": 1,
+    "warm-start-shield": 1,
+    "blend": 2,
+    "rollin": 2,
+    "rescue-veto": 2,
+    "warm-start-veto": 2,
+    "warm-start-keep": 3,
+    "warm-start-keep-shield": 3,
+}
+"""Condition -> the amendment of the plan that governs it (added before its runs)."""
+
+
+def amendments_of(conditions: Sequence[str]) -> tuple[int, ...]:
+    """The amendments that govern ``conditions`` (in order; none for the plan's own conditions)."""
+    return tuple(sorted({AMENDMENTS[c] for c in conditions if c in AMENDMENTS}))
+
+
+def citation(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
+    """The sentence a report opens its analysis with (naming the amendments that govern ``conditions``)."""
     text = (
         f"Analysed under the pre-registered analysis plan ({PLAN_FILE}, committed in {PLAN_COMMIT[:7]} "
         "before the confirmatory runs)."
     )
+    amended = amendments_of(conditions)
+    if amended:
+        names = " and ".join(f"Amendment {k}" for k in amended)
+        text += f" Its couplings are governed by the plan's {names}, each added before the runs it governs."
     if role(seeds) == "confirmatory":
         return text + " **Confirmatory sweep**: the plan's fresh seeds 100-109; its verdicts are the plan's."
     return text + (

@@ -384,7 +384,7 @@ def _front_matter(a: Analysis, record: Mapping[str, Any]) -> list[str]:
     seeds = record["identity"]["seeds"]
     scope = f"Seeds {seeds[0]}..{seeds[-1]} ({len(seeds)}); conditions {', '.join(a.conditions)}"
     lines = report_header(f"Coaching experiment: {', '.join(a.envs)}", record, scope=scope,
-                          notes=[plan.citation(seeds)])  # fmt: skip
+                          notes=[plan.citation(seeds, a.conditions)])  # fmt: skip
     total = sum(len(c.runs) for c in a.cells.values())
     lines.append(f"Finished runs: {total} of {total + len(a.missing)}.{_wall_time(a)}")
     if a.missing:
