@@ -66,7 +66,8 @@ confirm_design() {  # the confirmatory sweeps fixed by docs/analysis-plan.md (fr
 
 teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amendments 1 and 2)
     local line
-    line=$(confirm_design "$1")
+    line=$(confirm_design "$1" 2> /dev/null) || {
+        echo "evidence.sh: $1: no teaching design (expected one of the paper's four v5 envs)" >&2; exit 2; }
     read -r _ _ steps seeds <<< "$line"
     case $mode in
         teach) echo "$1-teach none,rescue-terminal,warm-start,warm-start-shield $steps $seeds" ;;

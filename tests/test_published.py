@@ -113,3 +113,28 @@ def test_a_run_names_its_coach_and_recipe_by_their_place_in_the_data_folders(tmp
     config = config_dict(recipe, load_spec(shipped), str(shipped))
     assert config["coach"]["source"] == "tuning/Hopper-v5.paper.toml"
     assert config["recipe_source"] == "coach/Hopper-v5.toml"
+
+
+def test_the_aim_is_read_from_the_savings_interval():
+    import results_table
+
+    def row(value: float, low: float, high: float) -> dict[str, str]:
+        return {"saving": str(value), "saving_low": str(low), "saving_high": str(high)}
+
+    assert "**met**" in results_table.aim_text(row(0.97, 0.92, 1.0), 0.9)
+    assert "**missed**" in results_table.aim_text(row(0.3, -0.1, 0.49), 0.5)
+    assert "**undecided**" in results_table.aim_text(row(0.6, 0.4, 0.8), 0.5)
+    assert "**met**" in results_table.aim_text(row(1.0, 1.0, 1.0), 0.9)  # every coupled run: no fall
+    assert results_table.aim_text({"saving": ""}, 0.9).startswith("no saving")
+
+
+@pytest.mark.parametrize("mode", ["--teach", "--teach2", "--teach3"])
+def test_the_teaching_sweeps_refuse_an_env_without_a_design(mode):
+    import subprocess
+
+    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), mode, "CartPole-v1"],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        "evidence.sh: CartPole-v1: no teaching design (expected one of the paper's four v5 envs)"
+    ]
