@@ -138,6 +138,14 @@ def check_readme() -> list[str]:
         if text[a:b].strip() != results_table.tables(block).strip():
             problems.append(f"docs/results/README.md: the tables after {block.begin} differ from "
                             "benchmarks/results_table.py's; run that script")  # fmt: skip
+    begin, end = results_table.TEACH_BEGIN, results_table.TEACH_END
+    if begin not in text or end not in text:
+        problems.append(f"docs/results/README.md: no {begin} ... {end} block")
+    elif text[text.index(begin) + len(begin) : text.index(end)].strip() != (
+        results_table.teaching_tables().strip()
+    ):
+        problems.append(f"docs/results/README.md: the tables after {begin} differ from "
+                        "benchmarks/results_table.py's; run that script")  # fmt: skip
     return problems
 
 
