@@ -12,6 +12,8 @@
 #   bash benchmarks/evidence.sh --teach2 Hopper-v5    # and its Amendment 2 (none and rescue-terminal
 #                                                     # run again: the same runs, a check of determinism)
 #   bash benchmarks/evidence.sh --teach3 Hopper-v5    # and its Amendment 3 (the demonstrations kept)
+#   bash benchmarks/evidence.sh --teach4 Hopper-v5    # and its Amendment 4 (half the demonstrations,
+#                                                     # on its own fresh seeds 110-119)
 #   bash benchmarks/evidence.sh Hopper-v5             # one env
 #   bash benchmarks/evidence.sh Hopper-v5 -- --backend ray --address HOST:6379   # on a Ray cluster
 #
@@ -30,6 +32,7 @@ case "${1:-}" in
     --teach) mode=teach; shift ;;
     --teach2) mode=teach2; shift ;;
     --teach3) mode=teach3; shift ;;
+    --teach4) mode=teach4; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -41,7 +44,7 @@ rescue=none,paper,rescue,rescue-penalty,rescue-terminal,rescue-fading
 design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
     case $mode in
         confirm) confirm_design "$1"; return ;;
-        teach|teach2|teach3) teach_design "$1"; return ;;
+        teach|teach2|teach3|teach4) teach_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -73,6 +76,7 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
         teach) echo "$1-teach none,rescue-terminal,warm-start,warm-start-shield $steps $seeds" ;;
         teach2) echo "$1-teach2 none,rescue-terminal,blend,rollin,rescue-veto,warm-start-veto $steps $seeds" ;;
         teach3) echo "$1-teach3 none,rescue-terminal,warm-start-keep,warm-start-keep-shield $steps $seeds" ;;
+        teach4) echo "$1-teach4 none,warm-start-keep-shield-short $steps 110-119" ;;
     esac
 }
 

@@ -231,8 +231,8 @@ def tables(block: Block = EARLY) -> str:
 
 TEACH_BEGIN = "<!-- teaching: begin (benchmarks/results_table.py) -->"
 TEACH_END = "<!-- teaching: end -->"
-TEACH_SWEEPS = ("teach", "teach2", "teach3")
-"""The folders ENV-teach, ENV-teach2 and ENV-teach3 (Amendments 1, 2 and 3) of each env."""
+TEACH_SWEEPS = ("teach", "teach2", "teach3", "teach4")
+"""The folders ENV-teach, ENV-teach2, ENV-teach3 and ENV-teach4 (Amendments 1-4) of each env."""
 AIM = {"falls": 0.9, "env_steps_to_alone_target": 0.5}
 """Issue 35's aim as savings of the median against none: at least 90 % fewer falls, half the env steps."""
 

@@ -663,8 +663,9 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
             kept = {k: v for k, v in rows.items() if k[0] in ("none", condition) and k[1] in EVIDENCE_METRICS}
             exp = path.parent / "experiment.json"
             record = read_json(exp) if exp.exists() else {}
-            seeds = record.get("identity", {}).get("seeds", []) if isinstance(record, dict) else []
-            found[role(seeds)] = Evidence(f"docs/results/{path.parent.name}", kept)
+            identity = record.get("identity", {}) if isinstance(record, dict) else {}
+            seeds, conds = identity.get("seeds", []), identity.get("conditions", [])
+            found[role(seeds, conds)] = Evidence(f"docs/results/{path.parent.name}", kept)
     return found.get("confirmatory", found.get("pilot"))
 
 

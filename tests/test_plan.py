@@ -109,3 +109,7 @@ def test_every_condition_an_amendment_governs_is_named_in_its_amendment():
     cited = plan.citation(range(100, 110), ["none", "rescue-terminal", "rollin", "warm-start"])
     assert "Amendment 1 and Amendment 2" in cited and "Confirmatory" in cited
     assert "Amendment" not in plan.citation(range(100, 110), ["none", "paper", "rescue-terminal"])
+    # Amendment 4 confirms on its own fresh seeds
+    short = ["none", "warm-start-keep-shield-short"]
+    assert plan.role(range(110, 120), short) == "confirmatory" and plan.role(range(100, 110), short) == "pilot"
+    assert "seeds 110-119" in plan.citation(range(110, 120), short)

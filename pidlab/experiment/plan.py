@@ -57,9 +57,15 @@ def secondary_measures(env_id: str, win_target: float) -> tuple[str, ...]:
     return SECONDARY + extra
 
 
-def role(seeds: Sequence[int]) -> str:
-    """``confirmatory`` for a sweep on exactly the plan's fresh seeds, else ``pilot``."""
-    return "confirmatory" if tuple(sorted(seeds)) == CONFIRMATORY_SEEDS else "pilot"
+def confirmatory_seeds(conditions: Sequence[str] = ()) -> tuple[int, ...]:
+    """The fresh seeds that confirm a sweep of ``conditions`` (an amendment's own, else the plan's)."""
+    own = {AMENDMENT_SEEDS[k] for k in amendments_of(conditions) if k in AMENDMENT_SEEDS}
+    return own.pop() if len(own) == 1 else CONFIRMATORY_SEEDS
+
+
+def role(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
+    """``confirmatory`` for a sweep on exactly its fresh seeds (:func:`confirmatory_seeds`), else pilot."""
+    return "confirmatory" if tuple(sorted(seeds)) == confirmatory_seeds(conditions) else "pilot"
 
 
 AMENDMENTS: dict[str, int] = {
@@ -71,8 +77,12 @@ AMENDMENTS: dict[str, int] = {
     "warm-start-veto": 2,
     "warm-start-keep": 3,
     "warm-start-keep-shield": 3,
+    "warm-start-keep-shield-short": 4,
 }
 """Condition -> the amendment of the plan that governs it (added before its runs)."""
+
+AMENDMENT_SEEDS: dict[int, tuple[int, ...]] = {4: tuple(range(110, 120))}
+"""Amendment -> its own fresh confirmatory seeds (the others confirm on :data:`CONFIRMATORY_SEEDS`)."""
 
 
 def amendments_of(conditions: Sequence[str]) -> tuple[int, ...]:
@@ -90,9 +100,11 @@ def citation(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
     if amended:
         names = " and ".join(f"Amendment {k}" for k in amended)
         text += f" Its couplings are governed by the plan's {names}, each added before the runs it governs."
-    if role(seeds) == "confirmatory":
-        return text + " **Confirmatory sweep**: the plan's fresh seeds 100-109; its verdicts are the plan's."
+    fresh = confirmatory_seeds(conditions)
+    span = f"{fresh[0]}-{fresh[-1]}"
+    if role(seeds, conditions) == "confirmatory":
+        return text + f" **Confirmatory sweep**: the plan's fresh seeds {span}; its verdicts are the plan's."
     return text + (
-        " **Pilot (exploratory) sweep**: these seeds are not the plan's confirmatory seeds 100-109, so its "
+        f" **Pilot (exploratory) sweep**: these seeds are not the plan's confirmatory seeds {span}, so its "
         "verdicts describe these runs and confirm nothing."
     )
