@@ -140,3 +140,23 @@ def test_the_papers_numbers_come_from_the_model_cards():
     assert (paper.win_target, paper.wins_coached, paper.wins_uncoached) == (800, 100, 160)
     assert (paper.average_coached, paper.average_uncoached) == (104, 159)
     assert paper_numbers("NoSuchEnv-v0") is None
+
+
+def test_the_main_jobs_reason_quotes_the_published_savings():
+    from pidlab.report.pipeline import Evidence, evidence_reading
+
+    def row(metric: str, verdict: str, saving: str = "", low: str = "", high: str = "", iqm: str = "0") -> dict:
+        return {"metric": metric, "verdict": verdict, "saving": saving, "saving_low": low, "saving_high": high,
+                "iqm": iqm, "p_holm": "0.001"}  # fmt: skip
+
+    rows = {
+        ("coached", "falls"): row("falls", "better", "1.0", "1.0", "1.0"),
+        ("none", "falls"): row("falls", "", iqm="200"),
+        ("coached", "env_steps_to_alone_target"): row("env_steps_to_alone_target", "better", "0.75", "0.6", "inf"),
+        ("coached", "final_score"): row("final_score", "no clear difference"),
+    }
+    text = evidence_reading(Evidence("docs/results/X", rows), "coached")
+    assert text.startswith("It beats `none` on env steps until the agent alone keeps the target")
+    assert "fewer falls during training, IQM 0.0 against 200.0" in text
+    assert "Savings of the median against `none` (95 % intervals): falls +100.0 % [+100.0 %, +100.0 %]; " in text
+    assert "env steps to the target +75.0 % [+60.0 %, unbounded]" in text

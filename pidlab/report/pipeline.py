@@ -17,6 +17,7 @@ from pidlab.controller.analysis import MARGIN_COLUMNS, CoachAnalysis, margin_tab
 from pidlab.controller.rollout import CoachScore
 from pidlab.controller.spec import CoachSpec
 from pidlab.experiment.analysis import BASELINE, Analysis
+from pidlab.experiment.stats import Estimate
 from pidlab.linear.lti import LtiReport
 from pidlab.report.experiment import (
     budget_share,
@@ -26,6 +27,7 @@ from pidlab.report.experiment import (
     p_text,
     reading,
     report_header,
+    saving_text,
 )
 from pidlab.rl.recipe import PipelineSettings
 
@@ -544,7 +546,22 @@ def evidence_reading(ev: Evidence, cond: str) -> str:
         )
     else:
         text += f". Falls during training: {verdict('falls')}"
+    savings = [f"{label} {saving_text(s)}" for label, s in _savings(ev, cond)]
+    if savings:
+        text += ". Savings of the median against `none` (95 % intervals): " + "; ".join(savings)
     return text + "."
+
+
+def _savings(ev: Evidence, cond: str) -> list[tuple[str, Estimate]]:
+    """The published savings of ``cond`` on falls and on env steps to the target, where recorded."""
+    out = []
+    for metric, label in (("falls", "falls"), ("env_steps_to_alone_target", "env steps to the target")):
+        row = ev.rows.get((cond, metric), {})
+        if row.get("saving", ""):
+            values = [float(row[k]) if row[k] not in ("", "inf") else math.inf
+                      for k in ("saving", "saving_low", "saving_high")]  # fmt: skip
+            out.append((label, Estimate(*values)))
+    return out
 
 
 def render_markdown(f: PipelineFacts) -> str:
