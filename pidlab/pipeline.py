@@ -643,8 +643,10 @@ class _Made:
 def published_evidence(env_id: str, condition: str) -> Evidence | None:
     """The published experiment that compares ``condition`` with ``none`` on ``env_id``.
 
-    Read from ``docs/results/*/summary.csv`` of a source checkout: the last such folder in name
-    order that ran the analysis plan's confirmatory seeds, else the last such folder, else None.
+    Read from ``docs/results/*/summary.csv`` of a source checkout: among the folders that ran
+    the analysis plan's confirmatory seeds for their conditions, the one with the fewest conditions
+    (the smallest Holm family: the plan's own sweep before a later one that repeats its runs beside
+    more conditions), the last in name order among equals; else the last such pilot folder; else None.
     """
     import csv
 
@@ -655,7 +657,7 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
     root = source_root()
     if root is None:
         return None
-    found: dict[str, Evidence] = {}
+    found: dict[str, tuple[int, Evidence]] = {}
     for path in sorted((root / "docs" / "results").glob("*/summary.csv")):
         with open(path, newline="") as f:
             rows = {(r["condition"], r["metric"]): r for r in csv.DictReader(f) if r.get("env") == env_id}
@@ -665,8 +667,12 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
             record = read_json(exp) if exp.exists() else {}
             identity = record.get("identity", {}) if isinstance(record, dict) else {}
             seeds, conds = identity.get("seeds", []), identity.get("conditions", [])
-            found[role(seeds, conds)] = Evidence(f"docs/results/{path.parent.name}", kept)
-    return found.get("confirmatory", found.get("pilot"))
+            kind = role(seeds, conds)
+            size = len(conds) if kind == "confirmatory" else 0
+            if kind not in found or size <= found[kind][0]:
+                found[kind] = (size, Evidence(f"docs/results/{path.parent.name}", kept))
+    best = found.get("confirmatory", found.get("pilot"))
+    return None if best is None else best[1]
 
 
 def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple[Path, Path]:

@@ -204,12 +204,25 @@ def select(conditions: dict[str, Condition], condition_names: list[str], source:
     if missing:
         raise ConditionError(
             f"condition_names={given}: unknown condition(s) {', '.join(missing[:10])}; "
-            f"{source} has: {', '.join(conditions)}",
+            f"{source} has: {_names(list(conditions))}",
             param="condition_names",
         )
     if len(set(names)) != len(names):
         raise ConditionError(f"condition_names={given}: a condition is named twice", param="condition_names")
     return [conditions[n] for n in names]
+
+
+def _names(names: list[str], width: int = 160) -> str:
+    """``names`` joined, cut to about ``width`` characters with how many there are in all."""
+    text = ", ".join(names)
+    if len(text) <= width:
+        return text
+    shown_names: list[str] = []
+    for name in names:
+        if len(", ".join([*shown_names, name])) > width:
+            break
+        shown_names.append(name)
+    return f"{', '.join(shown_names)}, ... ({len(names)} in all)"
 
 
 def spec_path(env_id: str, coach: str) -> Path:
