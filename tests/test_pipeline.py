@@ -19,7 +19,9 @@ from pidlab.rl.rundir import spec_digest
 from tests.helpers import cli_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["--seeds", "1", "--steps", "1024", "--samples", "40", "--episodes", "1", "--workers", "2"]
+TINY = ["--seeds", "1", "--steps", "1024", "--samples", "40", "--episodes", "1", "--workers", "2",
+        "--condition", "rescue-terminal"]  # fmt: skip
+"""A tiny pipeline, shielding without a warm start (the recipe's warm start needs 2,500 env steps)."""
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
@@ -140,7 +142,8 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     assert len(json.loads((out / "pipeline.json").read_text())["resumes"]) == 2
 
     # other settings in the same folder: refused, one line, nothing touched
-    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(out), *TINY[:2], "--steps", "2048")
+    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(out), *TINY[:2], "--steps", "2048",
+                               *TINY[-2:])  # fmt: skip
     assert code == 2
     assert "other settings" in err and "steps 1024 (now 2048)" in err and len(err.strip().splitlines()) == 1
     assert {p: (out / p).read_bytes() for p in before} == before
@@ -275,7 +278,11 @@ def test_the_report_says_why_with_the_published_numbers():
             r for r in csv.DictReader(f) if r["condition"] == "rescue-terminal" and r["metric"] == "falls"
         )
     assert ev.rows[("rescue-terminal", "falls")] == falls
-    settings = load_pipeline_settings(ROOT / "coach" / "InvertedPendulum-v5.toml")
+    from dataclasses import replace
+
+    settings = replace(
+        load_pipeline_settings(ROOT / "coach" / "InvertedPendulum-v5.toml"), condition="rescue-terminal"
+    )
     facts = SimpleNamespace(env_id="InvertedPendulum-v5", evidence=ev, settings=settings)  # what it reads
     text = "\n".join(evidence_section(facts))
     assert f"`{ev.folder}`" in text and "| rescue-terminal |" in text and "| none |" in text
@@ -285,3 +292,20 @@ def test_the_report_says_why_with_the_published_numbers():
     assert published_evidence("InvertedPendulum-v5", "no-such-condition") is None
     facts.evidence = None
     assert "No published experiment" in "\n".join(evidence_section(facts))
+
+
+def test_the_main_job_warm_starts_with_the_recipes_condition(tmp_path):
+    """The recipe's condition: the coach demonstrates, the agent is cloned, the report cites its evidence."""
+    out = tmp_path / "ws"
+    args = ["--seeds", "1", "--steps", "4000", "--samples", "40", "--episodes", "1", "--workers", "2"]
+    done = _run("InvertedPendulum-v5", "--out", str(out), *args, "--no-progress")
+    assert done.returncode == 0, done.stderr[-2000:]
+    settings = load_pipeline_settings(ROOT / "coach" / "InvertedPendulum-v5.toml")
+    run = out / "experiment" / "runs" / "InvertedPendulum-v5" / "coached" / "seed-0"
+    record = json.loads((run / "warm_start.json").read_text())
+    summary = json.loads((run / "summary.json").read_text())
+    assert record["demonstration_steps"] == 2500 and summary["kept_rounds"] >= 1
+    assert summary["env_steps"] == summary["agent_steps"] + summary["coach_steps"] >= 4000
+    report = (out / "report.md").read_text()
+    assert f"condition `{settings.condition}`" in report
+    assert "docs/results/InvertedPendulum-v5-teach4" in report  # its confirmation, on seeds 110-119
