@@ -369,6 +369,20 @@ def _rescue(f: PipelineFacts, r: dict[str, Any]) -> list[str]:
     ]
 
 
+def _teaching_text(c: dict[str, Any]) -> str:
+    """What the coach teaches before and during the coached runs (empty when it only shields)."""
+    demos, warm = c.get("demonstrations"), c.get("warm_start")
+    if not isinstance(demos, dict):
+        return ""
+    text = (f" First the coach demonstrates for {int(demos.get('steps', 0)):,} env steps of the budget, with "
+            f"noise of {float(demos.get('noise', 0.1)):g} of half the actuator range")  # fmt: skip
+    if isinstance(warm, dict):
+        text += ", and the agent is behaviour-cloned on its demonstrations"
+        if warm.get("keep") is not None:
+            text += ", which stay in its updates with a weight that fades to 0 (the demonstrations kept)"
+    return text + "."
+
+
 def _training(f: PipelineFacts) -> list[str]:
     a = f.results
     env = f.env_id
@@ -393,7 +407,7 @@ def _training(f: PipelineFacts) -> list[str]:
         f"{budget:,} env steps per run (agent and coach steps both count; "
         f"{budget_share(a, env) or 'no shipped recipe'}). "
         f"`coached`: the coach above intervenes as the condition `{f.settings.condition}` of "
-        f"coach/conditions.toml says ({rule}, view {view}): {seen}. "
+        f"coach/conditions.toml says ({rule}, view {view}): {seen}.{_teaching_text(c)} "
         f"Target {a.targets.get(env, 0):g}.",
         "",
     ]
