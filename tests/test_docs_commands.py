@@ -39,7 +39,7 @@ def _scaled(value: str) -> str:
 
 # per pidlab verb: option -> a value, or a function of the written value; added when absent
 TINY: dict[str, dict[str, object]] = {
-    "run": {"--seeds": "1", "--steps": "1024", "--samples": "40", "--episodes": "1"},
+    "run": {"--seeds": "1", "--steps": "4000", "--samples": "40", "--episodes": "1"},  # demonstrations: 2,500
     "train": {"--steps": _scaled},
     "experiment": {"--steps": _scaled, "--seeds": "1"},
     "roa": {"--samples": "40"},
