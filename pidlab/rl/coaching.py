@@ -490,7 +490,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._start_episode(obs)
         if self.rollin_steps <= 0 or self._demo is not None or self.coach is None:
             return obs, info
-        run = self._roll_in(obs)
+        run = self._coach_run(obs, limit=self.rollin_steps)
         self.total_coach_steps += run.steps
         self.episode_coach_steps += run.steps
         self.episode_coach_return += run.reward
@@ -505,23 +505,6 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.total_env_resets += 1
         self._start_episode(obs)
         return obs, info
-
-    def _roll_in(self, obs: Any) -> _Run:
-        """The coach alone for up to ``rollin_steps`` steps from ``obs`` (less if the episode ends)."""
-        coach = self.coach
-        if coach is None:  # pragma: no cover - _real_reset checks it
-            raise CoachingError("no coach to roll in")
-        coach.reset(obs)
-        steps, total, terminated, truncated = 0, 0.0, False, False
-        first: tuple[Any, float, dict[str, Any]] = (obs, 0.0, {})
-        while steps < self.rollin_steps and not (terminated or truncated):
-            obs, r, terminated, truncated, info = self.env.step(coach.act(obs))
-            self._observe(obs)
-            steps += 1
-            total += float(r)
-            if steps == 1:
-                first = (obs, float(r), info)
-        return _Run(obs, steps, total, terminated, truncated, *first)
 
     def set_rollin(self, steps: int) -> None:
         """The roll-in: the coach's steps at the start of each env episode (0: none).
@@ -569,14 +552,18 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             return False
         return not self.region.contains(self._predictor.predict(action)) and self._coin()
 
-    def _coach_run(self, obs: Any) -> _Run:
-        """The coach acts from ``obs``: until hand-back (takeover) or ``nudge_steps``, or the episode ends."""
+    def _coach_run(self, obs: Any, limit: int | None = None) -> _Run:
+        """The coach acts from ``obs``: until hand-back (takeover) or ``nudge_steps``, or the episode ends.
+
+        With ``limit`` (a roll-in) it acts for exactly that many steps, fewer only if the episode ends.
+        """
         coach = self.coach
         if coach is None:  # pragma: no cover - only called once a coach intervened
             raise CoachingError("no coach to take over")
         coach.reset(obs)
-        limit = self.nudge_steps if self.mode == "nudge" else self.max_coach_steps
-        handback = self._handback_region if self.mode == "takeover" else None
+        handback = self._handback_region if self.mode == "takeover" and limit is None else None
+        if limit is None:
+            limit = self.nudge_steps if self.mode == "nudge" else self.max_coach_steps
         steps, total, terminated, truncated = 0, 0.0, False, False
         first: tuple[Any, float, dict[str, Any]] = (obs, 0.0, {})
         while steps < limit:

@@ -118,8 +118,7 @@ class WarmStartCoupling(Coupling):
         demos = trainer.cache.get("demonstrations")
         if demos is None:
             demos = trainer.cache["demonstrations"] = demo.load(trainer.run_dir / demo.FILE)
-        venv = trainer.venv
-        normalize = getattr(venv, "normalize_obs", None) if getattr(venv, "norm_obs", False) else None
+        normalize = _obs_normalizer(trainer.venv)
         batches = int(model.n_epochs) * -(-int(model.n_steps) * int(model.n_envs) // int(model.batch_size))
         loss = keep_step(
             model, demos, normalize or _identity, weight, batches, trainer.recipe.seed + c.kept_at
@@ -133,7 +132,7 @@ class WarmStartCoupling(Coupling):
 
         recipe, venv = trainer.recipe, trainer.venv
         ws = self.warm_start or WarmStart()
-        normalize_obs = getattr(venv, "normalize_obs", None) if getattr(venv, "norm_obs", False) else None
+        normalize_obs = _obs_normalizer(venv)
         normalize_reward = (
             getattr(venv, "normalize_reward", None) if getattr(venv, "norm_reward", False) else None
         )
@@ -146,6 +145,11 @@ class WarmStartCoupling(Coupling):
 
 def _identity(x: Any) -> Any:
     return x
+
+
+def _obs_normalizer(venv: Any) -> Any:
+    """The run's observation normalizer (a ``VecNormalize`` that normalizes observations), or None."""
+    return getattr(venv, "normalize_obs", None) if getattr(venv, "norm_obs", False) else None
 
 
 def episode_horizon(env_id: str) -> int | None:
