@@ -230,6 +230,7 @@ class Tuner:
         self.owner = uuid.uuid4().hex
         self._guard = False
         self._attached = False  # True once the page is live (the first poll)
+        self._said: dict[int, int] = {}  # a status pane's id -> the version of its latest text (_say)
         self.changed_at = time.monotonic()  # when the user last changed something
         self._doc: Any = None  # the served document, once the page is made in one
         self._invalid: set[str] = set()
@@ -450,6 +451,28 @@ class Tuner:
         else:
             doc.add_next_tick_callback(draw)
 
+    def _say(self, pane: Any, text: str, after_plot: bool = True) -> None:
+        """Set ``pane``'s text; with ``after_plot``, only once the drawings pushed so far are sent.
+
+        In a served page Panel sends a pane's new text at once, while the plots' data sources
+        leave when the callback that changed them ends: a status such as "certified" could
+        reach the browser before its plot. A text that describes drawings is therefore written
+        in the next tick. Every write to a status pane goes through here and carries a version,
+        so a deferred text never overwrites a newer one.
+        """
+        version = self._said.get(id(pane), 0) + 1
+        self._said[id(pane)] = version
+
+        def write() -> None:
+            if self._said.get(id(pane)) == version:
+                pane.object = text
+
+        doc = pn.state.curdoc
+        if after_plot and self._attached and doc is not None and getattr(doc, "session_context", None):
+            doc.add_next_tick_callback(write)
+        else:
+            write()
+
     def closed(self) -> bool:
         """Whether this page's browser tab has gone (Bokeh keeps the session a while longer)."""
         doc = self._doc if self._doc is not None else pn.state.curdoc
@@ -606,7 +629,7 @@ class Tuner:
                 self.messages[field].object = text
             else:
                 self._views = None
-                self.summary.object = text
+                self._say(self.summary, text, after_plot=False)
             return False
         self._views = v
         s = self.sources
@@ -624,8 +647,8 @@ class Tuner:
             self.bode_mag.title.text = title
 
         self._push(draw)
-        self.margins.object = self._margins_html(v)
-        self.summary.object = self._summary_html(v)
+        self._say(self.margins, self._margins_html(v))
+        self._say(self.summary, self._summary_html(v))
         if field is not None:
             if not v.stable:
                 self.messages[field].object = (
@@ -705,13 +728,14 @@ class Tuner:
 
         self._push(draw)
         if self.base_bounds and not self._bounds_valid():
-            self.bounds_info.object = (
+            self._say(
+                self.bounds_info,
                 f"<span class='pidlab-msg' {RED}>The gains changed since the bounds were derived: they are "
-                "not certified for these gains and will not be saved. Press <b>Derive bounds</b>.</span>"
+                "not certified for these gains and will not be saved. Press <b>Derive bounds</b>.</span>",
             )
             return
         if not b:
-            self.bounds_info.object = "No critical bounds yet: press <b>Derive bounds</b>."
+            self._say(self.bounds_info, "No critical bounds yet: press <b>Derive bounds</b>.")
             return
         rows = []
         for name, (lo, hi) in b.get("box", {}).items():
@@ -728,18 +752,18 @@ class Tuner:
             )
         e = b.get("ellipsoid")
         ell = f"ellipsoid V &le; rho c with c = {e['level']:.4g}, rho = {e['rho']:.4g}; " if e else ""
-        self.bounds_info.object = (
+        self._say(
+            self.bounds_info,
             f"<div id='bounds-table'>{ell}method: {html.escape(str(b.get('method', '')))}"
             f"<table {TABLE}><tr><th {TH}>variable</th><th {TH}>low</th><th {TH}>high</th>"
             f"<th {TH}>unit</th></tr>"
-            f"{''.join(rows)}</table>{note}</div>"
+            f"{''.join(rows)}</table>{note}</div>",
         )
 
     def _derive_bounds(self) -> None:
         if self._views is not None and not self._views.stable:
-            self.status[
-                "bounds"
-            ].object = f"<span class='pidlab-msg' {RED}>closed loop unstable: no region to certify</span>"
+            text = f"<span class='pidlab-msg' {RED}>closed loop unstable: no region to certify</span>"
+            self._say(self.status["bounds"], text, after_plot=False)
             return
         self._bounds_job_spec = self.spec
         self.runner.submit(self.owner, "bounds", self.spec, samples=self.bounds_samples)
@@ -750,16 +774,15 @@ class Tuner:
     def _schedule_slow(self) -> None:
         for kind in SLOW_KINDS:
             self.runner.cancel(self.owner, kind)
-            self.status[kind].object = "<i>waiting for the gains to settle…</i>"
+            self._say(self.status[kind], "<i>waiting for the gains to settle…</i>", after_plot=False)
         self._slow_due = time.monotonic() + DEBOUNCE_S
 
     def _start_slow(self) -> None:
         self._slow_due = None
         if self._views is not None and not self._views.stable:
             for kind in SLOW_KINDS:
-                self.status[
-                    kind
-                ].object = f"<span class='pidlab-msg' {RED}>closed loop unstable: not simulated</span>"
+                text = f"<span class='pidlab-msg' {RED}>closed loop unstable: not simulated</span>"
+                self._say(self.status[kind], text, after_plot=False)
             return
         self.runner.submit(self.owner, "roa", self.spec)
         self._running("roa", "starting", 0.0)
@@ -776,9 +799,11 @@ class Tuner:
     def _running(self, kind: str, stage: str, fraction: float | None) -> None:
         # the bar is part of the status pane: one model per job instead of three, in every tab
         value = "" if fraction is None else f" value='{min(max(fraction, 0.0), 1.0):.3f}'"
-        self.status[kind].object = (
+        self._say(
+            self.status[kind],
             f"<progress class='pidlab-progress' max='1'{value} style='width:220px'></progress> "
-            f"<i>{html.escape(stage)}…</i>"
+            f"<i>{html.escape(stage)}…</i>",
+            after_plot=False,
         )
 
     def _poll(self) -> None:
@@ -799,7 +824,8 @@ class Tuner:
         if u.state == "cancelled":  # a newer job, or "waiting for the gains to settle", has the status
             return
         if u.state == "error":
-            self.status[kind].object = f"<span class='pidlab-msg' {RED}>{html.escape(u.stage)}</span>"
+            text = f"<span class='pidlab-msg' {RED}>{html.escape(u.stage)}</span>"
+            self._say(self.status[kind], text, after_plot=False)
             return
         show = {"roa": self._show_roa, "rollout": self._show_rollout, "autotune": self._show_autotune,
                 "bounds": self._show_bounds}  # fmt: skip
@@ -815,11 +841,12 @@ class Tuner:
 
         self._push(draw)
         ok = sum(r.recovered)
-        self.status["roa"].object = (
+        self._say(
+            self.status["roa"],
             f"preview: {html.escape(r.roa.method)}; level {r.roa.level:.4g}, {r.roa.check.samples} "
             "samples, "
             f"{r.roa.check.failures} failures; {ok}/{len(r.recovered)} trajectories shown recovered "
-            f"({r.roa.elapsed_s:.1f} s)"
+            f"({r.roa.elapsed_s:.1f} s)",
         )
 
     def _show_rollout(self, r: Any) -> None:
@@ -835,23 +862,26 @@ class Tuner:
             "style='max-width:100%'><div style='font-size:0.8em'>episode seed 0 · "
             f"{html.escape(r.note)}</div>"
         )
-        self.status["rollout"].object = ""
+        self._say(self.status["rollout"], "", after_plot=False)
 
     def _show_autotune(self, r: Any) -> None:
         tuned = r.spec
         self._adopt(tuned, f"auto-tune (asked {r.asked_bandwidth:.3g} rad/s, {r.asked_phase_margin:.0f} deg)")
-        self.status["autotune"].object = (
+        self._say(
+            self.status["autotune"],
             f"achieved: crossover {r.achieved_bandwidth:.3g} rad/s, phase margin "
             f"{r.achieved_phase_margin:.1f} "
-            f"deg, Ms {r.achieved_ms:.3g} ({r.evaluations} evaluations)"
+            f"deg, Ms {r.achieved_ms:.3g} ({r.evaluations} evaluations)",
         )
 
     def _show_bounds(self, r: Any) -> None:
         job_spec = self._bounds_job_spec
         if job_spec is None or _gains_only(job_spec) != _gains_only(self.spec):
-            self.status["bounds"].object = (
+            self._say(
+                self.status["bounds"],
                 f"<span class='pidlab-msg' {RED}>bounds were derived for gains that have changed since; "
-                "press Derive bounds again</span>"
+                "press Derive bounds again</span>",
+                after_plot=False,
             )
             return
         self.base_bounds = r.bounds.to_table()
@@ -863,9 +893,10 @@ class Tuner:
             self._guard = False
         self._draw_bounds()
         chk = r.roa.check
-        self.status["bounds"].object = (
+        self._say(
+            self.status["bounds"],
             f"certified: level {r.roa.level:.4g}, {chk.samples} samples, {chk.failures} failures "
-            f"(failure probability &lt; {chk.failure_bound_95:.3g} at 95 %)"
+            f"(failure probability &lt; {chk.failure_bound_95:.3g} at 95 %)",
         )
 
     # ------------------------------------------------------------------ files
