@@ -176,7 +176,8 @@ def check_settings(env_id: str, settings: PipelineSettings) -> None:
     ------
     PipelineError
         The preset does not apply to the env (``room`` on a contact-rich env), or the condition
-        is unknown, trains no coach, or has coaching fields the env's recipe rejects.
+        is unknown, trains no coach, has coaching fields the env's recipe rejects, or demonstrates
+        for the whole budget.
     ModelCardError
         The env's model card cannot be read.
     """
@@ -189,9 +190,17 @@ def check_settings(env_id: str, settings: PipelineSettings) -> None:
         raise PipelineError(message, param="preset")
     coaching_of(env_id, settings)
     try:
-        _coached_recipe(env_id, settings, load_recipe(default_recipe_path(env_id)))
+        coached = _coached_recipe(env_id, settings, load_recipe(default_recipe_path(env_id)))
     except ConditionError as exc:
         raise PipelineError(f"condition={settings.condition!r}: {exc}", param="condition") from None
+    demos = coached.coaching.demonstrations
+    if demos is not None and demos.steps >= settings.steps:
+        raise PipelineError(
+            f"steps={settings.steps}: the condition {settings.condition!r} has the coach demonstrate for "
+            f"{demos.steps:,} env steps of the budget; expected more steps than that, or a condition without "
+            "demonstrations (e.g. condition rescue-terminal)",
+            param="steps",
+        )
 
 
 def coaching_of(env_id: str, settings: PipelineSettings) -> tuple[dict[str, Any], str]:

@@ -162,6 +162,8 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
         (["InvertedPendulum-v5", "--condition", "nope"], "--condition 'nope': not a condition of"),
         (["InvertedPendulum-v5", "--condition", "none"], "--condition 'none': trains no coach"),
         (["InvertedPendulum-v5", "--workers", "0"], "--workers 0"),
+        # the recipe's condition demonstrates for 2,500 env steps: refused before any stage runs
+        (["InvertedPendulum-v5", "--steps", "2000"], "--steps 2000: the condition 'warm-start-keep-shield-short'"),
         (["InvertedPendulum-v5", "--samples", "0"], "--samples 0"),
         # checked before anything is written (it had written linearization.json and pipeline.json first)
         (
@@ -227,13 +229,16 @@ def test_a_folder_of_other_settings_is_refused_with_commands_that_work(tmp_path)
     shutil.rmtree(stuck)  # what the line says; the command's checks then pass
     assert check_out_folder(stuck, _identity("Hopper-v5", settings_for("Hopper-v5"))) is None
 
-    own = ["pidlab", "run", "InvertedPendulum-v5", "--steps", "1024"]
-    other = folder("other", "InvertedPendulum-v5", settings_for("InvertedPendulum-v5", steps=1024), own)
+    shield = ["--condition", "rescue-terminal"]  # budgets below the recipe's 2,500 demonstration steps
+    own = ["pidlab", "run", "InvertedPendulum-v5", "--steps", "1024", *shield]
+    settings = settings_for("InvertedPendulum-v5", steps=1024, condition="rescue-terminal")
+    other = folder("other", "InvertedPendulum-v5", settings, own)
     before = {p.name: p.read_bytes() for p in other.iterdir()}
-    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(other), "--steps", "2048")
+    code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(other), "--steps", "2048", *shield)
     assert code == 2 and "steps 1024 (now 2048)" in err, err
     assert (
-        "Resume it with its own command (pidlab run InvertedPendulum-v5 --steps 1024), choose another" in err
+        "Resume it with its own command (pidlab run InvertedPendulum-v5 --steps 1024 --condition "
+        "rescue-terminal), choose another" in err
     )
     assert {p.name: p.read_bytes() for p in other.iterdir()} == before
 

@@ -168,7 +168,7 @@ def old_run_json() -> dict:
 
 def old_pipeline_json() -> dict:
     """pipeline.json as pidlab wrote it before (b4c4443: pipeline.run_pipeline, _finish_record)."""
-    settings = settings_for(IP, seeds=1, steps=1024, roa_samples=40)
+    settings = settings_for(IP, seeds=1, steps=1024, roa_samples=40, condition="rescue-terminal")
     git = {"sha": "b4c44438d02b9c789277431bd80fd70f254b23a4", "dirty": False}
     return {
         "identity": _identity(IP, settings),
@@ -226,7 +226,7 @@ def test_published_experiment_record_migrates_and_resumes(tmp_path):
 
 
 def test_old_pipeline_record_migrates_and_resumes(tmp_path):
-    settings = settings_for(IP, seeds=1, steps=1024, roa_samples=40)
+    settings = settings_for(IP, seeds=1, steps=1024, roa_samples=40, condition="rescue-terminal")
     identity = _identity(IP, settings)
     write_json(tmp_path / "pipeline.json", old_pipeline_json())
     record = check_pipeline_folder(tmp_path, identity)
@@ -325,7 +325,7 @@ def test_the_three_callers_keep_their_messages(tmp_path):
     assert str(info.value).endswith("it was made by: pidlab experiment --steps 2048); nothing was changed. "
                                     "Choose another folder, or repeat that experiment's own command to resume it")
 
-    identity = _identity(IP, settings_for(IP, seeds=1, steps=1024))
+    identity = _identity(IP, settings_for(IP, seeds=1, steps=1024, condition="rescue-terminal"))
     write_json(tmp_path / "pipe" / "pipeline.json", old_pipeline_json())
     with pytest.raises(PipelineError) as info:
         check_pipeline_folder(tmp_path / "pipe", identity)

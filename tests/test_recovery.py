@@ -429,7 +429,7 @@ def test_a_damaged_pipeline_stage_file_is_named_before_any_write(tmp_path):
     from pidlab.pipeline import PIPELINE_SCHEMA, _identity, settings_for
 
     out = tmp_path / "pipe"
-    settings = settings_for(IP, seeds=1, steps=1024, roa_samples=40)
+    settings = settings_for(IP, seeds=1, steps=1024, roa_samples=40, condition="rescue-terminal")
     write_record(
         out / "pipeline.json", new_record(PIPELINE_SCHEMA, ["pidlab"], identity=_identity(IP, settings))
     )
@@ -437,7 +437,7 @@ def test_a_damaged_pipeline_stage_file_is_named_before_any_write(tmp_path):
     (out / "tuned.toml").write_text("schema = 1\n")
     before = snapshot(tmp_path)
     code, stderr = cli_in_process("run", IP, "--out", str(out), "--seeds", "1", "--steps", "1024",
-                                  "--samples", "40", "--no-progress")  # fmt: skip
+                                  "--samples", "40", "--condition", "rescue-terminal", "--no-progress")  # fmt: skip
     lines = stderr.strip().splitlines()
     assert code == 2 and len(lines) == 1, lines
     assert "tune.json" in lines[0] and "redo the tune stage" in lines[0], lines[0]
