@@ -84,3 +84,72 @@ def test_a_blended_run_ends_with_the_agent_alone(tmp_path: Path) -> None:
     assert result.completed and s["coach_steps"] == 0 and s["interventions"] == 0
     assert s["env_steps"] == s["agent_steps"] >= 2000
     assert Schedule(**FADE)(1.0) == 0.0 and Schedule(**FADE)(0.5) == 0.0 and Schedule(**FADE)(0.25) == 0.4
+
+
+# ------------------------------------------------------------------------------- residual
+
+
+@pytest.mark.parametrize(
+    ("coaching", "message"),
+    [
+        ({"residual": 1.0}, "coaching.residual: the coach's weight must fade to 0"),
+        ({"residual": {"shape": "linear", "start": 1.2, "end": 0.0}}, "coaching.residual: the coach's weight cannot"),
+        ({"residual": FADE, "blend": FADE}, "coaching.residual and blend: both mix"),
+    ],
+)
+def test_a_residual_that_cannot_end_with_the_agent_alone_is_refused(coaching: dict, message: str) -> None:
+    with pytest.raises(RecipeError, match="coaching") as err:
+        parse_recipe(_data(1000, coaching))
+    assert message in str(err.value)
+
+
+def test_the_residual_adds_the_agents_correction_to_the_weighted_coach() -> None:
+    spec = load_spec(TUNING / f"{IP}.pidlab-rescue.toml")
+    w = 0.6
+    env = CoachingWrapper(gym.make(IP), spec, off_after=0.0, blend=Schedule("constant", w, w), residual=True)
+    twin = Coach(spec, load_model(IP))
+    obs, _ = env.reset(seed=4)
+    twin.reset(obs)
+    rng = np.random.default_rng(1)
+    clipped = 0
+    for _ in range(60):
+        action = rng.uniform(-3, 3, size=1).astype(np.float32)
+        raw = w * twin.act(obs) + action
+        clipped += int(np.any(np.abs(raw) > 3))
+        obs, _, terminated, truncated, info = env.step(action)
+        np.testing.assert_allclose(info["executed_action"], np.clip(raw, -3, 3), rtol=1e-5, atol=1e-6)
+        assert info["blend_weight"] == w and info["coach_steps"] == 0
+        if terminated or truncated:
+            obs, _ = env.reset()
+            twin.reset(obs)
+    assert clipped > 0  # the clip to the actuator's range was exercised
+    # a zero correction at weight 1 runs the coach's own action
+    env.blend = Schedule("constant", 1.0, 1.0)
+    obs, _ = env.reset(seed=6)
+    twin.reset(obs)
+    expected = twin.act(obs)
+    _, _, _, _, info = env.step(np.zeros(1, dtype=np.float32))
+    np.testing.assert_allclose(info["executed_action"], expected, rtol=1e-5, atol=1e-6)
+    with pytest.raises(CoachingError, match="expected a weight"):
+        CoachingWrapper(gym.make(IP), spec, residual=True)
+
+
+def test_a_residual_run_ends_with_the_agent_alone_and_needs_ppo_and_a_coach(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    path = tmp_path / "residual.toml"
+    path.write_text(tomli_w.dumps(_data(2000, {"residual": FADE})))
+    recipe = load_recipe(path)
+    spec = load_spec(TUNING / f"{IP}.pidlab-rescue.toml")
+    with pytest.raises(CoachingError, match="no coach"):
+        train(recipe, None, tmp_path / "none", progress_bar=False)
+    with pytest.raises(CoachingError, match="coaching.residual with algo = 'sac'"):
+        train(replace(recipe, algo="sac"), spec, tmp_path / "sac", progress_bar=False)
+    assert not (tmp_path / "none").exists() and not (tmp_path / "sac").exists()
+    result = train(recipe, spec, tmp_path / "run", progress_bar=False)
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert result.completed and s["coach_steps"] == 0 and s["interventions"] == 0
+    assert s["env_steps"] == s["agent_steps"] >= 2000
+    saved = tomllib.loads((tmp_path / "run" / "config.toml").read_text())
+    coaching = saved["recipe"]["coaching"]
+    assert coaching["residual"]["start"] == 0.8 and "blend" not in coaching

@@ -49,12 +49,15 @@ Schedules
     factor on the region's size (box and ellipsoid only); ``off_after``: progress from which the
     coach never intervenes. :meth:`CoachingWrapper.set_progress` (called by the trainer) moves them.
 
-Blend
+Blend and residual
     ``blend(progress)``: the coach's weight ``w`` in the executed action. Each agent action ``a``
     runs as ``clip(w * coach(s) + (1 - w) * a)`` (a second instance of the coach acts at every
     agent step, so its filters follow the episode); ``info["executed_action"]`` and
     ``info["blend_weight"]`` report it. The agent's transition holds its own sample ``a``; the
     blend is part of the environment it learns in, which becomes its own as ``w`` fades to 0.
+    With ``residual=True`` the agent's action is a correction added to the coach's:
+    ``clip(w * coach(s) + a)`` (residual policy learning with a fading coach; an agent whose mean
+    starts near 0, as PPO's does, starts at the coach's behaviour).
 
 Roll-in (Jump-Start RL)
     :meth:`CoachingWrapper.set_rollin` sets ``h``: after each real reset the coach acts alone for the
@@ -306,6 +309,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         cost: float | None = None,
         handback: float = 1.0,
         blend: ProgressFn | None = None,
+        residual: bool = False,
     ) -> None:
         instance(env, gym.Env, "env", CoachingError)
         if spec is not None:
@@ -314,7 +318,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self, spec=spec, mode=mode, region=region, trigger=trigger, nudge_steps=nudge_steps,
             max_coach_steps=max_coach_steps, reward=reward, probability=probability, width=width,
             off_after=off_after, loaded=loaded, seed=seed, view=view, cost=cost, handback=handback,
-            blend=blend,
+            blend=blend, residual=residual,
         )  # fmt: skip
         gym.Wrapper.__init__(self, env)
         _check_options(mode, reward, nudge_steps, max_coach_steps, trigger, view, cost, handback)
@@ -349,10 +353,14 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.rollin_steps = 0
         self._pending_rollin: dict[str, Any] | None = None
         self.blend = blend
+        self.residual = bool(residual)
         self._blend_coach: Coach | None = None
+        if residual and blend is None:
+            raise CoachingError("residual: the agent corrects a weighted coach; expected a weight (blend)")
         if blend is not None:
             if spec is None:
-                raise CoachingError("blend: blending the coach's action needs a coach; this env has none")
+                what = "adding the agent's correction to" if residual else "blending"
+                raise CoachingError(f"blend: {what} the coach's action needs a coach; this env has none")
             self._blend_coach = Coach(spec, self.loaded)
         self._reset_counters()
         self.total_agent_steps = 0
@@ -590,13 +598,17 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return self._agent_step(action)
 
     def _blended(self, action: Any) -> tuple[Any, float] | None:
-        """The executed action ``clip(w coach + (1 - w) action)`` and ``w`` (None: no blend)."""
+        """The executed action and ``w`` (None: no blend).
+
+        ``clip(w coach + (1 - w) action)``; with a residual, ``clip(w coach + action)``.
+        """
         if self._blend_coach is None or self.blend is None:
             return None
         coach_action = np.asarray(self._blend_coach.act(self._last_obs), dtype=np.float64)
         w = float(min(max(self.blend(self.progress), 0.0), 1.0))
         space: Any = self.env.action_space
-        mixed = w * coach_action + (1.0 - w) * np.asarray(action, dtype=np.float64)
+        agent = np.asarray(action, dtype=np.float64)
+        mixed = w * coach_action + (agent if self.residual else (1.0 - w) * agent)
         return np.clip(mixed, space.low, space.high).astype(space.dtype), w
 
     @staticmethod

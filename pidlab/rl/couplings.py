@@ -242,14 +242,21 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
     Raises
     ------
     CoachingError
-        Demonstrations, a blend or a roll-in without a coach; demonstrations as long as the budget;
-        a warm start with an algorithm other than PPO; a roll-in on an env without a time limit.
+        Demonstrations, a blend, a residual or a roll-in without a coach; demonstrations as long as
+        the budget; a warm start, a blend or a residual with an algorithm other than PPO; a roll-in
+        on an env without a time limit.
     """
     from pidlab.errors import CoachingError
 
     c = recipe.coaching
     if c.blend is not None and spec is None:
         raise CoachingError("coaching.blend: blending the coach's action needs a coach; this run has none")
+    if c.residual is not None and spec is None:
+        raise CoachingError(
+            "coaching.residual: the agent's action corrects the coach's, and this run has no coach "
+            "(--coach none)"
+        )
+    _check_mix_algorithm(recipe)
     if c.rollin is not None:
         _check_rollin(recipe, spec)
     if c.demonstrations is None:
@@ -268,6 +275,21 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
             f"coaching.warm_start with algo = {recipe.algo!r}: the warm start clones a PPO agent "
             "(its policy's mean and spread, and its critic); use algo = 'ppo'"
         )
+
+
+def _check_mix_algorithm(recipe: Recipe) -> None:
+    """A fading mix needs an on-policy learner: a replay buffer would keep actions of other weights."""
+    from pidlab.errors import CoachingError
+
+    c = recipe.coaching
+    key = "blend" if c.blend is not None else "residual" if c.residual is not None else None
+    if key is None or recipe.algo == "ppo":
+        return
+    raise CoachingError(
+        f"coaching.{key} with algo = {recipe.algo!r}: the coach's weight fades during the run, so the "
+        "replay buffer would keep agent actions that ran under other weights (their outcome no "
+        "longer follows from them); use algo = 'ppo', whose every rollout runs at one weight"
+    )
 
 
 def _check_rollin(recipe: Recipe, spec: CoachSpec | None) -> None:

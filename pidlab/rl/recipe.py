@@ -211,6 +211,8 @@ class Coaching:
 
     ``trigger``: ``None`` is the ``exit`` trigger, ``"predictive"`` the predictive one, a
     :class:`GrowthTrigger` the paper's. ``cost``: ``None`` is the default (10 alive rewards).
+    ``blend`` and ``residual`` (at most one) are the coach's weight ``w`` in the executed action,
+    ``w coach + (1 - w) agent`` and ``w coach + agent`` respectively, fading to 0.
     """
 
     mode: str = "takeover"
@@ -229,6 +231,7 @@ class Coaching:
     warm_start: WarmStart | None = None
     blend: Schedule | None = None
     rollin: RollIn | None = None
+    residual: Schedule | None = None
 
 
 @dataclass(frozen=True)
@@ -575,7 +578,7 @@ def check_rollout(kwargs: dict[str, Any], n_envs: int, where: str, param: str | 
 
 _COACHING = {"mode", "region", "nudge_steps", "max_coach_steps", "reward", "probability", "width",
              "off_after", "trigger", "view", "cost", "handback", "demonstrations", "warm_start",
-             "blend", "rollin"}  # fmt: skip
+             "blend", "rollin", "residual"}  # fmt: skip
 
 
 def _coaching(data: dict[str, Any], where: str) -> Coaching:
@@ -631,6 +634,15 @@ def _blend(c: dict[str, Any], w: str) -> Schedule | None:
     return _fading(c, "blend", w, "the coach's weight", high=1.0)
 
 
+def _residual(c: dict[str, Any], w: str) -> Schedule | None:
+    """``[coaching] residual``: the coach's weight under the agent's correction, fading to 0."""
+    if "residual" in c and "blend" in c:
+        raise RecipeError(
+            f"{w}.residual and blend: both mix the coach's action into the agent's; expected one of them"
+        )
+    return _fading(c, "residual", w, "the coach's weight", high=1.0)
+
+
 def _fading(c: dict[str, Any], key: str, w: str, what: str, high: float | None) -> Schedule | None:
     """A schedule field that must reach 0 by the end of the budget (None when absent)."""
     if key not in c:
@@ -664,7 +676,7 @@ def _rollin(c: dict[str, Any], w: str) -> RollIn | None:
 def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
     """``[coaching] demonstrations`` and ``warm_start`` (a warm start needs demonstrations)."""
     out: dict[str, Any] = {"demonstrations": None, "warm_start": None, "blend": _blend(c, w),
-                           "rollin": _rollin(c, w)}  # fmt: skip
+                           "rollin": _rollin(c, w), "residual": _residual(c, w)}  # fmt: skip
     if "demonstrations" in c:
         d = _table(c, "demonstrations", w, {"steps", "noise"})
         where = f"{w}.demonstrations"
@@ -1063,6 +1075,8 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
             coaching["warm_start"]["keep"] = schedule_to_dict(c.warm_start.keep)
     if c.blend is not None:
         coaching["blend"] = schedule_to_dict(c.blend)
+    if c.residual is not None:
+        coaching["residual"] = schedule_to_dict(c.residual)
     if c.rollin is not None:
         coaching["rollin"] = {"stages": c.rollin.stages, "tolerance": c.rollin.tolerance}
     out: dict[str, Any] = {

@@ -194,9 +194,15 @@ class EnvFactory:
             view=c.view,
             cost=c.cost,
             handback=c.handback,
-            blend=c.blend if self.spec is not None else None,
+            blend=_mix(c) if self.spec is not None else None,
+            residual=c.residual is not None and self.spec is not None,
         )
         return Monitor(wrapped)
+
+
+def _mix(c: Any) -> Any:
+    """The coach's weight in the executed action: the blend's or the residual's (None: neither)."""
+    return c.blend if c.blend is not None else c.residual
 
 
 def _schedules_move(recipe: Recipe, spec: CoachSpec | None) -> bool:
@@ -205,7 +211,7 @@ def _schedules_move(recipe: Recipe, spec: CoachSpec | None) -> bool:
         c.probability.shape != "constant"
         or c.width.shape != "constant"
         or c.off_after is not None
-        or c.blend is not None
+        or _mix(c) is not None
     )
 
 
