@@ -14,6 +14,7 @@
 #   bash benchmarks/evidence.sh --teach3 Hopper-v5    # and its Amendment 3 (the demonstrations kept)
 #   bash benchmarks/evidence.sh --teach4 Hopper-v5    # and its Amendment 4 (half the demonstrations,
 #                                                     # on its own fresh seeds 110-119)
+#   bash benchmarks/evidence.sh --teach5 Hopper-v5    # and its Amendment 5 (residual control)
 #   bash benchmarks/evidence.sh Hopper-v5             # one env
 #   bash benchmarks/evidence.sh Hopper-v5 -- --backend ray --address HOST:6379   # on a Ray cluster
 #
@@ -33,6 +34,7 @@ case "${1:-}" in
     --teach2) mode=teach2; shift ;;
     --teach3) mode=teach3; shift ;;
     --teach4) mode=teach4; shift ;;
+    --teach5) mode=teach5; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -44,7 +46,7 @@ rescue=none,paper,rescue,rescue-penalty,rescue-terminal,rescue-fading
 design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
     case $mode in
         confirm) confirm_design "$1"; return ;;
-        teach|teach2|teach3|teach4) teach_design "$1"; return ;;
+        teach|teach2|teach3|teach4|teach5) teach_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -67,7 +69,7 @@ confirm_design() {  # the confirmatory sweeps fixed by docs/analysis-plan.md (fr
     echo "$1-confirm none,paper,rescue-terminal $steps 100-109"
 }
 
-teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amendments 1 and 2)
+teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amendments 1-5)
     local line
     line=$(confirm_design "$1" 2> /dev/null) || {
         echo "evidence.sh: $1: no teaching design (expected one of the paper's four v5 envs)" >&2; exit 2; }
@@ -77,6 +79,7 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
         teach2) echo "$1-teach2 none,rescue-terminal,blend,rollin,rescue-veto,warm-start-veto $steps $seeds" ;;
         teach3) echo "$1-teach3 none,rescue-terminal,warm-start-keep,warm-start-keep-shield $steps $seeds" ;;
         teach4) echo "$1-teach4 none,warm-start-keep-shield-short $steps 110-119" ;;
+        teach5) echo "$1-teach5 none,residual $steps $seeds" ;;
     esac
 }
 

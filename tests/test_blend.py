@@ -75,9 +75,14 @@ def test_the_executed_action_is_the_blend_and_the_agent_keeps_its_own() -> None:
 
 
 def test_a_blended_run_ends_with_the_agent_alone(tmp_path: Path) -> None:
+    from dataclasses import replace
+
     path = tmp_path / "blend.toml"
     path.write_text(tomli_w.dumps(_data(2000, {"blend": FADE})))
     spec = load_spec(TUNING / f"{IP}.pidlab-rescue.toml")
+    with pytest.raises(CoachingError, match="coaching.blend with algo = 'sac'"):
+        train(replace(load_recipe(path), algo="sac"), spec, tmp_path / "sac", progress_bar=False)
+    assert not (tmp_path / "sac").exists()
     result = train(load_recipe(path), spec, tmp_path / "run", progress_bar=False)
     s = json.loads((tmp_path / "run" / "summary.json").read_text())
     # every step is the agent's (blended, not taken over): no coach step, no intervention

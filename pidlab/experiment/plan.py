@@ -78,6 +78,7 @@ AMENDMENTS: dict[str, int] = {
     "warm-start-keep": 3,
     "warm-start-keep-shield": 3,
     "warm-start-keep-shield-short": 4,
+    "residual": 5,
 }
 """Condition -> the amendment of the plan that governs it (added before its runs)."""
 
