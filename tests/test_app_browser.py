@@ -250,11 +250,17 @@ def test_autotune_and_derive_bounds_buttons(page):
         "() => (window.__text('.pidlab-status-autotune') || '').includes('achieved')", timeout=120_000
     )
     assert _field(pg, "kp").input_value() != kp0
-    # the tuned coach has no bounds yet; derive them
-    _click(pg, ".pidlab-derive")
-    pg.wait_for_function(
-        "() => (window.__text('.pidlab-status-bounds') || '').includes('certified')", timeout=240_000
+    # the tuned coach has no bounds yet; derive them. Every frame until the status says "certified"
+    # records what the box held then: the status must never arrive before its plot
+    pg.evaluate(
+        """() => { window.__boxAtCertified = null; const watch = () => {
+             if ((window.__text('.pidlab-status-bounds') || '').includes('certified')) {
+               window.__boxAtCertified = window.__source('bounds-box').x.length; return; }
+             requestAnimationFrame(watch); }; requestAnimationFrame(watch); }"""
     )
+    _click(pg, ".pidlab-derive")
+    pg.wait_for_function("() => window.__boxAtCertified !== null", timeout=240_000)
+    assert pg.evaluate("() => window.__boxAtCertified") == 5
     assert "hinge_pos" in _text(pg, "#bounds-table")
     box0 = _source(pg, "bounds-box", "x")
     assert len(box0) == 5
