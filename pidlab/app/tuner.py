@@ -554,7 +554,7 @@ class Tuner:
                 s.step = (hi - lo) / 500.0
                 s.value = v
                 self.inputs[f].value = f"{v:.6g}"
-                self.messages[f].object = ""
+                self._say(self.messages[f], "", after_plot=False)
             self._invalid.clear()
         finally:
             self._guard = False
@@ -578,7 +578,7 @@ class Tuner:
             self.inputs[field].value = f"{value:.6g}"
         finally:
             self._guard = False
-        self.messages[field].object = ""
+        self._say(self.messages[field], "", after_plot=False)
         self._invalid.discard(field)
         self._apply(field, float(value))
 
@@ -588,13 +588,12 @@ class Tuner:
         check = check_field(field, text)
         if not check.ok:
             self._invalid.add(field)
-            self.messages[
-                field
-            ].object = f"<span class='pidlab-msg' {RED}>{html.escape(check.message)}</span>"
+            text = f"<span class='pidlab-msg' {RED}>{html.escape(check.message)}</span>"
+            self._say(self.messages[field], text, after_plot=False)
             return
         self._invalid.discard(field)
         value = float(check.value)  # type: ignore[arg-type]
-        self.messages[field].object = ""
+        self._say(self.messages[field], "", after_plot=False)
         s = self.sliders[field]
         self._guard = True
         try:
@@ -626,7 +625,7 @@ class Tuner:
         except PidlabError as exc:  # e.g. gains so large that the closed loop overflows
             text = f"<span class='pidlab-msg' {RED}>{html.escape(str(exc))}</span>"
             if field is not None:
-                self.messages[field].object = text
+                self._say(self.messages[field], text, after_plot=False)
             else:
                 self._views = None
                 self._say(self.summary, text, after_plot=False)
@@ -649,16 +648,14 @@ class Tuner:
         self._push(draw)
         self._say(self.margins, self._margins_html(v))
         self._say(self.summary, self._summary_html(v))
-        if field is not None:
-            if not v.stable:
-                self.messages[field].object = (
-                    f"<span class='pidlab-msg' {RED}>"
-                    f"{html.escape(FIELD_LABELS[field])}: closed loop unstable with this value "
-                    "(spectral radius "
-                    f"{v.spectral_radius:.4f} &gt; 1); saving is disabled until it is stable</span>"
-                )
-            else:
-                self.messages[field].object = ""
+        if field is not None:  # the field's verdict on the views just drawn: after them, like the summary
+            unstable = (
+                f"<span class='pidlab-msg' {RED}>"
+                f"{html.escape(FIELD_LABELS[field])}: closed loop unstable with this value "
+                "(spectral radius "
+                f"{v.spectral_radius:.4f} &gt; 1); saving is disabled until it is stable</span>"
+            )
+            self._say(self.messages[field], "" if v.stable else unstable)
         return True
 
     @staticmethod

@@ -352,16 +352,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._demo_started = False
         self.rollin_steps = 0
         self._pending_rollin: dict[str, Any] | None = None
-        self.blend = blend
-        self.residual = bool(residual)
-        self._blend_coach: Coach | None = None
-        if residual and blend is None:
-            raise CoachingError("residual: the agent corrects a weighted coach; expected a weight (blend)")
-        if blend is not None:
-            if spec is None:
-                what = "adding the agent's correction to" if residual else "blending"
-                raise CoachingError(f"blend: {what} the coach's action needs a coach; this env has none")
-            self._blend_coach = Coach(spec, self.loaded)
+        self._set_mix(spec, blend, residual)
         self._reset_counters()
         self.total_agent_steps = 0
         self.total_coach_steps = 0
@@ -586,6 +577,19 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             if handback is not None and handback.contains(obs):
                 break
         return _Run(obs, steps, total, terminated, truncated, *first)
+
+    def _set_mix(self, spec: CoachSpec | None, blend: ProgressFn | None, residual: bool) -> None:
+        """The blend's (or residual's) weight schedule and the coach instance that mixes in."""
+        self.blend = blend
+        self.residual = bool(residual)
+        self._blend_coach: Coach | None = None
+        if residual and blend is None:
+            raise CoachingError("residual: the agent corrects a weighted coach; expected a weight (blend)")
+        if blend is not None:
+            if spec is None:
+                what = "adding the agent's correction to" if residual else "blending"
+                raise CoachingError(f"blend: {what} the coach's action needs a coach; this env has none")
+            self._blend_coach = Coach(spec, self.loaded)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         """One agent step, then the coach's steps if the trigger fired (or the coach's, if vetoed)."""
