@@ -92,6 +92,18 @@ def _policy(model: Any) -> Any:
     return policy
 
 
+def _tensors(policy: Any, demos: Demonstrations, normalize_obs: Any, seed: int) -> tuple[Any, Any, Any]:
+    """The demonstrations as tensors on the policy's device, and the minibatches' generator.
+
+    The observations are normalized with ``normalize_obs`` (the run's normalizer as it stands).
+    """
+    import torch
+
+    obs = torch.as_tensor(np.asarray(normalize_obs(demos.obs), dtype=np.float32), device=policy.device)
+    actions = torch.as_tensor(demos.actions, device=policy.device)
+    return obs, actions, torch.Generator().manual_seed(seed)
+
+
 def clone(model: Any, demos: Demonstrations, normalize_obs: Any, normalize_reward: Any, epochs: int,
           critic: bool, gamma: float, seed: int) -> CloneReport:  # fmt: skip
     """Behaviour-clone ``model``'s policy on ``demos`` (and warm up its critic); returns what it did.
@@ -112,10 +124,7 @@ def clone(model: Any, demos: Demonstrations, normalize_obs: Any, normalize_rewar
     import torch
 
     policy = _policy(model)
-    device = policy.device
-    obs = torch.as_tensor(np.asarray(normalize_obs(demos.obs), dtype=np.float32), device=device)
-    actions = torch.as_tensor(demos.actions, device=device)
-    gen = torch.Generator().manual_seed(seed)
+    obs, actions, gen = _tensors(policy, demos, normalize_obs, seed)
     policy.set_training_mode(True)
     optimizer = torch.optim.Adam(policy.parameters(), lr=LEARNING_RATE)
 
@@ -218,9 +227,7 @@ def keep_step(model: Any, demos: Demonstrations, normalize_obs: Any, weight: flo
     import torch
 
     policy = _policy(model)
-    obs = torch.as_tensor(np.asarray(normalize_obs(demos.obs), dtype=np.float32), device=policy.device)
-    actions = torch.as_tensor(demos.actions, device=policy.device)
-    gen = torch.Generator().manual_seed(seed)
+    obs, actions, gen = _tensors(policy, demos, normalize_obs, seed)
     policy.set_training_mode(True)
     total = 0.0
     for _ in range(batches):

@@ -114,12 +114,13 @@ class WarmStartCoupling(Coupling):
             return
         from pidlab.rl import demonstrations as demo
         from pidlab.rl.cloning import keep_step
+        from pidlab.rl.train import ppo_batches_per_epoch
 
         demos = trainer.cache.get("demonstrations")
         if demos is None:
             demos = trainer.cache["demonstrations"] = demo.load(trainer.run_dir / demo.FILE)
         normalize = _obs_normalizer(trainer.venv)
-        batches = int(model.n_epochs) * -(-int(model.n_steps) * int(model.n_envs) // int(model.batch_size))
+        batches = int(model.n_epochs) * ppo_batches_per_epoch(model)
         loss = keep_step(
             model, demos, normalize or _identity, weight, batches, trainer.recipe.seed + c.kept_at
         )

@@ -940,9 +940,12 @@ def sb3_update_count(model: Any) -> int:
     ``ceil(n_steps * n_envs / batch_size)`` gradient steps (exact unless ``target_kl`` cut an epoch short).
     """
     n = int(model._n_updates)
-    if hasattr(model, "n_epochs"):
-        return n * -(-int(model.n_steps) * int(model.n_envs) // int(model.batch_size))
-    return n
+    return n * ppo_batches_per_epoch(model) if hasattr(model, "n_epochs") else n
+
+
+def ppo_batches_per_epoch(model: Any) -> int:
+    """PPO's gradient steps per epoch: ``ceil(n_steps * n_envs / batch_size)``."""
+    return -(-int(model.n_steps) * int(model.n_envs) // int(model.batch_size))
 
 
 def _count_policy_updates(model: Any, counters: Counters) -> None:
