@@ -9,12 +9,14 @@
 #   bash benchmarks/evidence.sh                       # every env, on this machine's cores
 #   bash benchmarks/evidence.sh --confirm Hopper-v5   # the confirmatory sweep of docs/analysis-plan.md
 #   bash benchmarks/evidence.sh --teach Hopper-v5     # the teaching couplings, its Amendment 1
-#   bash benchmarks/evidence.sh --teach2 Hopper-v5    # and its Amendment 2 (none and rescue-terminal
-#                                                     # run again: the same runs, a check of determinism)
+#   bash benchmarks/evidence.sh --teach2 Hopper-v5    # and its Amendment 2
 #   bash benchmarks/evidence.sh --teach3 Hopper-v5    # and its Amendment 3 (the demonstrations kept)
 #   bash benchmarks/evidence.sh --teach4 Hopper-v5    # and its Amendment 4 (half the demonstrations,
 #                                                     # on its own fresh seeds 110-119)
 #   bash benchmarks/evidence.sh --teach5 Hopper-v5    # and its Amendment 5 (residual control)
+#                                                     # (a teaching sweep copies the runs that the
+#                                                     # env's confirmatory and earlier teaching sweeps
+#                                                     # hold with the same settings: pidlab experiment --reuse)
 #   bash benchmarks/evidence.sh Hopper-v5             # one env
 #   bash benchmarks/evidence.sh Hopper-v5 -- --backend ray --address HOST:6379   # on a Ray cluster
 #
@@ -94,8 +96,17 @@ for env in "${envs[@]}"; do
         mkdir -p "$out" && cp "$dst/experiment.json" "$out/" && cp -r "$dst/runs" "$out/"
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
+    reuse=()
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5; do
+        [ "$folder" != "$env-$earlier" ] || continue
+        for place in results docs/results; do   # the finished runs here, or the published ones
+            if [ -e "$place/$env-$earlier/experiment.json" ]; then
+                reuse+=(--reuse "$place/$env-$earlier"); break
+            fi
+        done
+    done
     status=0
-    pidlab experiment "${args[@]}" ${extra[@]+"${extra[@]}"} || status=$?
+    pidlab experiment "${args[@]}" ${reuse[@]+"${reuse[@]}"} ${extra[@]+"${extra[@]}"} || status=$?
     # 2: bad input, refused before any run (its one line said what). 130: interrupted; 1: a run failed
     # (the others went on). Either way the finished runs are published.
     if [ "$status" -eq 2 ] || { [ "$status" -ne 0 ] && [ ! -e "$out/experiment.json" ]; }; then

@@ -1082,12 +1082,17 @@ def experiment(
     report_only: Annotated[
         bool, typer.Option("--report-only", help="Write the report from the runs in DIR; train nothing.")
     ] = False,
+    reuse: Annotated[
+        list[str] | None,
+        typer.Option(metavar="DIR", help="An earlier experiment: its runs with these settings are copied."),
+    ] = None,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show progress bars.")] = True,
 ) -> None:
     """Multi-seed coaching experiment: train every (env, condition, seed), then report.
 
     Killed or interrupted, the same command resumes: finished runs are skipped, unfinished ones
-    continue from their last checkpoint.
+    continue from their last checkpoint. With --reuse, a run that an earlier experiment holds
+    finished for the same env, condition, seed and settings is copied instead of trained.
     """
     from pidlab.experiment.sweep import parse_seeds, plan
 
@@ -1097,21 +1102,30 @@ def experiment(
         env_list, _names(conditions, "condition_names"), parse_seeds(_seed_text(seeds)), folder,
         conditions_file=conditions_file, recipe_files=recipe or [], algo=algo, steps=steps,
     )  # fmt: skip
-    if report_only and not (p.out / "experiment.json").exists():
-        _fail(f"--report-only: {p.out} holds no experiment (no experiment.json)")
+    _check_report_only(p.out, report_only, reuse)
     from pidlab.experiment.sweep import check_sweep, lock_experiment
     from pidlab.report.experiment import write_report
 
-    if not report_only:
-        check_sweep(p, backend=backend, workers=workers, address=address)  # before the lock makes OUT
+    if not report_only:  # before the lock makes OUT
+        check_sweep(p, backend=backend, workers=workers, address=address, reuse=reuse or [])
     with lock_experiment(p):  # held while the runs train and the report is written
-        failed = 0 if report_only else _sweep(p, backend, workers, address, progress)
+        failed = 0 if report_only else _sweep(p, backend, workers, address, progress, reuse or [])
         typer.echo(f"report: {write_report(p, progress_bar=progress)}")
     if failed:
         raise typer.Exit(code=1)
 
 
-def _sweep(p: Any, backend: str, workers: int | None, address: str | None, progress: bool) -> int:
+def _check_report_only(out: Any, report_only: bool, reuse: list[str] | None) -> None:
+    """``--report-only`` needs an experiment in ``out`` and copies no run."""
+    if report_only and not (out / "experiment.json").exists():
+        _fail(f"--report-only: {out} holds no experiment (no experiment.json)")
+    if report_only and reuse:
+        _fail("--reuse with --report-only: a report copies no run (drop one of them)")
+
+
+def _sweep(
+    p: Any, backend: str, workers: int | None, address: str | None, progress: bool, reuse: list[str]
+) -> int:
     """``experiment``: train the plan's runs and say how they went; the number that failed.
 
     Interrupted, it exits with code 130 (the same command resumes).
@@ -1119,8 +1133,9 @@ def _sweep(p: Any, backend: str, workers: int | None, address: str | None, progr
     from pidlab.experiment.sweep import run_sweep
 
     argv = ["pidlab", *sys.argv[1:]]
-    result = run_sweep(p, backend=backend, workers=workers, address=address, argv=argv, progress_bar=progress)
-    counts = ", ".join(f"{result.count(s)} {s}" for s in ("done", "skipped", "stopped", "failed"))
+    result = run_sweep(p, backend=backend, workers=workers, address=address, argv=argv, progress_bar=progress,
+                       reuse=reuse)  # fmt: skip
+    counts = ", ".join(f"{result.count(s)} {s}" for s in ("done", "skipped", "reused", "stopped", "failed"))
     typer.echo(f"runs: {counts} (of {len(p.tasks)})")
     if result.interrupted:
         typer.echo(

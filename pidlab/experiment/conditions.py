@@ -24,6 +24,7 @@ coaching table is the condition's, and the coach spec (with the condition's boun
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from os import PathLike
 from pathlib import Path
 from typing import Any
 
@@ -355,7 +356,7 @@ def check_plan_arguments(
 
 def check_sweep_arguments(
     p: Any, backend: Any = "process", workers: Any = None, address: Any = None, argv: Any = (),
-    progress_bar: Any = True,
+    progress_bar: Any = True, reuse: Any = (),
 ) -> None:  # fmt: skip
     """The types of what :func:`pidlab.experiment.sweep.run_sweep` (and ``check_sweep``) was given.
 
@@ -363,8 +364,8 @@ def check_sweep_arguments(
     ------
     ExperimentError
         ``p`` is no :class:`~pidlab.experiment.sweep.Plan` (make one with ``plan``), ``backend`` or
-        ``address`` no string, ``workers`` no integer >= 1, ``argv`` no list of strings or
-        ``progress_bar`` no bool; naming the parameter.
+        ``address`` no string, ``workers`` no integer >= 1, ``argv`` no list of strings,
+        ``progress_bar`` no bool or ``reuse`` no list of folders; naming the parameter.
     """
     from pidlab.experiment.sweep import Plan
 
@@ -379,3 +380,7 @@ def check_sweep_arguments(
         fail(address, "address", "a Ray cluster address (a str) or None", ExperimentError, "address")
     strings(argv, "argv", ExperimentError, what="command-line words")
     boolean(progress_bar, "progress_bar", ExperimentError)
+    if isinstance(reuse, (str, bytes, PathLike)) or not isinstance(reuse, (list, tuple)) or not all(
+        isinstance(f, (str, PathLike)) for f in reuse
+    ):
+        fail(reuse, "reuse", "a list of earlier experiments' folders", ExperimentError, "reuse")

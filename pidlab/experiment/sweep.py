@@ -64,6 +64,7 @@ from pidlab.experiment.conditions import (
     resolve,
     select,
 )
+from pidlab.experiment.reuse import Reuse, copy_run, find_reuses, record_reuses
 from pidlab.orphans import orphaned, stop_with_parent
 from pidlab.provenance import (
     LOCK_NAME,
@@ -108,7 +109,10 @@ class RunTask:
 
 @dataclass(frozen=True)
 class RunOutcome:
-    """What became of a :class:`RunTask`: ``done``, ``skipped`` (done before), ``stopped`` or ``failed``."""
+    """What became of a :class:`RunTask`: ``done``, ``skipped``, ``reused``, ``stopped`` or ``failed``.
+
+    ``skipped``: finished before; ``reused``: copied from an earlier experiment.
+    """
 
     env_id: str
     condition: str
@@ -654,21 +658,30 @@ class SweepResult:
 
 
 def check_sweep(
-    p: Plan, *, backend: str = "process", workers: int | None = None, address: str | None = None
-) -> None:
+    p: Plan, *, backend: str = "process", workers: int | None = None, address: str | None = None,
+    reuse: Sequence[str | Path] = (),
+) -> tuple[Reuse, ...]:  # fmt: skip
     """Check what :func:`run_sweep` is asked (backend, workers, the folder); nothing is written.
+
+    Returns
+    -------
+    tuple of Reuse
+        The runs to copy from the earlier experiments ``reuse``
+        (:func:`~pidlab.experiment.reuse.find_reuses`).
 
     Raises
     ------
     ExperimentError
         Unknown backend (or Ray not installed), a bad number of workers, an address without
-        Ray, a folder that holds something else than this experiment, or a finished run of it
-        whose logs were damaged since (:func:`check_finished_logs`).
+        Ray, a folder that holds something else than this experiment, a finished run of it
+        whose logs were damaged since (:func:`check_finished_logs`), or a ``reuse`` folder that
+        is not an earlier experiment or offers a damaged run.
     """
-    check_sweep_arguments(p, backend, workers, address)
+    check_sweep_arguments(p, backend, workers, address, reuse=reuse)
     _check_backend(backend, workers, address)
     check_out_folder(p)
     check_finished_logs(Path(t.run_dir) for t in p.tasks)
+    return find_reuses(p.tasks, reuse, p.out)
 
 
 def lock_experiment(p: Plan) -> AbstractContextManager[Path]:
@@ -702,6 +715,15 @@ def _check_backend(backend: str, workers: int | None, address: str | None) -> No
         raise ExperimentError(f"workers={workers}: expected 1 or more", param="workers")
 
 
+def _copy(reuses: Sequence[Reuse], out: Path, tally: _Tally) -> None:
+    """Copy the runs of earlier experiments (each atomically) and list them in ``experiment.json``."""
+    for r in reuses:
+        copy_run(r)
+        env_id, condition, seed = r.key.rsplit("/", 2)
+        tally(RunOutcome(env_id, condition, int(seed), "reused"))
+    record_reuses(out / "experiment.json", reuses)
+
+
 def _key(t: RunTask | RunOutcome) -> tuple[str, str, int]:
     return (t.env_id, t.condition, t.seed)
 
@@ -709,10 +731,12 @@ def _key(t: RunTask | RunOutcome) -> tuple[str, str, int]:
 class _Tally:
     """The outcomes of a sweep as they arrive, and the progress bar that shows them."""
 
-    def __init__(self, tasks: Sequence[RunTask], todo: Sequence[RunTask], progress_bar: bool) -> None:
+    def __init__(self, tasks: Sequence[RunTask], todo: Sequence[RunTask], progress_bar: bool,
+                 copied: Iterable[Path] = ()) -> None:  # fmt: skip
         from tqdm.auto import tqdm
 
-        self.outcomes = {_key(t): RunOutcome(*_key(t), "skipped") for t in tasks if t not in todo}
+        later = {t.run_dir for t in todo} | {str(c) for c in copied}
+        self.outcomes = {_key(t): RunOutcome(*_key(t), "skipped") for t in tasks if t.run_dir not in later}
         self.bar = tqdm(total=len(tasks), initial=len(self.outcomes), unit="run", desc="experiment",
                         disable=not progress_bar, dynamic_ncols=True)  # fmt: skip
 
@@ -753,8 +777,12 @@ def run_sweep(
     address: str | None = None,
     argv: Sequence[str] = (),
     progress_bar: bool = True,
+    reuse: Sequence[str | Path] = (),
 ) -> SweepResult:
     """Run every task of ``p`` that is not finished; resume the unfinished ones.
+
+    A run not started here that an earlier experiment of ``reuse`` holds finished with the same
+    settings is copied instead (:mod:`pidlab.experiment.reuse`).
 
     Parameters
     ----------
@@ -767,6 +795,8 @@ def run_sweep(
     argv : sequence of str
         The command, recorded in ``experiment.json``.
     progress_bar : bool
+    reuse : sequence of path
+        Earlier experiments' folders, searched in order.
 
     Returns
     -------
@@ -780,15 +810,18 @@ def run_sweep(
         since, another command working in it, a Ray cluster that does not answer. Every input is
         checked before the first file is written: a refusal changes nothing.
     """
-    check_sweep_arguments(p, backend, workers, address, argv, progress_bar)
-    check_sweep(p, backend=backend, workers=workers, address=address)
+    check_sweep_arguments(p, backend, workers, address, argv, progress_bar, reuse)
+    check_sweep(p, backend=backend, workers=workers, address=address, reuse=reuse)
     n = workers or os.cpu_count() or 1
     with lock_experiment(p):
-        check_sweep(p, backend=backend, workers=workers, address=address)  # again, under the lock
-        todo = dispatch_order([t for t in p.tasks if not finished(Path(t.run_dir), int(t.recipe["steps"]))])
+        reuses = check_sweep(p, backend=backend, workers=workers, address=address, reuse=reuse)  # again
+        copied = {r.target for r in reuses}
+        todo = dispatch_order([t for t in p.tasks if Path(t.run_dir) not in copied
+                               and not finished(Path(t.run_dir), int(t.recipe["steps"]))])  # fmt: skip
         with _ray_ready(backend if todo else "process", n, address):  # a refusal here writes nothing
             write_experiment_record(p, argv, backend)
             (p.out / STOP_FILE).unlink(missing_ok=True)
-            tally = _Tally(p.tasks, todo, progress_bar)
+            tally = _Tally(p.tasks, todo, progress_bar, copied)
+            _copy(reuses, p.out, tally)
             interrupted = _dispatch(todo, backend, n, tally, p.out)
     return SweepResult(tally.ordered(p.tasks), interrupted)

@@ -22,6 +22,7 @@ from typing import Any
 from pidlab.experiment import plan
 from pidlab.experiment.analysis import BASELINE, METRICS, Analysis, CellResult, analyze
 from pidlab.experiment.comparison import ALPHA, MEASURE, POWER, Comparison, detectable
+from pidlab.experiment.reuse import reuse_sentence
 from pidlab.experiment.stats import Estimate, detectable_improvement
 from pidlab.experiment.sweep import Plan, check_out_folder
 from pidlab.files import atomic_write_text, read_json, save_figure
@@ -386,7 +387,8 @@ def _front_matter(a: Analysis, record: Mapping[str, Any]) -> list[str]:
     lines = report_header(f"Coaching experiment: {', '.join(a.envs)}", record, scope=scope,
                           notes=[plan.citation(seeds, a.conditions)])  # fmt: skip
     total = sum(len(c.runs) for c in a.cells.values())
-    lines.append(f"Finished runs: {total} of {total + len(a.missing)}.{_wall_time(a)}")
+    finished = f"Finished runs: {total} of {total + len(a.missing)}."
+    lines.append(f"{finished}{_wall_time(a)}{reuse_sentence(record)}")
     if a.missing:
         lines.append(f" Not finished (not counted): {', '.join(a.missing)}.")
     lines += ["", "## Conditions", ""]
