@@ -7,12 +7,16 @@ pidlab keeps what a user reads, edits and versions in three folders of TOML file
 - ``tuning/``: coach specs, one file per env and name;
 - ``coach/``: training recipes and ``conditions.toml``.
 
-Each folder is found, in this order, at:
+Each folder has two layers, searched in this order:
 
-1. the folder named by its environment variable (``PIDLAB_MODELS``, ``PIDLAB_TUNING``,
-   ``PIDLAB_COACH``), when set;
-2. the source tree, when pidlab runs from a checkout (an editable install);
-3. the copy shipped inside the installed package (``pidlab/_data/``), after ``pip install .``.
+1. the user's folder named by its environment variable (``PIDLAB_MODELS``, ``PIDLAB_TUNING``,
+   ``PIDLAB_COACH``), when set: its files come first, and new files are written there;
+2. the shipped folder: the source tree when pidlab runs from a checkout (an editable install),
+   else the copy inside the installed package (``pidlab/_data/``, after ``pip install .``).
+
+A file the user's folder lacks is read from the shipped one (:func:`find_data_file`): a user
+folder with only a card of their own robot still finds the shipped cards, recipes, specs and
+``conditions.toml``. A user's file of the same name replaces the shipped one.
 """
 
 from __future__ import annotations
@@ -26,17 +30,8 @@ FOLDERS = {"models": "PIDLAB_MODELS", "tuning": "PIDLAB_TUNING", "coach": "PIDLA
 _PACKAGE = Path(__file__).resolve().parent
 
 
-def data_dir(name: str) -> Path:
-    """The data folder ``name`` (``"models"``, ``"tuning"`` or ``"coach"``).
-
-    Parameters
-    ----------
-    name : {"models", "tuning", "coach"}
-
-    Returns
-    -------
-    Path
-        The folder; it may not exist when an environment variable names a missing one.
+def shipped_dir(name: str) -> Path:
+    """The data folder ``name`` that ships with pidlab: the checkout's, else the installed copy.
 
     Raises
     ------
@@ -45,13 +40,69 @@ def data_dir(name: str) -> Path:
     """
     if name not in FOLDERS:
         raise ValueError(f"name {name!r}: expected one of {', '.join(FOLDERS)}")
-    override = os.environ.get(FOLDERS[name])
-    if override:
-        return Path(override)
     source = _PACKAGE.parent / name
     if source.is_dir() and (_PACKAGE.parent / "pyproject.toml").is_file():
         return source
     return _PACKAGE / "_data" / name
+
+
+def data_dirs(name: str) -> tuple[Path, ...]:
+    """The layers of the data folder ``name``, first searched first: the user's (when set), the shipped one.
+
+    Parameters
+    ----------
+    name : {"models", "tuning", "coach"}
+
+    Returns
+    -------
+    tuple of Path
+        One or two folders; the user's may not exist when its environment variable names a
+        missing one.
+
+    Raises
+    ------
+    ValueError
+        ``name`` is not one of :data:`FOLDERS` (a programming error, not bad user input).
+    """
+    shipped = shipped_dir(name)
+    override = os.environ.get(FOLDERS[name])
+    if override and Path(override).resolve() != shipped.resolve():
+        return (Path(override), shipped)
+    return (shipped,)
+
+
+def data_dir(name: str) -> Path:
+    """The first layer of the data folder ``name``: where pidlab writes, and looks first.
+
+    The user's folder when its environment variable is set, else the shipped one
+    (:func:`data_dirs`).
+    """
+    return data_dirs(name)[0]
+
+
+def find_data_file(name: str, relative: str) -> Path:
+    """The file ``relative`` in the first layer of the data folder ``name`` that has it.
+
+    A dangling symbolic link counts as present (reading it then says what is wrong). When no
+    layer has the file, its path in the first layer (where pidlab would write it).
+    """
+    layers = data_dirs(name)
+    for folder in layers:
+        path = folder / relative
+        if path.exists() or path.is_symlink():
+            return path
+    return layers[0] / relative
+
+
+def data_files(name: str, pattern: str) -> list[Path]:
+    """The files matching ``pattern`` in the data folder ``name``, a user's file hiding a shipped one.
+
+    Sorted by file name.
+    """
+    found: dict[str, Path] = {}
+    for folder in reversed(data_dirs(name)):
+        found.update({p.name: p for p in folder.glob(pattern)})
+    return [found[k] for k in sorted(found)]
 
 
 def models_dir() -> Path:
@@ -95,7 +146,7 @@ def portable_name(path: str | Path) -> str:
     if str(path) == "":
         return ""
     p = Path(path).resolve()
-    roots = [(name, data_dir(name)) for name in FOLDERS]
+    roots = [(name, folder) for name in FOLDERS for folder in data_dirs(name)]
     tree = source_root()
     for name, root in [*roots, *([("", tree)] if tree is not None else [])]:
         try:

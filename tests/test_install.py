@@ -103,12 +103,36 @@ def test_the_installed_command_line_runs_from_another_folder(installed: Path, tm
     assert '"hinge_pos"' in done.stdout and not list(tmp_path.iterdir())
 
 
-def test_an_environment_variable_names_another_data_folder(installed: Path, tmp_path: Path) -> None:
-    cards = tmp_path / "cards"
-    cards.mkdir()
-    shutil.copy2(ROOT / "models" / "InvertedPendulum-v5.toml", cards / "InvertedPendulum-v5.toml")
-    code = "from pidlab.plant.card import find_card; print(find_card('InvertedPendulum-v5').path, find_card('Hopper-v5'))"
-    done = subprocess.run([str(installed / "bin" / "python"), "-c", code], cwd=tmp_path,
-                          env={**_clean_env(), "PIDLAB_MODELS": str(cards)}, capture_output=True, text=True)  # fmt: skip
+LAYERS = """
+from pidlab.plant.card import find_card
+from pidlab.experiment.conditions import conditions_path, load_conditions, spec_path
+from pidlab.rl.recipe import default_recipe_path, recipe_envs
+print(find_card("InvertedPendulum-v5").path, find_card("Hopper-v5").path, find_card("Nope-v0"))
+print(default_recipe_path("InvertedPendulum-v5"), default_recipe_path("Hopper-v5"), conditions_path())
+print(spec_path("InvertedPendulum-v5", "paper"), spec_path("Hopper-v5", "paper"))
+print(" ".join(recipe_envs()), "rescue-terminal" in load_conditions())
+"""
+
+
+def test_an_environment_variable_adds_a_folder_in_front_of_the_shipped_one(installed: Path, tmp_path: Path) -> None:
+    """A user's folder holds only their files: the shipped cards, recipes, specs and conditions stay found."""
+    folders = {name: tmp_path / name for name in ("models", "tuning", "coach")}
+    for f in folders.values():
+        f.mkdir()
+    shutil.copy2(ROOT / "models" / "InvertedPendulum-v5.toml", folders["models"] / "InvertedPendulum-v5.toml")
+    shutil.copy2(ROOT / "coach" / "InvertedPendulum-v5.toml", folders["coach"] / "InvertedPendulum-v5.toml")
+    shutil.copy2(ROOT / "coach" / "InvertedPendulum-v5.toml", folders["coach"] / "MyRobot-v0.toml")
+    shutil.copy2(ROOT / "tuning" / "InvertedPendulum-v5.paper.toml", folders["tuning"] / "InvertedPendulum-v5.paper.toml")
+    env = {**_clean_env(), **{f"PIDLAB_{name.upper()}": str(f) for name, f in folders.items()}}
+    done = subprocess.run([str(installed / "bin" / "python"), "-c", LAYERS], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == [str(cards / "InvertedPendulum-v5.toml"), "None"]
+    cards, recipes, specs, listing = done.stdout.strip().splitlines()
+    shipped = _site_packages(installed) / "pidlab" / "_data"
+    assert cards.split() == [str(folders["models"] / "InvertedPendulum-v5.toml"),
+                             str(shipped / "models" / "Hopper-v5.toml"), "None"]  # fmt: skip
+    assert recipes.split() == [str(folders["coach"] / "InvertedPendulum-v5.toml"),
+                               str(shipped / "coach" / "Hopper-v5.toml"), str(shipped / "coach" / "conditions.toml")]  # fmt: skip
+    assert specs.split() == [str(folders["tuning"] / "InvertedPendulum-v5.paper.toml"),
+                             str(shipped / "tuning" / "Hopper-v5.paper.toml")]  # fmt: skip
+    assert listing == ("Hopper-v5 InvertedDoublePendulum-v5 InvertedPendulum-v5 MyRobot-v0 Walker2d-v5 True")

@@ -44,7 +44,7 @@ from pidlab.checks import (
     text,
 )
 from pidlab.controller.spec import CoachSpec, load_spec, parse_spec, spec_to_dict
-from pidlab.data import tuning_dir
+from pidlab.data import find_data_file, tuning_dir
 from pidlab.errors import ConditionError, ExperimentError, RecipeError, SpecError
 from pidlab.files import read_toml
 from pidlab.rl.recipe import Recipe, check_coaching, parse_recipe, recipe_to_dict
@@ -86,10 +86,8 @@ class Condition:
 
 
 def conditions_path() -> Path:
-    """The conditions file of pidlab, ``coach/conditions.toml`` (``$PIDLAB_COACH`` overrides the folder)."""
-    from pidlab.rl.recipe import recipes_dir
-
-    return recipes_dir() / "conditions.toml"
+    """The conditions file: ``$PIDLAB_COACH/conditions.toml`` if it exists, else the shipped one."""
+    return find_data_file("coach", "conditions.toml")
 
 
 _FIELDS = {"description", "coach", "coaching", "bounds", "env"}
@@ -227,7 +225,7 @@ def _names(names: list[str], width: int = 160) -> str:
 
 
 def spec_path(env_id: str, coach: str) -> Path:
-    """Where the spec called ``coach`` for ``env_id`` lives (a file, or ``tuning/ENV.COACH.toml``).
+    """Where the spec called ``coach`` for ``env_id`` lives (a file, or ``ENV.COACH.toml`` in tuning/).
 
     Raises
     ------
@@ -240,7 +238,8 @@ def spec_path(env_id: str, coach: str) -> Path:
         return path
     check_name(env_id, "env_id", ConditionError, param="env_id")
     check_name(coach, "coach", ConditionError, param="coach")
-    return path_under(tuning_dir(), f"{env_id}.{coach}.toml", error=ConditionError, param="coach")
+    path_under(tuning_dir(), f"{env_id}.{coach}.toml", error=ConditionError, param="coach")  # stays inside
+    return find_data_file("tuning", f"{env_id}.{coach}.toml")  # the user's spec, else the shipped one
 
 
 def with_coaching(recipe: Recipe, fields: dict[str, Any], where: str) -> Recipe:

@@ -81,7 +81,7 @@ from pidlab.checks import (
     shown,
     text,
 )
-from pidlab.data import models_dir
+from pidlab.data import find_data_file, models_dir
 from pidlab.errors import ModelCardError
 from pidlab.files import read_toml
 
@@ -634,7 +634,7 @@ def load_card(path: str | Path) -> ModelCard:
 
 
 def find_card(env_id: str) -> ModelCard | None:
-    """The model card of ``env_id`` from :func:`models_dir`, or None when there is none.
+    """The model card of ``env_id`` (the user's folder first, then the shipped one), or None.
 
     An ``env_id`` that is no name of :data:`pidlab.checks.NAME_RULE` has no card (its file name
     would leave ``models/``).
@@ -647,7 +647,8 @@ def find_card(env_id: str) -> ModelCard | None:
     """
     if not is_name(env_id):
         return None
-    path = path_under(models_dir(), f"{env_id}.toml", error=ModelCardError)
+    path_under(models_dir(), f"{env_id}.toml", error=ModelCardError)  # the name stays inside models/
+    path = find_data_file("models", f"{env_id}.toml")  # the user's card, else the shipped one
     if not (path.exists() or path.is_symlink()):  # a link to nowhere, or a loop, is no missing card
         return None
     card = load_card(path)

@@ -95,7 +95,7 @@ from pidlab.checks import (
 )
 from pidlab.checks import seed as check_seed
 from pidlab.controller.rollout import MAX_EPISODES
-from pidlab.data import coach_dir
+from pidlab.data import coach_dir, data_files, find_data_file
 from pidlab.errors import PidlabError, RecipeError, ScheduleError
 from pidlab.files import read_toml
 from pidlab.rl.coaching import MODES, REGIONS, REWARDS, TRIGGERS, VIEWS, GrowthTrigger
@@ -836,8 +836,9 @@ def check_pipeline_condition(data: dict[str, Any], condition: str, where: str) -
     RecipeError
         Naming the field, and the conditions the file has.
     """
+    file = find_data_file("coach", "conditions.toml")
     try:
-        conditions = read_toml(recipes_dir() / "conditions.toml", "conditions file", RecipeError)
+        conditions = read_toml(file, "conditions file", RecipeError)
     except PidlabError:
         return
     tables = conditions.get("condition")
@@ -845,7 +846,7 @@ def check_pipeline_condition(data: dict[str, Any], condition: str, where: str) -
         return
     w = f"{where}.pipeline.condition"
     if condition not in tables:
-        fail(condition, w, f"a condition of {recipes_dir() / 'conditions.toml'}: {', '.join(tables)}",
+        fail(condition, w, f"a condition of {file}: {', '.join(tables)}",
              RecipeError)  # fmt: skip
     table = tables[condition]
     envs = table.get("env")
@@ -981,7 +982,7 @@ def recipes_dir() -> Path:
 
 
 def default_recipe_path(env_id: str) -> Path:
-    """``coach/<env_id>.toml``.
+    """``coach/<env_id>.toml``: the user's folder's (``$PIDLAB_COACH``) when it has one, else the shipped one.
 
     Raises
     ------
@@ -989,12 +990,13 @@ def default_recipe_path(env_id: str) -> Path:
         ``env_id`` does not follow :data:`pidlab.checks.NAME_RULE` (it would leave ``coach/``).
     """
     check_name(env_id, "env_id", RecipeError, param="env_id")
-    return path_under(recipes_dir(), f"{env_id}.toml", error=RecipeError, param="env_id")
+    path_under(recipes_dir(), f"{env_id}.toml", error=RecipeError, param="env_id")  # stays inside coach/
+    return find_data_file("coach", f"{env_id}.toml")  # the user's recipe, else the shipped one
 
 
 def recipe_envs() -> list[str]:
-    """The env ids that have a recipe in :func:`recipes_dir`, sorted."""
-    return sorted(p.stem for p in recipes_dir().glob("*-v*.toml"))
+    """The env ids that have a recipe in the user's or the shipped ``coach/`` folder, sorted."""
+    return [p.stem for p in data_files("coach", "*-v*.toml")]
 
 
 def with_overrides(
