@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from pidlab.controller.analysis import analyze_coach, coach_to_continuous, loop_margins
+from pidlab.controller.analysis import analyze_coach, coach_to_continuous, loop_margins, step_metrics
 from pidlab.controller.pid import Coach, law
 from pidlab.controller.spec import load_spec
 from pidlab.plant.observation import observe
@@ -255,3 +255,44 @@ def test_open_loop_poles_are_the_discrete_plants(walker):
     analysis, _ = walker
     ref = np.sort_complex(np.asarray(ct.poles(analysis.linearization.sysd)))
     assert np.allclose(np.sort_complex(analysis.open_loop_poles), ref, atol=1e-9)
+
+
+# ---------------------------------------------------------------- step metrics, by hand
+
+
+def test_step_metrics_of_a_response_that_follows_are_measured_against_the_step():
+    t = np.arange(6) * 0.5
+    # a step of 2: 0, 1, 2.4 (the peak, 0.4 beyond the final 2.0), 2.1, 2.0, 2.0
+    over, settle, rise = step_metrics(t, np.array([0.0, 1.0, 2.4, 2.1, 2.0, 2.0]), 2.0)
+    assert over == pytest.approx(0.4 / 2.0 * 100)  # 20 %, of the setpoint change
+    assert settle == 2.0  # within 2 % of 2 (0.04) of the final value from t = 2.0 on (2.1 is 0.1 away)
+    assert rise == pytest.approx(1.0 - 0.5)  # 10 % of 2.0 first at t = 0.5 (1.0), 90 % at t = 1.0 (2.4)
+    # a negative step mirrors it
+    assert step_metrics(t, -np.array([0.0, 1.0, 2.4, 2.1, 2.0, 2.0]), -2.0) == (over, settle, rise)
+    # a steady-state error within FOLLOW_FRACTION still follows: final 0.6 of a unit step, peak 0.7
+    over, _, _ = step_metrics(t, np.array([0.0, 0.3, 0.7, 0.6, 0.6, 0.6]), 1.0)
+    assert over == pytest.approx(10.0)
+
+
+def test_step_metrics_are_not_defined_when_the_final_value_does_not_follow():
+    t = np.arange(5) * 0.1
+    # the signal comes back to (almost) 0: dividing by the final value gave 1e16 %
+    over, settle, rise = step_metrics(t, np.array([0.0, 1.2, 0.3, 1e-16, 1e-16]), 1.0)
+    assert np.isnan(over) and np.isnan(rise) and settle == pytest.approx(0.3)
+    over, _, rise = step_metrics(t, np.array([0.0, -0.2, -0.3, -0.2, -0.2]), 1.0)  # the wrong way
+    assert np.isnan(over) and np.isnan(rise)
+    assert step_metrics(t, np.array([0.0, 1.0, np.inf, np.nan, 1.0]), 1.0)[1] == np.inf
+
+
+def test_shipped_coaches_report_no_absurd_overshoot(models):
+    """IDP's unit setpoint step of a pendulum angle ends back at 0: not defined, not 4e8 %."""
+    for env in ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5"):
+        spec = load_spec(TUNING / f"{env}.pidlab-robust.toml")
+        a = analyze_coach(Coach(spec, models[env]), models[env])
+        for r in a.responses:
+            if r.kind == "step":
+                assert np.isnan(r.overshoot_pct) or 0.0 <= r.overshoot_pct < 1000.0, (env, r)
+        steps = {r.loop: r for r in a.responses if r.kind == "step"}
+        if env == "InvertedDoublePendulum-v5":
+            assert np.isnan(steps["lower"].overshoot_pct) and np.isnan(steps["upper"].overshoot_pct)
+            assert steps["cart"].overshoot_pct == pytest.approx(0.0, abs=1e-6)

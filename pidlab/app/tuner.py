@@ -694,8 +694,9 @@ class Tuner:
         ]
         for m in v.metrics:
             if m.kind == "step":
+                over = "not defined" if math.isnan(m.overshoot_pct) else f"{_fmt(m.overshoot_pct)} %"
                 parts.append(
-                    f"Step ({html.escape(m.loop)}): overshoot {_fmt(m.overshoot_pct)} %, rise "
+                    f"Step ({html.escape(m.loop)}): overshoot {over}, rise "
                     f"{_fmt(m.rise_time_s)} s, "
                     f"settling (2 %) {_fmt(m.settling_time_s)} s, peak command {_fmt(m.peak_control)} "
                     "of the range."

@@ -38,6 +38,10 @@ from pidlab.plant.model import LoadedModel
 SETTLE_FRACTION = 0.02
 """Settling band of the response metrics, as a fraction of the step or initial deviation."""
 
+FOLLOW_FRACTION = 0.5
+"""A step response follows its setpoint when its final value is within this fraction of the step
+from the new setpoint; otherwise its overshoot and rise time are not defined (nan)."""
+
 INITIAL_DEVIATION = 0.05
 """Initial deviation of a loop's signal in the initial-condition responses, in the signal's unit."""
 
@@ -212,11 +216,16 @@ class ResponseMetrics:
         The loop whose setpoint is stepped, or whose signal is perturbed.
     signal : str
     overshoot_pct : float
-        Step: overshoot in %. Initial: largest excursion beyond the initial deviation, in % of it.
+        Step: how far the signal goes beyond its final value, in % of the setpoint change; nan
+        ("not defined") when the final value does not follow the setpoint (it ends farther than
+        :data:`FOLLOW_FRACTION` of the step from it) or the loop is unstable. Initial: largest
+        excursion beyond the initial deviation, in % of it.
     settling_time_s : float
-        Time after which the signal stays within 2 % (of the step, or of the initial deviation).
+        Time after which the signal stays within 2 % (of the step, or of the initial deviation)
+        of its final value; inf when it never does within the horizon or the loop is unstable.
     rise_time_s : float
-        Step: 10-90 % rise time (nan for initial-condition responses).
+        Step: time from 10 % to 90 % of the way to the final value (nan when the final value
+        does not follow the setpoint, and for initial-condition responses).
     peak_control : float
         Largest ``|u|`` over the response, as a fraction of the actuator's range half-width
         (> 1: the linear response would saturate).
@@ -644,6 +653,44 @@ def closed_loop_report(plant: ct.StateSpace, coach: ct.StateSpace, loops: list[s
     )
 
 
+def step_metrics(t: np.ndarray, y: np.ndarray, step: float) -> tuple[float, float, float]:
+    """Overshoot (%), settling time (s) and rise time (s) of a response ``y`` to a setpoint change ``step``.
+
+    The signal starts at 0 and its setpoint moves to ``step``; its final value is ``y[-1]``.
+
+    - **Overshoot**: ``max(0, peak beyond the final value) / |step| * 100``, the peak taken in the
+      step's direction; nan (not defined) when the final value does not follow the setpoint:
+      ``|y[-1] - step| > FOLLOW_FRACTION * |step|``.
+    - **Settling time**: the time after which ``y`` stays within ``SETTLE_FRACTION * |step|`` of
+      its final value (inf: it has not settled by the end).
+    - **Rise time**: from the first sample at 10 % to the first at 90 % of the way to the final
+      value; nan when the final value does not follow the setpoint.
+
+    Parameters
+    ----------
+    t, y : ndarray
+        Sample times (s) and the signal, same length.
+    step : float
+        The setpoint change (non-zero).
+
+    Returns
+    -------
+    tuple of float
+        ``(overshoot_pct, settling_time_s, rise_time_s)``.
+    """
+    final = float(y[-1])
+    if not np.all(np.isfinite(y)):
+        return float("nan"), float("inf"), float("nan")
+    settle = _settling_time(t, y, final, SETTLE_FRACTION * abs(step))
+    if abs(final - step) > FOLLOW_FRACTION * abs(step):
+        return float("nan"), settle, float("nan")
+    direction = float(np.sign(step))
+    over = max(0.0, float(np.max(direction * y) - direction * final)) / abs(step) * 100
+    toward = y / final  # the way to the final value (final has the step's sign: it follows)
+    rise = float(t[np.argmax(toward >= 0.9)] - t[np.argmax(toward >= 0.1)])
+    return over, settle, rise
+
+
 def _settling_time(t: np.ndarray, y: np.ndarray, final: float, band: float) -> float:
     outside = np.nonzero(np.abs(y - final) > band)[0]
     if outside.size == 0:
@@ -732,20 +779,10 @@ def response_metrics(
         outputs = step_response(cl, j, steps)
         y = outputs[:, sig]
         u = outputs[:, nobs:].T
-        final = float(y[-1])
         peak_u = float(np.max(np.abs(u).T / halfwidth)) if u.size else 0.0
-        if report.stable and abs(final) > 1e-12:
-            over = max(0.0, (np.max(y * np.sign(final)) - abs(final)) / abs(final) * 100)
-            settle = _settling_time(t, y, final, SETTLE_FRACTION * abs(final))
-            try:
-                rise = float(
-                    t[np.argmax(np.abs(y) >= 0.9 * abs(final))] - t[np.argmax(np.abs(y) >= 0.1 * abs(final))]
-                )
-            except ValueError:  # pragma: no cover
-                rise = float("nan")
-        else:
-            over, settle, rise = float("inf"), float("inf"), float("nan")
-        out.append(ResponseMetrics("step", lp.name, lp.signal, float(over), settle, rise, peak_u, 1.0))
+        unstable = (float("nan"), float("inf"), float("nan"))
+        over, settle, rise = step_metrics(t, y, 1.0) if report.stable else unstable
+        out.append(ResponseMetrics("step", lp.name, lp.signal, over, settle, rise, peak_u, 1.0))
     # initial deviation of each loop's signal, everything else at the operating point
     for lp in lay.spec.loops:
         if loops is not None and lp.name not in loops:

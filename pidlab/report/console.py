@@ -285,7 +285,7 @@ def responses_table(responses: Sequence[Any]) -> Table:
             what,
             r.loop,
             r.signal,
-            f"{r.overshoot_pct:.1f}",
+            "not defined" if r.overshoot_pct != r.overshoot_pct else f"{r.overshoot_pct:.1f}",
             f"{r.settling_time_s:.3g}",
             "" if r.rise_time_s != r.rise_time_s else f"{r.rise_time_s:.3g}",
             f"{r.peak_control:.3g}",
