@@ -265,8 +265,38 @@ def _root(
     version: Annotated[
         bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")
     ] = False,
+    gym_packages: Annotated[
+        str | None,
+        typer.Option(
+            "--gym-packages",
+            metavar="MODULE[,MODULE...]",
+            help="Modules to import first: they register your own envs (PIDLAB_GYM_PACKAGES does the same).",
+        ),
+    ] = None,
 ) -> None:
     """pidlab: a PID coach for RL agents on MuJoCo models."""
+    if gym_packages is not None:
+        from pidlab.errors import PidlabError
+        from pidlab.plant.envs import add_gym_packages
+
+        try:
+            add_gym_packages(_names(gym_packages, "gym_packages", what="module names"))
+        except PidlabError as exc:
+            _fail(str(exc))
+
+
+def _env_arg(text: str) -> str:
+    """The env id an ENV argument names; ``module:EnvId`` imports ``module`` first.
+
+    The module is added to :func:`pidlab.plant.envs.add_gym_packages`, so the processes the
+    command starts import it too.
+    """
+    from pidlab.plant.envs import add_gym_packages, resolve_env_id
+
+    module, sep, _ = text.rpartition(":")
+    if sep and module:
+        add_gym_packages([module])
+    return resolve_env_id(text)
 
 
 @app.command()
@@ -482,6 +512,7 @@ def tune(
     from pidlab.plant.model import load_model
     from pidlab.report.console import wide_console
 
+    env = _env_arg(env)
     _check_tune_mode(ctx, auto, ui, preset)
     if ui:
         _tune_ui(env, spec, port, tuning_dir, (animation, bounds_samples, allow_host or []))
@@ -975,6 +1006,7 @@ def train(
     from pidlab.rl.train import train as run_train
 
     argv = ["pidlab", *sys.argv[1:]]
+    env = _env_arg(env)
     if resume_dir is not None:
         asked = {"ENV": env, "--algo": algo, "--seed": seed, "--n-envs": n_envs}
         recipe = _resumed_recipe(resume_dir, asked, coach, recipe_file)
@@ -1096,7 +1128,7 @@ def experiment(
     """
     from pidlab.experiment.sweep import parse_seeds, plan
 
-    env_list = _names(envs, "envs")
+    env_list = [_env_arg(e) for e in _names(envs, "envs")]
     folder = out or f"results/{'+'.join(env_list)}"
     p = plan(
         env_list, _names(conditions, "condition_names"), parse_seeds(_seed_text(seeds)), folder,
@@ -1193,6 +1225,7 @@ def run(
 
     if workers is not None and workers < 1:
         _fail(f"--workers {workers}: expected 1 or more")
+    env = _env_arg(env)
     settings = settings_for(
         env,
         seeds=seeds,

@@ -274,32 +274,19 @@ def _load_mjcf(path: Path) -> LoadedModel:
     return LoadedModel(model=model, source=str(path.resolve()), env_id=None, frame_skip=1, card=None)
 
 
-def _mujoco_env_ids() -> list[str]:
+def _load_env(text: str) -> LoadedModel:
     import gymnasium as gym
 
-    ids = []
-    for env_id, spec in gym.registry.items():
-        entry = spec.entry_point if isinstance(spec.entry_point, str) else ""
-        if "mujoco" in entry:
-            ids.append(env_id)
-    return sorted(ids)
+    from pidlab.plant.envs import GYM_PACKAGES_VAR, is_mujoco_env, resolve_env_id
 
-
-def _load_env(env_id: str) -> LoadedModel:
-    import gymnasium as gym
-
-    known = _mujoco_env_ids()
+    env_id = resolve_env_id(text)
     if env_id not in gym.registry:
-        close = difflib.get_close_matches(env_id, known, n=3, cutoff=0.5)
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.5)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
         raise UnknownEnvError(
-            f"unknown env id or missing file {shown(env_id, 80)}: expected a Gymnasium MuJoCo env id "
-            f"(e.g. InvertedPendulum-v5) or the path of an MJCF file{hint}"
-        )
-    if env_id not in known:
-        raise UnknownEnvError(
-            f"env {env_id!r} is not a MuJoCo env; expected one of the Gymnasium MuJoCo envs "
-            f"(e.g. InvertedPendulum-v5, Hopper-v5) or an MJCF file"
+            f"unknown env id or missing file {shown(text, 80)}: expected a registered MuJoCo env id "
+            f"(e.g. InvertedPendulum-v5; your own: module:EnvId, or pidlab --gym-packages MODULE, or "
+            f"{GYM_PACKAGES_VAR}) or the path of an MJCF file{hint}"
         )
     try:
         env = gym.make(env_id)
@@ -307,9 +294,15 @@ def _load_env(env_id: str) -> LoadedModel:
         msg = " ".join(str(exc).split())
         raise UnknownEnvError(f"cannot create env {env_id!r}: {msg}") from exc
     try:
+        if not is_mujoco_env(env):
+            raise UnknownEnvError(
+                f"env {env_id!r} is not a MuJoCo env (its unwrapped env is a {type(env.unwrapped).__name__}, "
+                "neither a gymnasium MujocoEnv nor an env with a mujoco.MjModel as its model); expected a "
+                "MuJoCo env (e.g. InvertedPendulum-v5) or an MJCF file"
+            )
         unwrapped = env.unwrapped
         model = unwrapped.model  # type: ignore[attr-defined]
-        frame_skip = int(unwrapped.frame_skip)  # type: ignore[attr-defined]
+        frame_skip = int(getattr(unwrapped, "frame_skip", 1))
     finally:
         env.close()
     card = find_card(env_id)

@@ -23,6 +23,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from pidlab.plant.envs import make_env
+
 Policy = Callable[[np.ndarray], np.ndarray]
 """``observations (n, obs_dim) -> actions (n, act_dim)``, deterministic and row by row independent."""
 
@@ -72,7 +74,7 @@ def evaluation_envs(env_id: str, episodes: int) -> list[gym.Env]:
 
     Evaluation envs are made once per run and reset with each episode's seed.
     """
-    return [gym.make(env_id) for _ in range(max(1, min(episodes, MAX_BATCH)))]
+    return [make_env(env_id) for _ in range(max(1, min(episodes, MAX_BATCH)))]
 
 
 def evaluate_agent(

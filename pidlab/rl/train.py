@@ -53,6 +53,7 @@ import tomli_w
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CheckpointError, OutputError
 from pidlab.files import atomic_write_text, check_output_folder, read_json, write_json
+from pidlab.plant.envs import make_env
 from pidlab.provenance import hold_lock, read_record
 from pidlab.rl.checkpoint import (
     FINAL,
@@ -178,7 +179,7 @@ class EnvFactory:
         from stable_baselines3.common.monitor import Monitor
 
         c = self.recipe.coaching
-        env = gym.make(self.env_id)
+        env = make_env(self.env_id)
         wrapped = CoachingWrapper(
             env,
             self.spec,

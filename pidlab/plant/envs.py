@@ -1,0 +1,113 @@
+"""Gymnasium envs by id, the user's own included: ``module:EnvId`` and the modules to import first.
+
+pidlab makes every env through :func:`make_env`, so a user's env works wherever a shipped one
+does, in every process pidlab starts:
+
+- ``module:EnvId``, as ``gymnasium.make`` takes it: ``module`` is imported (it registers
+  ``EnvId``), and the id is ``EnvId`` from then on (:func:`resolve_env_id`);
+- the modules named by the environment variable ``PIDLAB_GYM_PACKAGES`` (comma-separated) are
+  imported before an unknown id is refused, in this process and in every process it starts (pool
+  workers, the tuner's jobs, Ray workers on this machine inherit the variable). The command
+  line's ``pidlab --gym-packages MODULE[,MODULE]`` sets it, as the RL Baselines3 Zoo's
+  ``--gym-packages`` does.
+
+A MuJoCo env is recognised by what it is (:func:`is_mujoco_env`): a Gymnasium ``MujocoEnv``, or
+an env whose ``model`` is a ``mujoco.MjModel``; never by the text of its entry point.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import re
+from collections.abc import Sequence
+from typing import Any
+
+from pidlab.checks import shown
+from pidlab.errors import UnknownEnvError
+
+GYM_PACKAGES_VAR = "PIDLAB_GYM_PACKAGES"
+"""The environment variable naming the modules that register the user's envs (comma-separated)."""
+
+_MODULE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
+_IMPORTED: set[str] = set()
+
+
+def gym_packages() -> tuple[str, ...]:
+    """The modules named by :data:`GYM_PACKAGES_VAR`, in order (empty names dropped)."""
+    return tuple(m.strip() for m in os.environ.get(GYM_PACKAGES_VAR, "").split(",") if m.strip())
+
+
+def import_module(name: str, named_by: str) -> None:
+    """Import the module ``name`` that registers envs (once per process).
+
+    Raises
+    ------
+    UnknownEnvError
+        One line: ``name`` is no module name, or importing it fails (with the import's own message).
+    """
+    if name in _IMPORTED:
+        return
+    if not _MODULE.match(name):
+        raise UnknownEnvError(f"{named_by}: {shown(name, 80)} is not a module name (expected e.g. my_robots)")
+    try:
+        importlib.import_module(name)
+    except Exception as exc:  # the user's module: any failure is theirs to read, in one line
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        raise UnknownEnvError(f"{named_by}: cannot import {name!r}: {type(exc).__name__}: {msg}") from None
+    _IMPORTED.add(name)
+
+
+def add_gym_packages(modules: Sequence[str]) -> None:
+    """Import ``modules`` now and add them to :data:`GYM_PACKAGES_VAR` for the processes started later.
+
+    Raises
+    ------
+    UnknownEnvError
+        A module that cannot be imported (nothing is added then).
+    """
+    for name in modules:
+        import_module(name, "--gym-packages")
+    known = list(gym_packages())
+    os.environ[GYM_PACKAGES_VAR] = ",".join([*known, *(m for m in modules if m not in known)])
+
+
+def resolve_env_id(text: str) -> str:
+    """The registered id that ``text`` names, with the modules that register it imported.
+
+    ``module:EnvId`` imports ``module`` and gives ``EnvId``; any other text is the id itself.
+    When the id is not registered yet, the modules of :data:`GYM_PACKAGES_VAR` are imported
+    first. Whether the id is then registered is for the caller to check.
+
+    Raises
+    ------
+    UnknownEnvError
+        A module that cannot be imported, or an empty id after ``module:``.
+    """
+    import gymnasium as gym
+
+    module, sep, env_id = text.rpartition(":") if ":" in text else ("", "", text)
+    if sep:
+        if not env_id:
+            raise UnknownEnvError(f"env {shown(text, 80)}: no env id after the module (expected module:Id)")
+        import_module(module, f"env {shown(text, 80)}")
+    if env_id not in gym.registry:
+        for name in gym_packages():
+            import_module(name, GYM_PACKAGES_VAR)
+    return env_id
+
+
+def make_env(env_id: str, **kwargs: Any) -> Any:
+    """``gymnasium.make(env_id, **kwargs)`` once the modules that register ``env_id`` are imported."""
+    import gymnasium as gym
+
+    return gym.make(resolve_env_id(env_id), **kwargs)
+
+
+def is_mujoco_env(env: Any) -> bool:
+    """Whether ``env`` (wrapped or not) runs MuJoCo: a ``MujocoEnv``, or its ``model`` is an ``MjModel``."""
+    import mujoco
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+
+    base = getattr(env, "unwrapped", env)
+    return isinstance(base, MujocoEnv) or isinstance(getattr(base, "model", None), mujoco.MjModel)
