@@ -274,6 +274,23 @@ def _card(cards: Path, text: str, env_id: str = IP) -> None:
     (cards / f"{env_id}.toml").write_text(text, encoding="utf-8")
 
 
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        ("alive = 1.0", 'alive = "one"', r"reward\.alive: expected int or float"),
+        ("failure = []", 'failure = "reward_ctrl"', r"reward\.failure: expected a list of step-info names"),
+        ("failure = []", "failure = [1]", r"reward\.failure: expected a list"),
+        ("[reward]", "[reward]\nbonus = 3", r"reward: unknown field\(s\) \['bonus'\]"),
+    ],
+)
+def test_bad_reward_facts_are_refused(cards: Path, old: str, new: str, message: str) -> None:
+    text = (MODELS / f"{IP}.toml").read_text()
+    assert old in text
+    _card(cards, text.replace(old, new, 1))
+    with pytest.raises(ModelCardError, match=message):
+        pidlab.find_card(IP)
+
+
 def test_a_card_with_an_unknown_field_is_refused(cards: Path) -> None:
     text = (MODELS / f"{IP}.toml").read_text()
     _card(cards, text.replace('env_id = "', 'colour = "red"\nenv_id = "', 1))

@@ -21,7 +21,7 @@ from pidlab.lookup import LookupGrid
 from pidlab.plant.model import load_model
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.predict import Predictor
-from pidlab.rl.rewards import failure_reward
+from pidlab.rl.rewards import alive_reward, failure_function, failure_reward
 from tests.helpers import PAPER_ENVS, TUNING
 
 IP, HOPPER = "InvertedPendulum-v5", "Hopper-v5"
@@ -180,8 +180,30 @@ def test_the_failure_reward_is_what_the_env_pays_on_a_failing_step():
                 failures += 1
             if te or tr:
                 env.reset()
-    with pytest.raises(CoachingError, match="failure reward of Pusher-v5"):
+    with pytest.raises(CoachingError, match="failure reward of Pusher-v5: add \\[reward\\] failure"):
         failure_reward("Pusher-v5", 0.0, {})
+
+
+def test_the_reward_facts_are_the_cards(tmp_path, monkeypatch):
+    """A user's card sets what the views pay; a card without them says where to add them."""
+    folder = tmp_path / "models"
+    folder.mkdir()
+    monkeypatch.setenv("PIDLAB_MODELS", str(folder))
+    text = (TUNING.parent / "models" / f"{HOPPER}.toml").read_text()
+    (folder / f"{HOPPER}.toml").write_text(
+        text.replace('failure = ["reward_forward", "reward_ctrl"]', 'failure = ["reward_ctrl", "x_velocity"]')
+        .replace("alive = 1.0", "alive = 2.5")
+    )
+    pay = failure_function(HOPPER)
+    assert pay(7.0, {"reward_ctrl": -0.25, "x_velocity": 1.5, "reward_forward": 9.0}) == 1.25
+    with pytest.raises(CoachingError, match="no number 'x_velocity'"):
+        pay(7.0, {"reward_ctrl": -0.25})
+    assert alive_reward(gym.make(HOPPER)) == 2.5
+    start = text.index("[reward]")
+    (folder / f"{HOPPER}.toml").write_text(text[:start] + text[text.index("[paper]"):])  # no [reward]
+    with pytest.raises(CoachingError, match=r"add \[reward\] failure = \.\.\. to its model card .*Hopper-v5.toml"):
+        failure_function(HOPPER)
+    assert alive_reward(gym.make(HOPPER)) == 1.0  # the env's own healthy_reward
 
 
 @pytest.mark.parametrize("trigger", TRIGGERS)

@@ -54,6 +54,11 @@ Schema ``pidlab.model-card/1``::
     cells = [40, 40]           # cells per grid variable
     guard = { slider_pos = 0.3 }  # other variables drawn within +-these (and required there)
 
+    [reward]                   # optional: what the env pays, for the coaching views
+    alive = 1.0                # its reward per surviving step (the penalty view prices a takeover in it)
+    failure = []               # the info terms whose sum is its reward on a failing step ([] = 0);
+                               # e.g. ["reward_forward", "reward_ctrl"] on Hopper-v5
+
     [paper]                    # optional: what the paper published for this env
     win_target = 800           # the score a "win" needs
     episodes_to_5_wins = { coached = 100, uncoached = 160 }     # Table II
@@ -239,6 +244,23 @@ class RescueDomain:
 
 
 @dataclass(frozen=True)
+class RewardFacts:
+    """What an env pays, as the coaching views need it.
+
+    Attributes
+    ----------
+    alive : float or None
+        Its reward per surviving step (None: not given).
+    failure : tuple of str or None
+        The step-info terms whose sum is its reward on a failing (terminated) step, added in this
+        order from 0.0; empty: 0 (None: not given).
+    """
+
+    alive: float | None = None
+    failure: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
 class ModelCard:
     """A parsed model card (see the module docstring for the schema).
 
@@ -266,6 +288,8 @@ class ModelCard:
         What the paper published for this env.
     rescue : RescueDomain or None
         What a rescue-region estimate covers by default.
+    reward : RewardFacts
+        What the env pays (its alive and failure rewards), for the coaching views.
     """
 
     env_id: str
@@ -281,6 +305,7 @@ class ModelCard:
     region_variables: tuple[str, ...] = ()
     paper: PaperNumbers | None = None
     rescue: RescueDomain | None = None
+    reward: RewardFacts = RewardFacts()
 
     @property
     def observation_names(self) -> tuple[str, ...]:
@@ -376,7 +401,8 @@ def _require(table: dict[str, Any], key: str, typ: type | tuple[type, ...], wher
 
 _FIELDS = {
     "": {"schema", "env_id", "description", "operating_point", "observation", "termination",
-         "terminate_on_nonfinite", "tuning", "region", "rescue", "paper"},
+         "terminate_on_nonfinite", "tuning", "region", "rescue", "paper", "reward"},
+    "reward": {"alive", "failure"},
     "operating_point": {"name", "qpos", "qvel", "ctrl", "note"},
     "observation": {"name", "source", "joint", "transform", "clip", "unit", "description"},
     "termination": {"signal", "low", "high", "interval", "description"},
@@ -526,6 +552,26 @@ def _parse_rescue(data: dict[str, Any], path: str, names: list[str]) -> RescueDo
     return RescueDomain(tuple(str(v) for v in variables), half_range, n_cells, guard)
 
 
+def _parse_reward(data: dict[str, Any], path: str) -> RewardFacts:
+    if "reward" not in data:
+        return RewardFacts()
+    where = f"{path}: reward"
+    table = _known(_require(data, "reward", dict, path), "reward", where)
+    alive = None
+    if "alive" in table:
+        alive = number(_require(table, "alive", (int, float), where), f"{where}.alive", ModelCardError)
+    failure = None
+    if "failure" in table:
+        terms = table["failure"]
+        if not isinstance(terms, list) or not all(isinstance(t, str) and t for t in terms):
+            raise ModelCardError(
+                f"{where}.failure: expected a list of step-info names (e.g. ['reward_forward']), "
+                f"got {shown(terms)}"
+            )
+        failure = tuple(terms)
+    return RewardFacts(alive, failure)
+
+
 def _parse_paper(data: dict[str, Any], path: str) -> PaperNumbers | None:
     if "paper" not in data:
         return None
@@ -620,6 +666,7 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
         region_variables=region[1],
         paper=_parse_paper(data, path),
         rescue=_parse_rescue(data, path, names),
+        reward=_parse_reward(data, path),
     )
 
 

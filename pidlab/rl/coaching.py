@@ -102,7 +102,7 @@ from pidlab.errors import CoachingError
 from pidlab.plant.model import LoadedModel, load_model
 from pidlab.region.takeover import KINDS, GridRegion, Region, observation_indices, region_from_bounds
 from pidlab.rl.predict import Predictor
-from pidlab.rl.rewards import alive_reward, check_failure_reward, failure_reward
+from pidlab.rl.rewards import alive_reward, failure_function
 
 MODES = ("takeover", "nudge")
 REGIONS = KINDS
@@ -380,7 +380,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if self.predictive:
             self._predictor = Predictor(env, card)
         if self.view == "terminal":
-            check_failure_reward(spec.env_id)
+            self._failure = failure_function(spec.env_id)
         if self.view == "penalty":
             self.cost = float(cost) if cost is not None else COST_STEPS * alive_reward(env)
 
@@ -640,7 +640,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             return self._finish(obs, float(reward), terminated, truncated, info, float(reward), None)
         run = self._coach_run(obs)
         if self.view == "terminal":
-            paid = failure_reward(str(self._env_id), float(reward), info)
+            paid = self._failure(float(reward), info)
             return self._terminal(obs, paid, info, float(reward), run, vetoed=False)
         paid = float(reward) + (run.reward if self.reward_mode == "total" else 0.0)
         if self.view == "penalty":
@@ -653,7 +653,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.episode_vetoes += 1
         self.total_vetoes += 1
         if self.view == "terminal":
-            paid = failure_reward(str(self._env_id), run.first_reward, run.first_info)
+            paid = self._failure(run.first_reward, run.first_info)
             return self._terminal(run.first_obs, paid, run.first_info, 0.0, run, vetoed=True)
         paid = run.reward if self.reward_mode == "total" else run.first_reward
         if self.view == "penalty":

@@ -2,49 +2,79 @@
 
 The coaching wrapper's ``terminal`` view pays the agent's transition what the env would have paid
 had that step failed (:func:`failure_reward`); its ``penalty`` view prices a takeover in steps of
-the env's alive reward (:func:`alive_reward`). Both are read off Gymnasium's v5 sources.
+the env's alive reward (:func:`alive_reward`). Both are facts of the env, kept as data in its model
+card's ``[reward]`` table (:class:`pidlab.plant.card.RewardFacts`), so that every view works on any
+env with a card; the shipped cards hold them as Gymnasium's v5 sources compute them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
 
-from pidlab.errors import CoachingError
+from pidlab.errors import CoachingError, ModelCardError
+
+FailureReward = Callable[[float, dict[str, Any]], float]
+"""``(reward, info) -> what the step would have paid had it failed``."""
 
 
-def _hopper_failure(reward: float, info: dict[str, Any]) -> float:
-    # hopper_v5 / walker2d_v5: reward = (forward + is_healthy * healthy_reward) - ctrl_cost
-    return (float(info["reward_forward"]) + 0.0) + float(info["reward_ctrl"])
+def failure_function(env_id: str) -> FailureReward:
+    """The failure reward of ``env_id``, from its model card's ``[reward] failure`` terms.
+
+    The function sums the step's info terms in the card's order, from 0.0: the same terms and
+    operations as Gymnasium's v5 sources on a failing step, so the result is bit for bit the
+    env's (InvertedPendulum ``[]``: 0; InvertedDoublePendulum ``distance_penalty`` and
+    ``velocity_penalty``; Hopper and Walker2d ``reward_forward`` and ``reward_ctrl``).
+
+    Raises
+    ------
+    CoachingError
+        An env without a card, or whose card gives no ``[reward] failure``: one line saying where
+        to add it.
+    """
+    terms = _card_facts(env_id, "failure", "view = 'terminal'").failure
+    return FailureTerms(env_id, tuple(terms))
 
 
-def _idp_failure(reward: float, info: dict[str, Any]) -> float:
-    # inverted_double_pendulum_v5: reward = healthy_reward * int(not terminated) - dist - vel
-    return float(info["distance_penalty"]) + float(info["velocity_penalty"])
+@dataclass(frozen=True)
+class FailureTerms:
+    """A failure reward: the sum of the step-info ``terms``, in order, from 0.0 (picklable)."""
 
+    env_id: str
+    terms: tuple[str, ...]
 
-_FAILURE: dict[str, Callable[[float, dict[str, Any]], float]] = {
-    "InvertedPendulum-v5": lambda reward, info: 0.0,  # reward = int(not terminated)
-    "InvertedDoublePendulum-v5": _idp_failure,
-    "Hopper-v5": _hopper_failure,
-    "Walker2d-v5": _hopper_failure,
-}
+    def __call__(self, reward: float, info: dict[str, Any]) -> float:
+        """What the step (its ``reward`` and ``info``) would have paid had it failed.
+
+        Raises
+        ------
+        CoachingError
+            The info lacks a term, or it is no number.
+        """
+        total = 0.0
+        for name in self.terms:
+            try:
+                total = total + float(info[name])
+            except (KeyError, TypeError, ValueError):
+                raise CoachingError(
+                    f"{self.env_id}: the step's info has no number {name!r} (its card's [reward] failure "
+                    f"names it); info has: {', '.join(sorted(map(str, info))) or 'nothing'}"
+                ) from None
+        return total
 
 
 def failure_reward(env_id: str, reward: float, info: dict[str, Any]) -> float:
     """What the env would have paid for a step had that step failed (terminated).
 
-    The reward without the alive bonus, from the step's own reward terms, computed as Gymnasium's
-    v5 sources compute a failing step's reward (bit for bit): InvertedPendulum 0;
-    InvertedDoublePendulum ``-distance_penalty - velocity_penalty``; Hopper and Walker2d
-    ``forward_reward - ctrl_cost``.
+    See :func:`failure_function`; a wrapper that pays many steps keeps the function instead.
 
     Parameters
     ----------
     env_id : str
-        One of the four v5 envs with a model card.
+        An env whose model card gives ``[reward] failure``.
     reward : float
         The step's reward.
     info : dict
@@ -53,45 +83,61 @@ def failure_reward(env_id: str, reward: float, info: dict[str, Any]) -> float:
     Raises
     ------
     CoachingError
-        An env whose failure reward pidlab does not know.
+        An env whose failure reward its card does not give.
     """
-    return _failure(env_id)(reward, info)
-
-
-def _failure(env_id: str) -> Callable[[float, dict[str, Any]], float]:
-    """The env's failure reward function.
-
-    Raises
-    ------
-    CoachingError
-        An env whose failure reward pidlab does not know.
-    """
-    fn = _FAILURE.get(env_id)
-    if fn is None:
-        raise CoachingError(
-            f"view = 'terminal' needs the failure reward of {env_id}; it is known for {', '.join(_FAILURE)}"
-        )
-    return fn
+    return failure_function(env_id)(reward, info)
 
 
 def check_failure_reward(env_id: str) -> None:
-    """Raise :class:`CoachingError` when the failure reward of ``env_id`` is unknown."""
-    _failure(env_id)
+    """Raise :class:`CoachingError` when the failure reward of ``env_id`` is not known."""
+    failure_function(env_id)
 
 
 def alive_reward(env: gym.Env) -> float:
-    """The env's reward per surviving step (its ``healthy_reward``; 1 for InvertedPendulum).
+    """The env's reward per surviving step: its card's ``[reward] alive``, else the env's ``healthy_reward``.
 
     Raises
     ------
     CoachingError
-        An env without one (set ``cost`` explicitly).
+        An env whose card gives none and that has no ``healthy_reward`` (set ``cost`` explicitly,
+        or add it to the card).
     """
-    u = env.unwrapped
-    value = getattr(u, "_healthy_reward", None)
-    if value is None and env.spec is not None and env.spec.id == "InvertedPendulum-v5":
-        value = 1.0
+    env_id = env.spec.id if env.spec is not None else None
+    facts = _card_facts(env_id, None, "") if env_id is not None else None
+    if facts is not None and facts.alive is not None:
+        return float(facts.alive)
+    value = getattr(env.unwrapped, "_healthy_reward", None)
     if value is None:
-        name = env.spec.id if env.spec is not None else type(u).__name__
-        raise CoachingError(f"{name} has no alive reward to price a takeover in; set cost explicitly")
+        name = env_id or type(env.unwrapped).__name__
+        raise CoachingError(
+            f"{name} has no alive reward to price a takeover in: set the recipe's cost, or add "
+            f"[reward] alive = ... to its model card"
+        )
     return float(value)
+
+
+def _card_facts(env_id: str, needed: str | None, who: str) -> Any:
+    """The card's :class:`~pidlab.plant.card.RewardFacts` (None: no card); ``needed`` must be given.
+
+    Raises
+    ------
+    CoachingError
+        ``needed`` is not given (or the card is missing or damaged), naming the card's file.
+    """
+    from pidlab.plant.card import find_card
+
+    try:
+        card = find_card(env_id)
+    except ModelCardError as exc:
+        if needed is None:
+            return None
+        raise CoachingError(f"{who} needs the {needed} reward of {env_id}: {exc}") from None
+    facts = card.reward if card is not None else None
+    if needed is not None and (facts is None or getattr(facts, needed) is None):
+        where = f"its model card {card.path}" if card is not None else f"a model card models/{env_id}.toml"
+        example = '["reward_forward", "reward_ctrl"]' if needed == "failure" else "1.0"
+        raise CoachingError(
+            f"{who} needs the {needed} reward of {env_id}: add [reward] {needed} = ... to {where} "
+            f"(e.g. {needed} = {example}; docs/linearization.md, Model cards)"
+        )
+    return facts
