@@ -14,6 +14,7 @@ command-line verb second. The stage functions are available from the top level::
     spec = pidlab.with_rescue(spec, pidlab.estimate_rescue(spec, loaded))  # the takeover region
     pidlab.load_region(spec).contains(obs)                      # is this observation in it?
     run = pidlab.train(pidlab.load_recipe("coach/InvertedPendulum-v5.toml"), spec, "runs/demo")  # rl
+    env = pidlab.coach_env(gymnasium.make("InvertedPendulum-v5"), spec)  # your own training loop
 
 The subpackages, in pipeline order:
 
@@ -71,6 +72,7 @@ _EXPORTS = {
     "Recipe": "pidlab.rl.recipe",
     "load_recipe": "pidlab.rl.recipe",
     "CoachingWrapper": "pidlab.rl.coaching",
+    "coach_env": "pidlab.experiment.coach_env",
     "train": "pidlab.rl.train",
     "resume": "pidlab.rl.train",
     "load_agent": "pidlab.rl.agent",
@@ -101,6 +103,7 @@ __all__ = [
     "analyze_experiment",
     "analyze_lti",
     "coach_alone",
+    "coach_env",
     "derive_bounds",
     "estimate_rescue",
     "estimate_roa",

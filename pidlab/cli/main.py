@@ -466,7 +466,10 @@ UI_ONLY = ("spec", "port", "tuning_dir", "animation", "bounds_samples", "allow_h
 @friendly_errors
 def tune(
     ctx: typer.Context,
-    env: Annotated[str, typer.Argument(metavar="ENV", help="A paper env id, e.g. InvertedPendulum-v5.")],
+    env: Annotated[
+        str,
+        typer.Argument(metavar="ENV", help="An env id with a card (InvertedPendulum-v5, module:EnvId)."),
+    ],
     auto: Annotated[bool, typer.Option("--auto", help="Tune automatically and write the spec.")] = False,
     ui: Annotated[bool, typer.Option("--ui", help="Serve the interactive tuner in the browser.")] = False,
     spec: Annotated[
@@ -615,7 +618,7 @@ def _tune_ui(
         _fail(f"--bounds-samples {bounds_samples}: expected 1 to {MAX_SAMPLES:,} simulated states")
     loaded = load_model(env)
     if loaded.card is None:
-        _fail(f"{env}: the tuner needs a model card (one of the paper envs)")
+        _fail(f"{env}: the tuner needs a model card (models/{env}.toml, or in PIDLAB_MODELS); none found")
     path = Path(spec_file) if spec_file else spec_path(env, "pidlab-robust")
     if not is_file(path):
         _fail(
@@ -1182,7 +1185,8 @@ def _sweep(
 @friendly_errors
 def run(
     env: Annotated[
-        str, typer.Argument(metavar="ENV", help="A paper env id with a recipe, e.g. InvertedPendulum-v5.")
+        str,
+        typer.Argument(metavar="ENV", help="An env id with a recipe and a card, e.g. InvertedPendulum-v5."),
     ],
     out: Annotated[str | None, typer.Option(metavar="DIR", help="Pipeline folder (default out/ENV).")] = None,
     seeds: Annotated[

@@ -516,7 +516,7 @@ def tune(
     Parameters
     ----------
     loaded : LoadedModel
-        A paper env (with a model card and a template).
+        An env with a model card that holds a ``[tuning]`` template.
     bandwidth : float, optional
         Target gain-crossover frequency, rad/s. Default: the LQR start's crossover times the
         preset's factor.

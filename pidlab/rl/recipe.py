@@ -629,6 +629,17 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
     )
 
 
+def parse_coaching(fields: dict[str, Any], where: str = "coaching") -> Coaching:
+    """A recipe's ``[coaching]`` table on its own (the fields a condition gives).
+
+    Raises
+    ------
+    RecipeError
+        Naming the field (``where.coaching.FIELD``).
+    """
+    return _coaching({"coaching": fields}, where)
+
+
 def _blend(c: dict[str, Any], w: str) -> Schedule | None:
     """``[coaching] blend``: the coach's weight in the executed action, fading to 0 by the end."""
     return _fading(c, "blend", w, "the coach's weight", high=1.0)

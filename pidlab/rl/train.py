@@ -88,6 +88,7 @@ from pidlab.rl.rundir import (
     truncate_csv,
     truncate_timing,
 )
+from pidlab.rl.wrap import mix_of, wrapper_arguments
 
 ACTIVATION_CLASSES = {
     "tanh": "Tanh",
@@ -178,32 +179,9 @@ class EnvFactory:
         """A new env."""
         from stable_baselines3.common.monitor import Monitor
 
-        c = self.recipe.coaching
         env = make_env(self.env_id)
-        wrapped = CoachingWrapper(
-            env,
-            self.spec,
-            mode=c.mode,
-            region=c.region,
-            trigger=c.trigger,
-            nudge_steps=c.nudge_steps,
-            max_coach_steps=c.max_coach_steps,
-            reward=c.reward,
-            probability=c.probability,
-            width=c.width,
-            off_after=c.off_after,
-            view=c.view,
-            cost=c.cost,
-            handback=c.handback,
-            blend=_mix(c) if self.spec is not None else None,
-            residual=c.residual is not None and self.spec is not None,
-        )
-        return Monitor(wrapped)
-
-
-def _mix(c: Any) -> Any:
-    """The coach's weight in the executed action: the blend's or the residual's (None: neither)."""
-    return c.blend if c.blend is not None else c.residual
+        arguments = wrapper_arguments(self.recipe.coaching, coached=self.spec is not None)
+        return Monitor(CoachingWrapper(env, self.spec, **arguments))
 
 
 def _schedules_move(recipe: Recipe, spec: CoachSpec | None) -> bool:
@@ -212,7 +190,7 @@ def _schedules_move(recipe: Recipe, spec: CoachSpec | None) -> bool:
         c.probability.shape != "constant"
         or c.width.shape != "constant"
         or c.off_after is not None
-        or _mix(c) is not None
+        or mix_of(c) is not None
     )
 
 
