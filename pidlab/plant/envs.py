@@ -52,7 +52,7 @@ def import_module(name: str, named_by: str) -> None:
         raise UnknownEnvError(f"{named_by}: {shown(name, 80)} is not a module name (expected e.g. my_robots)")
     try:
         importlib.import_module(name)
-    except Exception as exc:  # the user's module: any failure is theirs to read, in one line
+    except (Exception, SystemExit) as exc:  # the user's module: any failure is theirs to read, in one line
         msg = " ".join(str(exc).split()) or type(exc).__name__
         raise UnknownEnvError(f"{named_by}: cannot import {name!r}: {type(exc).__name__}: {msg}") from None
     _IMPORTED.add(name)
