@@ -570,10 +570,15 @@ def loop_margins(L: ct.StateSpace, actuator: str) -> LoopMargins:
     else:
         pm_deg, w_gc, delay = np.inf, np.nan, np.inf
     # the sensitivity peak from a dense frequency grid (robust where the polynomial method of
-    # stability_margins finds no extremum), refined by python-control's value when it has one
+    # stability_margins finds no extremum), refined by python-control's value when it has one.
+    # A continuous loop's sup also covers w -> infinity, where L -> D: a strictly proper loop has
+    # |S| -> 1 there, so Ms >= 1 (a loop with rate feedback that never rolls off reaches its sup
+    # there; sampled, the same loop peaks at the Nyquist frequency instead)
     distance = float(np.min(np.abs(1.0 + response)))
     if sm.size:
         distance = min(distance, float(sm.min()))
+    if not L.isdtime():
+        distance = min(distance, float(abs(1.0 + np.asarray(L.D, dtype=float)[0, 0])))
     ms = 1.0 / distance if distance > 0 else np.inf
     return LoopMargins(
         actuator=actuator,

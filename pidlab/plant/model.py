@@ -306,6 +306,11 @@ def _load_env(text: str) -> LoadedModel:
     finally:
         env.close()
     card = find_card(env_id)
+    own = getattr(unwrapped, "card", None)
+    if card is None and isinstance(own, ModelCard):  # an env made from its card (pidlab.plant.card_env)
+        if own.env_id != env_id:
+            raise ModelCardError(f"{own.path}: env_id = {own.env_id!r}, the env is registered as {env_id}")
+        card = own
     if card is not None:
         card.check_against(model, frame_skip)
     return LoadedModel(model=model, source=env_id, env_id=env_id, frame_skip=frame_skip, card=card)
