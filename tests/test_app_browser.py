@@ -140,9 +140,13 @@ def test_background_views_arrive_with_progress(page):
     pg = page
     pg.wait_for_selector("#rollout-animation", timeout=120_000)
     assert pg.locator("#rollout-animation").get_attribute("data-backend") in ("mujoco", "schematic")
+    pg.wait_for_function("() => /mean return/.test(window.__text('#coach-score') || '')", timeout=120_000)
     score = _text(pg, "#coach-score")
     assert "mean return 1000.0" in score  # the robust coach balances all 5 episodes
-    pg.wait_for_function("() => window.__source('roa-paths').xs.length > 0", timeout=120_000)
+    # the status that describes the preview is written after the preview's paths (the tuner's
+    # _say(after_plot=True)): once it says so, the paths are already there
+    pg.wait_for_function("() => /preview/.test(window.__text('.pidlab-status-roa') || '')", timeout=120_000)
+    assert pg.evaluate("() => window.__source('roa-paths').xs.length") > 0
     status = _text(pg, ".pidlab-status-roa")
     assert "preview" in status and "failures" in status
     # a change starts the slow views again: a visible waiting/progress state ...
