@@ -301,6 +301,43 @@ def _env_arg(text: str) -> str:
 
 @app.command()
 @friendly_errors
+def init(
+    mjcf: Annotated[str, typer.Argument(metavar="MJCF", help="Your robot's MJCF file (.xml).")],
+    env_id: Annotated[
+        str, typer.Option("--env-id", metavar="ID", help="The env id to register it as, e.g. MyCartPole-v0.")
+    ],
+    keyframe: Annotated[
+        str | None,
+        typer.Option(metavar="NAME", help="Keyframe of the operating point (default: the first; qpos0)."),
+    ] = None,
+    out: Annotated[str, typer.Option(metavar="DIR", help="Where to write the scaffold.")] = ".",
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the scaffold's files.")] = False,
+) -> None:
+    """Scaffold your own robot: a model card, a recipe and an env module, for you to edit.
+
+    Writes DIR/models/ID.toml, DIR/coach/ID.toml, DIR/<id>_env.py (registers ID from the MJCF and
+    the card) and a copy of the MJCF, then prints how to use them. Existing files are kept unless
+    --force.
+    """
+    from pathlib import Path
+
+    from pidlab.plant.scaffold import scaffold, write_scaffold
+
+    s = scaffold(mjcf, env_id, keyframe)
+    written = write_scaffold(s, out, mjcf, force=force)
+    root = Path(out).resolve()
+    for p in written:
+        typer.echo(f"wrote {p}")
+    typer.echo(
+        "next: edit the termination limits in the card, then, in this shell:\n"
+        f"  export PYTHONPATH={root}:$PYTHONPATH PIDLAB_GYM_PACKAGES={s.module} "
+        f"PIDLAB_MODELS={root / 'models'} PIDLAB_COACH={root / 'coach'}\n"
+        f"  pidlab linearize {env_id}; pidlab tune {env_id} --auto; pidlab run {env_id}"
+    )
+
+
+@app.command()
+@friendly_errors
 def linearize(
     target: Annotated[
         str,
