@@ -261,7 +261,7 @@ from pathlib import Path
 
 import gymnasium
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).absolute().parent  # the folder of this module (user code)
 
 gymnasium.register(
     "{env_id}",
