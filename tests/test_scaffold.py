@@ -55,9 +55,10 @@ def test_bad_init_is_one_line_and_exit_2(tmp_path: Path) -> None:
         ([str(XML), "--env-id", ENV_ID, "--keyframe", "sideways"], "no keyframe 'sideways'; keyframes: upright"),
         ([str(XML), "--env-id", "../escape"], "--env-id"),
         ([str(tmp_path / "missing.xml"), "--env-id", ENV_ID], "does not exist"),
+        ([str(XML), "--env-id", ENV_ID, "--out", str(bad)], "is a file, not a folder"),
     ]
     for args, message in cases:
-        code, err = cli_in_process("init", *args, "--out", str(tmp_path / "out"))
+        code, err = cli_in_process("init", *args, *([] if "--out" in args else ["--out", str(tmp_path / "out")]))
         assert code == 2 and message in err and "Traceback" not in err, (args, err)
         assert len(err.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
     # no overwrite without --force, and nothing written then

@@ -26,7 +26,7 @@ import numpy as np
 
 from pidlab.checks import check_name
 from pidlab.errors import ArgumentError
-from pidlab.files import atomic_write_text
+from pidlab.files import atomic_write_text, check_output_folder
 
 HINGE_LIMIT = 0.2
 """The healthy range of an unlimited hinge joint in a scaffold's card, rad (edit it)."""
@@ -93,8 +93,12 @@ def write_scaffold(s: Scaffold, out: str | Path, mjcf: str | Path, force: bool =
     ------
     ArgumentError
         A file exists and ``force`` is not set (nothing is written then).
+    OutputError
+        ``out`` (or its ``models``/``coach`` folder) is a file or cannot be written.
     """
-    root = Path(out)
+    root = check_output_folder(out, param="out")
+    for sub in ("models", "coach"):
+        check_output_folder(root / sub, param="out")
     targets = {root / rel: text for rel, text in s.files.items()}
     copy = root / Path(mjcf).name
     existing = [
