@@ -291,12 +291,9 @@ def _env_arg(text: str) -> str:
     The module is added to :func:`pidlab.plant.envs.add_gym_packages`, so the processes the
     command starts import it too.
     """
-    from pidlab.plant.envs import add_gym_packages, resolve_env_id
+    from pidlab.plant.envs import resolve_env_id
 
-    module, sep, _ = text.rpartition(":")
-    if sep and module:
-        add_gym_packages([module])
-    return resolve_env_id(text)
+    return resolve_env_id(text, remember=True)
 
 
 @app.command()

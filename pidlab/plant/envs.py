@@ -72,12 +72,14 @@ def add_gym_packages(modules: Sequence[str]) -> None:
     os.environ[GYM_PACKAGES_VAR] = ",".join([*known, *(m for m in modules if m not in known)])
 
 
-def resolve_env_id(text: str) -> str:
+def resolve_env_id(text: str, remember: bool = False) -> str:
     """The registered id that ``text`` names, with the modules that register it imported.
 
     ``module:EnvId`` imports ``module`` and gives ``EnvId``; any other text is the id itself.
-    When the id is not registered yet, the modules of :data:`GYM_PACKAGES_VAR` are imported
-    first. Whether the id is then registered is for the caller to check.
+    With ``remember``, the module is also added to :data:`GYM_PACKAGES_VAR`, so the processes
+    started later import it too (:func:`add_gym_packages`). When the id is not registered yet,
+    the modules of :data:`GYM_PACKAGES_VAR` are imported first. Whether the id is then registered
+    is for the caller to check.
 
     Raises
     ------
@@ -91,6 +93,8 @@ def resolve_env_id(text: str) -> str:
         if not env_id:
             raise UnknownEnvError(f"env {shown(text, 80)}: no env id after the module (expected module:Id)")
         import_module(module, f"env {shown(text, 80)}")
+        if remember:
+            add_gym_packages([module])
     if env_id not in gym.registry:
         for name in gym_packages():
             import_module(name, GYM_PACKAGES_VAR)

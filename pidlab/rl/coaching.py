@@ -339,7 +339,6 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.region: Any = None  # a Region (box, ellipsoid or rescue) with a settable scale
         self._handback_region: Region | None = None
         self._predictor: Predictor | None = None
-        self._env_id = spec.env_id if spec is not None else None
         if spec is not None:
             self._set_coach(env, spec, region, loaded, cost)
         self._history: deque[float] = deque(maxlen=(self.trigger.steps + 1) if self.trigger else 1)

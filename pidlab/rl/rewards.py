@@ -88,11 +88,6 @@ def failure_reward(env_id: str, reward: float, info: dict[str, Any]) -> float:
     return failure_function(env_id)(reward, info)
 
 
-def check_failure_reward(env_id: str) -> None:
-    """Raise :class:`CoachingError` when the failure reward of ``env_id`` is not known."""
-    failure_function(env_id)
-
-
 def alive_reward(env: gym.Env) -> float:
     """The env's reward per surviving step: its card's ``[reward] alive``, else the env's ``healthy_reward``.
 
