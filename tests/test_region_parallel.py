@@ -142,7 +142,10 @@ def test_a_batch_stops_at_a_failure_and_is_complete_otherwise():
     for workers in (1, 2):
         with WorkerPool(int, (1,), workers=workers) as pool:
             batch = pool.run(_square, list(range(40)), stop=bool)
-            assert batch.stopped and 1 in batch.results
+            # which failing chunk settles the batch first is a race between the workers:
+            # any failure may be the one reported, and only squares of the items come back
+            assert batch.stopped and any(batch.results)
+            assert set(batch.results) <= {x * x for x in range(40)}
             batch = pool.run(_square, [0] * 40, stop=bool)
             assert not batch.stopped and batch.results == [0] * 40
 
