@@ -38,6 +38,10 @@ class UnknownEnvError(PidlabError, KeyError):
         return str(self.args[0]) if self.args else ""
 
 
+class ProjectError(PidlabError, ValueError):
+    """A project file (``pidlab.toml``) that cannot be read or holds a wrong field."""
+
+
 class ModelCompileError(PidlabError):
     """An MJCF file that MuJoCo cannot load or compile; carries MuJoCo's own message."""
 

@@ -45,6 +45,7 @@ TINY: dict[str, dict[str, object]] = {
     "roa": {"--samples": "40"},
     "bounds": {"--samples": "40"},
     "analyze": {"--episodes": "1"},
+    "rescue": {"--validation": "200", "--coverage": "200"},
 }
 PYTHON_TINY = (
     (re.compile(r"samples=\d+"), "samples=40"),
@@ -205,7 +206,7 @@ def test_pages_have_commands_and_only_known_ones():
                 ), f"{page}: {command!r} is neither a pidlab command nor one of the two scripts"
     assert any("bash scripts/main.sh" in t for _, t in blocks("README.md"))
     assert any("bash scripts/test.sh" in t for _, t in blocks("README.md"))
-    assert len(PAGES) == 6
+    assert len(PAGES) == 7
 
 
 def test_tiny_rewrites():

@@ -16,7 +16,7 @@ from tests.helpers import ROOT
 PACKAGE = ROOT / "pidlab"
 STAGES = (
     ("errors", "checks", "files", "provenance", "data", "orphans", "parallel", "lookup", "__init__"),
-    ("plant",),
+    ("plant", "project"),
     ("linear",),
     ("controller",),
     ("region",),

@@ -24,7 +24,7 @@ PIDLAB = str(Path(sys.executable).with_name("pidlab"))
 def test_the_scaffold_names_every_joint_and_puts_the_unactuated_first():
     s = scaffold(XML, ENV_ID)
     assert s.module == module_name(ENV_ID) == "scaffoldcartpole_v0_env"
-    assert set(s.files) == {f"models/{ENV_ID}.toml", f"coach/{ENV_ID}.toml", f"{s.module}.py"}
+    assert set(s.files) == {f"models/{ENV_ID}.toml", f"coach/{ENV_ID}.toml", f"{s.module}.py", "pidlab.toml"}
 
 
 def test_init_writes_files_that_train(tmp_path: Path) -> None:
@@ -37,9 +37,11 @@ def test_init_writes_files_that_train(tmp_path: Path) -> None:
                                                                      ("cart_x_pos", -5.0, 5.0)]  # fmt: skip
     assert [(lp.name, lp.core) for lp in card.tuning] == [("pole_angle", True), ("cart_x", False)]
     assert load_recipe(tmp_path / "coach" / f"{ENV_ID}.toml").env_id == ENV_ID
-    assert (tmp_path / "cartpole.xml").read_text() == XML.read_text()
-    env = {**os.environ, "PYTHONPATH": str(tmp_path), "PIDLAB_GYM_PACKAGES": module_name(ENV_ID),
-           "PIDLAB_MODELS": str(tmp_path / "models"), "PIDLAB_COACH": str(tmp_path / "coach")}  # fmt: skip
+    # the MJCF stays where it is (its includes and meshes keep working): the card names it
+    assert not (tmp_path / "cartpole.xml").exists() and card.model is not None
+    assert card.model.mjcf == str(XML) and card.model.frame_skip == 2
+    # the project file makes the folder's commands find the env module, the card and the recipe
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PIDLAB_") and k != "PYTHONPATH"}
     for args in (["tune", ENV_ID, "--auto", "-o", "spec.toml"], ["bounds", "spec.toml", "--write", "--samples", "40"],
                  ["train", ENV_ID, "--coach", "spec.toml", "--steps", "600", "--no-progress"]):  # fmt: skip
         done = subprocess.run([PIDLAB, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)

@@ -158,6 +158,8 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def _fail(message: str) -> NoReturn:
+    """The error's one line (a line break inside a value is shown escaped) and exit code 2."""
+    message = message.replace("\r", "\\r").replace("\n", "\\n")
     typer.echo(f"pidlab: error: {message}", err=True)
     raise typer.Exit(code=EXIT_BAD_INPUT)
 
@@ -274,15 +276,23 @@ def _root(
         ),
     ] = None,
 ) -> None:
-    """pidlab: a PID coach for RL agents on MuJoCo models."""
-    if gym_packages is not None:
-        from pidlab.errors import PidlabError
-        from pidlab.plant.envs import add_gym_packages
+    """pidlab: a PID coach for RL agents on MuJoCo models.
 
-        try:
+    In a folder holding pidlab.toml (pidlab init writes it), its settings apply first.
+    """
+    from pidlab.errors import PidlabError
+    from pidlab.project import apply_project, find_project, load_project
+
+    try:
+        project = find_project()
+        if project is not None:
+            apply_project(load_project(project))
+        if gym_packages is not None:
+            from pidlab.plant.envs import add_gym_packages
+
             add_gym_packages(_names(gym_packages, "gym_packages", what="module names"))
-        except PidlabError as exc:
-            _fail(str(exc))
+    except PidlabError as exc:
+        _fail(str(exc))
 
 
 def _env_arg(text: str) -> str:
@@ -296,6 +306,13 @@ def _env_arg(text: str) -> str:
     return resolve_env_id(text, remember=True)
 
 
+def _trainable_env_arg(text: str) -> str:
+    """:func:`_env_arg` for the commands that train: an MJCF file or a card-only robot is refused."""
+    from pidlab.plant.envs import check_trainable
+
+    return check_trainable(_env_arg(text))
+
+
 @app.command()
 @friendly_errors
 def init(
@@ -307,29 +324,39 @@ def init(
         str | None,
         typer.Option(metavar="NAME", help="Keyframe of the operating point (default: the first; qpos0)."),
     ] = None,
-    out: Annotated[str, typer.Option(metavar="DIR", help="Where to write the scaffold.")] = ".",
+    frame_skip: Annotated[
+        int | None,
+        typer.Option(
+            "--frame-skip",
+            metavar="N",
+            help="MuJoCo steps per control period (default: the period nearest 20 ms).",
+        ),
+    ] = None,
+    out: Annotated[
+        str, typer.Option(metavar="DIR", help="Where to write the scaffold (a project folder).")
+    ] = ".",
     force: Annotated[bool, typer.Option("--force", help="Overwrite the scaffold's files.")] = False,
 ) -> None:
-    """Scaffold your own robot: a model card, a recipe and an env module, for you to edit.
+    """Scaffold your own robot: a model card, a recipe, an env module and a project file, to edit.
 
-    Writes DIR/models/ID.toml, DIR/coach/ID.toml, DIR/<id>_env.py (registers ID from the MJCF and
-    the card) and a copy of the MJCF, then prints how to use them. Existing files are kept unless
-    --force.
+    Writes DIR/models/ID.toml (its [model] table names the MJCF where it is), DIR/coach/ID.toml,
+    DIR/<id>_env.py (registers ID) and DIR/pidlab.toml (pidlab commands run in DIR find them all),
+    then prints what to run next. Existing files are kept unless --force.
     """
+    import shlex
     from pathlib import Path
 
     from pidlab.plant.scaffold import scaffold, write_scaffold
 
-    s = scaffold(mjcf, env_id, keyframe)
-    written = write_scaffold(s, out, mjcf, force=force)
-    root = Path(out).resolve()
+    s = scaffold(mjcf, env_id, keyframe, frame_skip, out)
+    written = write_scaffold(s, out, force=force)
     for p in written:
         typer.echo(f"wrote {p}")
+    here = Path(out).resolve() == Path.cwd().resolve()
+    cd = "" if here else f"cd {shlex.quote(str(Path(out).resolve()))}; "
     typer.echo(
-        "next: edit the termination limits in the card, then, in this shell:\n"
-        f"  export PYTHONPATH={root}:$PYTHONPATH PIDLAB_GYM_PACKAGES={s.module} "
-        f"PIDLAB_MODELS={root / 'models'} PIDLAB_COACH={root / 'coach'}\n"
-        f"  pidlab linearize {env_id}; pidlab tune {env_id} --auto; pidlab run {env_id}"
+        f"next: edit the termination limits in the card, then, in that folder:\n"
+        f"  {cd}pidlab linearize {env_id}; pidlab tune {env_id} --auto; pidlab run {env_id}"
     )
 
 
@@ -557,8 +584,9 @@ def tune(
     from pidlab.checks import check_name
 
     spec_name = check_name(name, "--name", PidlabError) if name is not None else f"pidlab-{preset}"
-    out = output or f"tuning/{env}.{spec_name}.toml"
     loaded = load_model(env)
+    env = loaded.env_id or env  # an MJCF file that a card names: the card's env id
+    out = output or f"tuning/{env}.{spec_name}.toml"
     if preset != "room":
         check_request(loaded, bandwidth, phase_margin, preset)  # bad targets first, then the file
     with writing_spec(out, force=force, param="output") as write:  # refused before the tuning, not after
@@ -652,7 +680,8 @@ def _tune_ui(
         _fail(f"--bounds-samples {bounds_samples}: expected 1 to {MAX_SAMPLES:,} simulated states")
     loaded = load_model(env)
     if loaded.card is None:
-        _fail(f"{env}: the tuner needs a model card (models/{env}.toml, or in PIDLAB_MODELS); none found")
+        _fail(f"{env}: the tuner needs a model card; none found ({loaded.card_hint})")
+    env = loaded.env_id or env  # an MJCF file that a card names: the card's env id
     path = Path(spec_file) if spec_file else spec_path(env, "pidlab-robust")
     if not is_file(path):
         _fail(
@@ -904,7 +933,9 @@ def rescue(
     ] = None,
     validation: Annotated[int, typer.Option(help="Fresh states per validation draw.")] = 2000,
     coverage: Annotated[int, typer.Option(help="Fresh states over the domain for the coverage.")] = 2000,
-    probes: Annotated[int, typer.Option(help="Random probes per cell (after the guard corners).")] = 2,
+    probes: Annotated[
+        int, typer.Option(help="Random probes per cell (after its vertices at each guard corner).")
+    ] = 2,
     horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
     seed: Annotated[int, typer.Option(help="Sampling seed.")] = 0,
     write: Annotated[
@@ -1043,7 +1074,7 @@ def train(
     from pidlab.rl.train import train as run_train
 
     argv = ["pidlab", *sys.argv[1:]]
-    env = _env_arg(env)
+    env = _trainable_env_arg(env)
     if resume_dir is not None:
         asked = {"ENV": env, "--algo": algo, "--seed": seed, "--n-envs": n_envs}
         recipe = _resumed_recipe(resume_dir, asked, coach, recipe_file)
@@ -1165,7 +1196,7 @@ def experiment(
     """
     from pidlab.experiment.sweep import parse_seeds, plan
 
-    env_list = [_env_arg(e) for e in _names(envs, "envs")]
+    env_list = [_trainable_env_arg(e) for e in _names(envs, "envs")]
     folder = out or f"results/{'+'.join(env_list)}"
     p = plan(
         env_list, _names(conditions, "condition_names"), parse_seeds(_seed_text(seeds)), folder,
@@ -1263,7 +1294,7 @@ def run(
 
     if workers is not None and workers < 1:
         _fail(f"--workers {workers}: expected 1 or more")
-    env = _env_arg(env)
+    env = _trainable_env_arg(env)
     settings = settings_for(
         env,
         seeds=seeds,

@@ -38,7 +38,7 @@ from pidlab.controller.pid import Coach
 from pidlab.controller.rollout import termination_cause
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import PidlabError
-from pidlab.plant.envs import make_env
+from pidlab.plant.envs import make_coach_env
 from pidlab.plant.model import LoadedModel
 
 BACKENDS = ("auto", "mujoco", "schematic")
@@ -148,7 +148,8 @@ def record_rollout(
     if max_steps is not None and max_steps < 1:
         raise PidlabError(f"max_steps must be >= 1 (or None for the env's own limit), got {max_steps}")
     coach = Coach(spec, loaded)  # checks that the spec is for this env
-    env = make_env(spec.env_id) if max_steps is None else make_env(spec.env_id, max_episode_steps=max_steps)
+    limit = {} if max_steps is None else {"max_episode_steps": max_steps}
+    env = make_coach_env(spec.env_id, **limit)
     try:
         data = env.unwrapped.data  # type: ignore[attr-defined]
         obs, _ = env.reset(seed=seed)

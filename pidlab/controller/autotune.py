@@ -267,8 +267,9 @@ def check_request(
     card = loaded.card
     if card is None or not card.tuning:
         raise PidlabError(
-            f"no tuning template for {loaded.name}: its model card (models/{loaded.name}.toml) needs "
-            "[[tuning.loop]] tables"
+            f"no tuning template for {loaded.name}: its model card needs [[tuning.loop]] tables"
+            if card is not None
+            else f"no tuning template for {loaded.name}: it has no model card ({loaded.card_hint})"
         )
     if bandwidth is not None and not (math.isfinite(bandwidth) and bandwidth > 0):
         raise PidlabError(

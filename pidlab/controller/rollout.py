@@ -18,7 +18,7 @@ from pidlab.checks import instance, shown
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import ArgumentError, BudgetError
-from pidlab.plant.envs import make_env
+from pidlab.plant.envs import make_coach_env
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import check_termination
 
@@ -179,7 +179,8 @@ def coach_alone(
     episodes = check_episodes(episodes)
     instance(spec, CoachSpec, "spec")
     instance(loaded, LoadedModel, "loaded")
-    env = make_env(spec.env_id) if max_steps is None else make_env(spec.env_id, max_episode_steps=max_steps)
+    limit = {} if max_steps is None else {"max_episode_steps": max_steps}
+    env = make_coach_env(spec.env_id, **limit)
     coach = Coach(spec, loaded)
     lay = coach.layout
     out = []

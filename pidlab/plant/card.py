@@ -59,6 +59,11 @@ Schema ``pidlab.model-card/1``::
     failure = []               # the info terms whose sum is its reward on a failing step ([] = 0);
                                # e.g. ["reward_forward", "reward_ctrl"] on Hopper-v5
 
+    [model]                    # optional: the MJCF the card describes (a robot with no env yet)
+    mjcf = "../cartpole.xml"   # relative to the card's folder (or absolute)
+    frame_skip = 2             # MuJoCo steps per control period (default 1)
+    max_episode_steps = 1000   # an episode's time limit, in control periods (default 1000)
+
     [paper]                    # optional: what the paper published for this env
     win_target = 800           # the score a "win" needs
     episodes_to_5_wins = { coached = 100, uncoached = 160 }     # Table II
@@ -68,6 +73,7 @@ Schema ``pidlab.model-card/1``::
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -86,7 +92,7 @@ from pidlab.checks import (
     shown,
     text,
 )
-from pidlab.data import find_data_file, models_dir
+from pidlab.data import data_files, find_data_file, models_dir
 from pidlab.errors import ModelCardError
 from pidlab.files import read_toml
 
@@ -244,6 +250,25 @@ class RescueDomain:
 
 
 @dataclass(frozen=True)
+class CardModel:
+    """The MJCF file a card describes, with how an env of it would step (the ``[model]`` table).
+
+    Attributes
+    ----------
+    mjcf : str
+        The MJCF file's absolute path (the card gives it relative to its own folder).
+    frame_skip : int
+        MuJoCo steps per control period.
+    max_episode_steps : int
+        An episode's time limit, in control periods.
+    """
+
+    mjcf: str
+    frame_skip: int = 1
+    max_episode_steps: int = 1000
+
+
+@dataclass(frozen=True)
 class RewardFacts:
     """What an env pays, as the coaching views need it.
 
@@ -290,6 +315,9 @@ class ModelCard:
         What a rescue-region estimate covers by default.
     reward : RewardFacts
         What the env pays (its alive and failure rewards), for the coaching views.
+    model : CardModel or None
+        The MJCF file it describes (its ``[model]`` table), so that the control stages run on a
+        robot with no Gymnasium env; None: the env's own model.
     """
 
     env_id: str
@@ -306,6 +334,7 @@ class ModelCard:
     paper: PaperNumbers | None = None
     rescue: RescueDomain | None = None
     reward: RewardFacts = RewardFacts()
+    model: CardModel | None = None
 
     @property
     def observation_names(self) -> tuple[str, ...]:
@@ -401,8 +430,9 @@ def _require(table: dict[str, Any], key: str, typ: type | tuple[type, ...], wher
 
 _FIELDS = {
     "": {"schema", "env_id", "description", "operating_point", "observation", "termination",
-         "terminate_on_nonfinite", "tuning", "region", "rescue", "paper", "reward"},
+         "terminate_on_nonfinite", "tuning", "region", "rescue", "paper", "reward", "model"},
     "reward": {"alive", "failure"},
+    "model": {"mjcf", "frame_skip", "max_episode_steps"},
     "operating_point": {"name", "qpos", "qvel", "ctrl", "note"},
     "observation": {"name", "source", "joint", "transform", "clip", "unit", "description"},
     "termination": {"signal", "low", "high", "interval", "description"},
@@ -572,6 +602,26 @@ def _parse_reward(data: dict[str, Any], path: str) -> RewardFacts:
     return RewardFacts(alive, failure)
 
 
+def _parse_model(data: dict[str, Any], path: str) -> CardModel | None:
+    if "model" not in data:
+        return None
+    where = f"{path}: model"
+    table = _known(_require(data, "model", dict, path), "model", where)
+    mjcf = text(_require(table, "mjcf", str, where), f"{where}.mjcf", ModelCardError, empty=False)
+    if "\0" in mjcf:
+        raise ModelCardError(f"{where}.mjcf: {shown(mjcf)} is no path; expected the MJCF file's path")
+    if not mjcf.lower().endswith((".xml", ".mjcf", ".mjb")):
+        raise ModelCardError(
+            f"{where}.mjcf: {shown(mjcf)}; expected an MJCF file (.xml) or a compiled model (.mjb)"
+        )
+    frame_skip = integer(table.get("frame_skip", 1), f"{where}.frame_skip", ModelCardError, low=1, high=1000)
+    steps = integer(
+        table.get("max_episode_steps", 1000), f"{where}.max_episode_steps", ModelCardError, low=1, high=10**7
+    )
+    full = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(path)), mjcf))  # no link is followed
+    return CardModel(full, frame_skip, steps)
+
+
 def _parse_paper(data: dict[str, Any], path: str) -> PaperNumbers | None:
     if "paper" not in data:
         return None
@@ -667,6 +717,7 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
         paper=_parse_paper(data, path),
         rescue=_parse_rescue(data, path, names),
         reward=_parse_reward(data, path),
+        model=_parse_model(data, path),
     )
 
 
@@ -705,3 +756,40 @@ def find_card(env_id: str) -> ModelCard | None:
             f"expected env_id = {env_id!r}"
         )
     return card
+
+
+def card_for_mjcf(mjcf: str | Path) -> ModelCard | None:
+    """The model card whose ``[model] mjcf`` is the file ``mjcf`` (the user's folder first), or None.
+
+    Only cards whose text mentions the file's name are read; such a card that is malformed is an
+    error, not a silent miss.
+
+    Raises
+    ------
+    ModelCardError
+        A card naming the file is malformed, or is named after another env than its ``env_id``.
+    """
+    target = Path(mjcf)
+    for path in data_files("models", "*.toml"):
+        try:
+            raw = path.read_text()
+        except (OSError, UnicodeDecodeError):  # not a card this file could be described by
+            continue
+        if "mjcf" not in raw or target.name not in raw:
+            continue
+        card = load_card(path)
+        if card.model is None or not _same_file(card.model.mjcf, target):
+            continue
+        if card.env_id != path.stem:
+            raise ModelCardError(
+                f"{path}: env_id = {card.env_id!r}, but the card is for {path.stem} (its file name)"
+            )
+        return card
+    return None
+
+
+def _same_file(a: str | Path, b: str | Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return os.path.normpath(os.path.abspath(a)) == os.path.normpath(os.path.abspath(b))

@@ -10,8 +10,10 @@ moved by a uniform draw in ``±reset_noise_scale``, as Gymnasium's InvertedPendu
 Register it under an id of your own (``pidlab init`` writes the module that does)::
 
     gymnasium.register("MyCartPole-v0", entry_point="pidlab.plant.card_env:CardEnv",
-                       kwargs={"xml_file": "cartpole.xml", "card": "models/MyCartPole-v0.toml"},
-                       max_episode_steps=1000)
+                       kwargs={"card": "models/MyCartPole-v0.toml"}, max_episode_steps=1000)
+
+The card's ``[model]`` table names the MJCF file and the frame skip (or pass ``xml_file`` and
+``frame_skip`` yourself).
 
 Its reward is the simplest one a balancing task needs; for another task, subclass it and override
 :meth:`CardEnv.reward` (and keep the card's ``[reward]`` facts true to it).
@@ -36,12 +38,13 @@ class CardEnv(MujocoEnv, utils.EzPickle):
 
     Parameters
     ----------
-    xml_file : str or Path
-        The MJCF file.
+    xml_file : str or Path, optional
+        The MJCF file (default: the one the card's ``[model]`` table names).
     card : ModelCard or str or Path
-        Its model card (or the card's file).
-    frame_skip : int
-        MuJoCo steps per env step (the control period is ``frame_skip`` times the model's timestep).
+        Its model card (or the card's file); required.
+    frame_skip : int, optional
+        MuJoCo steps per env step (the control period is ``frame_skip`` times the model's
+        timestep); default: the card's ``[model] frame_skip``, else 1.
     reset_noise_scale : float
         Half-width of the uniform noise on the operating point at reset.
     **kwargs
@@ -50,22 +53,25 @@ class CardEnv(MujocoEnv, utils.EzPickle):
     Raises
     ------
     ModelCardError
-        The card does not fit the model (a joint, site or actuator it names is missing, or its
-        operating point has the wrong length).
+        No card; no MJCF file given or named by the card; the card does not fit the model (a
+        joint, site or actuator it names is missing, or its operating point has the wrong length).
     """
 
     metadata = {"render_modes": ["human", "rgb_array", "depth_array"]}  # noqa: RUF012 - Gymnasium's contract
 
     def __init__(
         self,
-        xml_file: str | Path,
-        card: ModelCard | str | Path,
-        frame_skip: int = 1,
+        xml_file: str | Path | None = None,
+        card: ModelCard | str | Path | None = None,
+        frame_skip: int | None = None,
         reset_noise_scale: float = 0.01,
         **kwargs: Any,
     ) -> None:
         utils.EzPickle.__init__(self, xml_file, card, frame_skip, reset_noise_scale, **kwargs)
+        if card is None:
+            raise ModelCardError("CardEnv needs its model card: card=PATH (or a ModelCard)")
         self.card = card if isinstance(card, ModelCard) else load_card(card)
+        xml_file, frame_skip = _model_of(self.card, xml_file, frame_skip)
         self._reset_noise_scale = float(reset_noise_scale)
         size = len(self.card.observation)
         space = spaces.Box(low=-np.inf, high=np.inf, shape=(size,), dtype=np.float64)
@@ -103,3 +109,21 @@ class CardEnv(MujocoEnv, utils.EzPickle):
         qvel = self._qvel0 + self.np_random.uniform(-s, s, size=self.model.nv)
         self.set_state(qpos, qvel)
         return observe(self.card, self.model, self.data)
+
+
+def _model_of(card: ModelCard, xml_file: str | Path | None, frame_skip: int | None) -> tuple[str, int]:
+    """The MJCF file and frame skip of a card's env: the ones given, else the card's ``[model]``."""
+    if xml_file is None:
+        if card.model is None:
+            raise ModelCardError(
+                f"{card.path}: no [model] mjcf = ...; give CardEnv its MJCF file (xml_file=...) "
+                "or name it in the card"
+            )
+        xml_file = card.model.mjcf
+    if not Path(xml_file).is_file():
+        raise ModelCardError(
+            f"{card.path}: the MJCF file {str(xml_file)!r} does not exist; expected an existing .xml"
+        )
+    if frame_skip is None:
+        frame_skip = card.model.frame_skip if card.model is not None else 1
+    return str(xml_file), int(frame_skip)

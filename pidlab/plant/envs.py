@@ -29,7 +29,7 @@ from pidlab.errors import UnknownEnvError
 GYM_PACKAGES_VAR = "PIDLAB_GYM_PACKAGES"
 """The environment variable naming the modules that register the user's envs (comma-separated)."""
 
-_MODULE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
+MODULE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 _IMPORTED: set[str] = set()
 
 
@@ -48,7 +48,7 @@ def import_module(name: str, named_by: str) -> None:
     """
     if name in _IMPORTED:
         return
-    if not _MODULE.match(name):
+    if not MODULE_NAME.match(name):
         raise UnknownEnvError(f"{named_by}: {shown(name, 80)} is not a module name (expected e.g. my_robots)")
     try:
         importlib.import_module(name)
@@ -102,10 +102,84 @@ def resolve_env_id(text: str, remember: bool = False) -> str:
 
 
 def make_env(env_id: str, **kwargs: Any) -> Any:
-    """``gymnasium.make(env_id, **kwargs)`` once the modules that register ``env_id`` are imported."""
+    """``gymnasium.make(env_id, **kwargs)`` once the modules that register ``env_id`` are imported.
+
+    Raises
+    ------
+    UnknownEnvError
+        ``env_id`` is not registered but a model card names an MJCF file for it: training needs a
+        registered env, and the line says how to scaffold one.
+    """
     import gymnasium as gym
 
-    return gym.make(resolve_env_id(env_id), **kwargs)
+    resolved = resolve_env_id(env_id)
+    if resolved not in gym.registry:
+        card = _card_with_model(resolved)
+        if card is not None:
+            raise UnknownEnvError(_needs_env(resolved, card))
+    return gym.make(resolved, **kwargs)
+
+
+def check_trainable(env_id: str) -> str:
+    """``env_id`` unless it names a robot with no registered env (training needs one): one line then.
+
+    An MJCF file's path, or an unregistered id whose model card names an MJCF file, is refused
+    with the scaffold command that writes the env; any other id is left to the caller's checks.
+
+    Raises
+    ------
+    UnknownEnvError
+    """
+    import gymnasium as gym
+
+    if env_id in gym.registry:
+        return env_id
+    if env_id.lower().endswith((".xml", ".mjcf", ".mjb")):
+        raise UnknownEnvError(
+            f"{shown(env_id, 80)}: an MJCF file is no env; training needs a Gymnasium env: "
+            f"pidlab init {shown(env_id, 80)} --env-id ID writes the module that registers one"
+        )
+    card = _card_with_model(env_id)
+    if card is not None:
+        raise UnknownEnvError(_needs_env(env_id, card))
+    return env_id
+
+
+def _needs_env(env_id: str, card: Any) -> str:
+    return (
+        f"{env_id}: no env is registered under this id (its model card {card.path} names only an "
+        f"MJCF file); training needs a Gymnasium env: pidlab init {card.model.mjcf} --env-id "
+        f"{env_id} writes the module that registers one"
+    )
+
+
+def make_coach_env(env_id: str, **kwargs: Any) -> Any:
+    """The env the coach alone runs on: the registered ``env_id``, else its card's MJCF as a CardEnv.
+
+    For a robot with a model card and no registered env (the card's ``[model]`` table names its
+    MJCF file), a :class:`pidlab.plant.card_env.CardEnv` in a time limit of the card's
+    ``max_episode_steps`` (or ``max_episode_steps=`` here); other ``kwargs`` go to the env.
+    """
+    import gymnasium as gym
+
+    resolved = resolve_env_id(env_id)
+    card = _card_with_model(resolved) if resolved not in gym.registry else None
+    if card is None:
+        return make_env(resolved, **kwargs)
+    from gymnasium.wrappers import OrderEnforcing, TimeLimit
+
+    from pidlab.plant.card_env import CardEnv
+
+    steps = kwargs.pop("max_episode_steps", None) or card.model.max_episode_steps
+    return TimeLimit(OrderEnforcing(CardEnv(card=card, **kwargs)), max_episode_steps=int(steps))
+
+
+def _card_with_model(env_id: str) -> Any:
+    """The model card of ``env_id`` when it names an MJCF file (its ``[model]`` table), else None."""
+    from pidlab.plant.card import find_card
+
+    card = find_card(env_id)
+    return card if card is not None and card.model is not None else None
 
 
 def is_mujoco_env(env: Any) -> bool:

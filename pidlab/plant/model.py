@@ -19,7 +19,7 @@ import numpy as np
 
 from pidlab.checks import exists, path_argument, shown
 from pidlab.errors import ModelCardError, ModelCompileError, UnknownEnvError
-from pidlab.plant.card import ModelCard, find_card
+from pidlab.plant.card import ModelCard, card_for_mjcf, find_card
 
 _LOG = logging.getLogger("pidlab.mujoco")
 
@@ -57,12 +57,14 @@ class LoadedModel:
     source : str
         The env id, or the absolute path of the MJCF file.
     env_id : str or None
-        The Gymnasium env id, or None for a bare MJCF file.
+        The Gymnasium env id, or the ``env_id`` of the card that names the MJCF file (its
+        ``[model]`` table); None for an MJCF file no card names.
     frame_skip : int
-        MuJoCo steps per control period (the env's ``frame_skip``; 1 for a bare MJCF).
+        MuJoCo steps per control period (the env's ``frame_skip``; the card's for an MJCF file
+        it names; else 1).
     card : ModelCard or None
         The model card from ``models/`` (observation map, operating point, termination
-        limits), when one exists for this env.
+        limits), when one exists for this env or names this MJCF file.
     """
 
     model: mujoco.MjModel
@@ -95,11 +97,18 @@ class LoadedModel:
             The model has no card (a bare MJCF file, or an env without ``models/ENV.toml``).
         """
         if self.card is None:
-            raise ModelCardError(
-                f"{self.name}: has no model card (models/<env>.toml with its observation map and "
-                "termination limits); this step needs one"
-            )
+            raise ModelCardError(f"{self.name}: has no model card; this step needs one ({self.card_hint})")
         return self.card
+
+    @property
+    def card_hint(self) -> str:
+        """Where this model's card would be, and how to get one (for messages)."""
+        if self.env_id is not None:
+            return f"models/{self.env_id}.toml with its observation map and termination limits"
+        return (
+            f"none names this file: pidlab init {self.name} --env-id ID writes models/ID.toml, whose "
+            "[model] mjcf names it"
+        )
 
     @property
     def name(self) -> str:
@@ -258,7 +267,8 @@ def _mujoco_warnings() -> Iterator[list[str]]:
         mujoco.set_mju_user_warning(old)
 
 
-def _load_mjcf(path: Path) -> LoadedModel:
+def _load_mjcf(path: Path, card: ModelCard | None = None, find: bool = True) -> LoadedModel:
+    """The MJCF file ``path`` with its card: ``card``, else (``find``) the card whose ``[model]`` names it."""
     _check_model_file(path)
     with _mujoco_warnings() as caught:
         try:
@@ -271,7 +281,14 @@ def _load_mjcf(path: Path) -> LoadedModel:
             raise ModelCompileError(f"MuJoCo could not compile {str(path)!r}: {msg}") from exc
     for text in caught:  # the model loaded: MuJoCo's warnings about it are worth passing on
         warnings.warn(f"MuJoCo: {text}", UserWarning, stacklevel=3)
-    return LoadedModel(model=model, source=str(path.resolve()), env_id=None, frame_skip=1, card=None)
+    card = card_for_mjcf(path) if card is None and find else card
+    if card is None:
+        return LoadedModel(model=model, source=str(path.resolve()), env_id=None, frame_skip=1, card=None)
+    frame_skip = card.model.frame_skip if card.model is not None else 1  # a card found for a file names it
+    card.check_against(model, frame_skip)
+    return LoadedModel(
+        model=model, source=str(path.resolve()), env_id=card.env_id, frame_skip=frame_skip, card=card
+    )
 
 
 def _load_env(text: str) -> LoadedModel:
@@ -281,6 +298,9 @@ def _load_env(text: str) -> LoadedModel:
 
     env_id = resolve_env_id(text)
     if env_id not in gym.registry:
+        card = find_card(env_id)
+        if card is not None and card.model is not None:  # a robot with a card and no env: its MJCF
+            return _load_mjcf(Path(card.model.mjcf), card)
         close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.5)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
         raise UnknownEnvError(

@@ -6,17 +6,21 @@ From an MJCF file and an env id, :func:`scaffold` writes (as texts, nothing on d
   else the model's first) or ``qpos0``. Its signals are every hinge and slide joint's position and
   velocity; termination limits hold each joint within its range (an unlimited hinge within
   ±0.2 rad, a fall); one tuning loop per joint, the joints no actuator drives first (a pendulum's
-  pole); an alive reward of 1 per step.
+  pole); an alive reward of 1 per step; a ``[model]`` table naming the MJCF file (where it is:
+  nothing is copied, so its includes and meshes keep working), the frame skip and the time limit.
 - ``coach/ID.toml``: the recipe: PPO and SAC tables with the RL Baselines3 Zoo's pendulum values,
   each field explained, and a ``[pipeline]`` table for ``pidlab run ID``.
 - ``ID_env.py`` (its module name from the id): registers ``ID`` as a
-  :class:`pidlab.plant.card_env.CardEnv` of the MJCF and the card.
+  :class:`pidlab.plant.card_env.CardEnv` of the card.
+- ``pidlab.toml``: the project file (:mod:`pidlab.project`): every ``pidlab`` command run in that
+  folder finds the env module, the card, the recipe and the specs you tune.
 
 :func:`write_scaffold` writes them (atomically, never over an existing file unless ``force``).
 """
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +34,15 @@ from pidlab.files import atomic_write_text, check_output_folder
 
 HINGE_LIMIT = 0.2
 """The healthy range of an unlimited hinge joint in a scaffold's card, rad (edit it)."""
+
+CONTROL_PERIOD = 0.02
+"""The control period a scaffold aims at by default, s (InvertedPendulum-v5's: 2 steps of 10 ms)."""
+
+GUARD_SLIDE, GUARD_HINGE, GUARD_RATE = 0.5, 0.1, 0.5
+"""A scaffold's rescue guard: half-widths for a slide (m), a hinge (rad) and their rates (per s)."""
+
+MAX_EPISODE_STEPS = 1000
+"""A scaffold's time limit, in control periods (the paper envs')."""
 
 
 Joint = tuple[str, bool, bool, "tuple[float, float] | None"]
@@ -50,24 +63,47 @@ def module_name(env_id: str) -> str:
     return re.sub(r"[^a-z0-9_]", "_", env_id.lower()).strip("_") + "_env"
 
 
-def scaffold(mjcf: str | Path, env_id: str, keyframe: str | None = None) -> Scaffold:
-    """The scaffold of ``mjcf`` registered as ``env_id`` (see the module docstring).
+def scaffold(
+    mjcf: str | Path,
+    env_id: str,
+    keyframe: str | None = None,
+    frame_skip: int | None = None,
+    out: str | Path = ".",
+) -> Scaffold:
+    """The scaffold of ``mjcf`` registered as ``env_id``, to be written under ``out`` (module docstring).
+
+    Parameters
+    ----------
+    mjcf : str or Path
+        The MJCF file; the card names it relative to ``out/models``.
+    env_id : str
+    keyframe : str, optional
+        The operating point's keyframe (default: the model's first, else ``qpos0``).
+    frame_skip : int, optional
+        MuJoCo steps per control period (default: the period nearest :data:`CONTROL_PERIOD`).
+    out : str or Path
+        The folder the scaffold goes to.
 
     Raises
     ------
     ArgumentError
         An env id that is no name, a keyframe the model lacks, a model without actuators or
-        without a hinge or slide joint.
+        without a hinge or slide joint, a frame skip below 1.
     ModelCompileError
         MuJoCo cannot load the file.
     """
-    from pidlab.plant.model import load_model
+    from pidlab.checks import integer
+    from pidlab.plant.model import _load_mjcf
 
     check_name(env_id, "--env-id", ArgumentError)
     path = Path(mjcf)
     if path.suffix.lower() not in (".xml", ".mjcf"):
         raise ArgumentError(f"{mjcf}: expected an MJCF file (.xml)")
-    model = load_model(path).model
+    if frame_skip is not None:
+        frame_skip = integer(frame_skip, "frame_skip", ArgumentError, low=1, high=1000, param="frame_skip")
+    model = _load_mjcf(path, card=None, find=False).model
+    if frame_skip is None:
+        frame_skip = max(1, round(CONTROL_PERIOD / float(model.opt.timestep)))
     if model.nu == 0:
         raise ArgumentError(f"{mjcf}: the model has no actuator; a coach needs one to act with")
     joints = _joints(model)
@@ -77,17 +113,20 @@ def scaffold(mjcf: str | Path, env_id: str, keyframe: str | None = None) -> Scaf
         )
     qpos, qvel, ctrl, point = _operating_point(model, keyframe, str(mjcf))
     module = module_name(env_id)
-    card = _card(model, env_id, joints, qpos, qvel, ctrl, point, path.name)
-    env = _env_module(env_id, path.name)
-    return Scaffold(
-        env_id,
-        module,
-        {f"models/{env_id}.toml": card, f"coach/{env_id}.toml": _recipe(env_id), f"{module}.py": env},
-    )
+    relative = os.path.relpath(os.path.abspath(path), os.path.abspath(Path(out) / "models"))
+    card = _card(model, env_id, joints, (qpos, qvel, ctrl, point), path.name)
+    card += _model_table(relative, frame_skip, float(model.opt.timestep))
+    files = {
+        f"models/{env_id}.toml": card,
+        f"coach/{env_id}.toml": _recipe(env_id),
+        f"{module}.py": _env_module(env_id),
+        "pidlab.toml": _project(module),
+    }
+    return Scaffold(env_id, module, files)
 
 
-def write_scaffold(s: Scaffold, out: str | Path, mjcf: str | Path, force: bool = False) -> list[Path]:
-    """Write ``s`` under ``out`` with a copy of ``mjcf`` beside the env module; the paths written.
+def write_scaffold(s: Scaffold, out: str | Path, force: bool = False) -> list[Path]:
+    """Write ``s`` under ``out``; the paths written.
 
     Raises
     ------
@@ -100,10 +139,7 @@ def write_scaffold(s: Scaffold, out: str | Path, mjcf: str | Path, force: bool =
     for sub in ("models", "coach"):
         check_output_folder(root / sub, param="out")
     targets = {root / rel: text for rel, text in s.files.items()}
-    copy = root / Path(mjcf).name
-    existing = [
-        p for p in [*targets, copy] if p.exists() and not (p == copy and p.resolve() == Path(mjcf).resolve())
-    ]
+    existing = [p for p in targets if os.path.lexists(p)]
     if existing and not force:
         raise ArgumentError(
             f"{existing[0]} exists (and {len(existing) - 1} other file(s) of the scaffold); nothing was "
@@ -112,10 +148,7 @@ def write_scaffold(s: Scaffold, out: str | Path, mjcf: str | Path, force: bool =
     for p, text in targets.items():
         p.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(p, text)
-    if copy.resolve() == Path(mjcf).resolve():
-        return list(targets)
-    atomic_write_text(copy, Path(mjcf).read_text())
-    return [*targets, copy]
+    return list(targets)
 
 
 def _joints(model: mujoco.MjModel) -> list[Joint]:
@@ -160,25 +193,23 @@ def _card(
     model: mujoco.MjModel,
     env_id: str,
     joints: list[Joint],
-    qpos: np.ndarray,
-    qvel: np.ndarray,
-    ctrl: np.ndarray,
-    point: str,
+    operating_point: tuple[np.ndarray, np.ndarray, np.ndarray, str],
     xml: str,
 ) -> str:
+    qpos, qvel, ctrl, point = operating_point
     lines = [
-        f"# Model card of {env_id}, written by pidlab init from {xml}: edit it, then run pidlab.",
+        f"# Model card of {env_id}, written by pidlab init from {xml!r}: edit it, then run pidlab.",
         "# Every field is explained in docs/linearization.md (Model cards).",
         'schema = "pidlab.model-card/1"',
         f'env_id = "{env_id}"',
-        f'description = "{env_id}: {xml}, {len(joints)} joint(s) as signals, {model.nu} actuator(s)."',
+        f"description = {_toml_string(f'{env_id}: {xml}, {len(joints)} joint(s), {model.nu} actuator(s).')}",
         "",
         "[operating_point]   # where the coach holds the system",
-        f'name = "{point}"',
+        f"name = {_toml_string(point)}",
         f"qpos = {_floats(qpos)}",
         f"qvel = {_floats(qvel)}",
         f"ctrl = {_floats(ctrl)}",
-        f'note = "from the model\'s {point}"',
+        f"note = {_toml_string(f'from the model’s {point}')}",
     ]
     for kind, unit_of in (("pos", lambda h: "rad" if h else "m"), ("vel", lambda h: "rad/s" if h else "m/s")):
         for name, hinge, _, _ in joints:
@@ -186,9 +217,9 @@ def _card(
             lines += [
                 "",
                 "[[observation]]",
-                f'name = "{name}_{kind}"',
+                f"name = {_toml_string(f'{name}_{kind}')}",
                 f'source = "{source}"',
-                f'joint = "{name}"',
+                f"joint = {_toml_string(name)}",
                 f'unit = "{unit_of(hinge)}"',
             ]
     lines += ["", "# EDIT: the healthy range of each signal; an episode ends when one leaves it."]
@@ -200,7 +231,7 @@ def _card(
         lines += [
             "",
             "[[termination]]",
-            f'signal = "{name}_pos"',
+            f"signal = {_toml_string(f'{name}_pos')}",
             f"low = {low!r}",
             f"high = {high!r}",
             f'description = "{why}"',
@@ -216,9 +247,9 @@ def _card(
         lines += [
             "",
             "[[tuning.loop]]",
-            f'name = "{name}"',
-            f'signal = "{name}_pos"',
-            f'rate_signal = "{name}_vel"',
+            f"name = {_toml_string(name)}",
+            f"signal = {_toml_string(f'{name}_pos')}",
+            f"rate_signal = {_toml_string(f'{name}_vel')}",
             "actuators = {}",
             f"core = {'false' if actuated and i > 0 else 'true'}",
         ]
@@ -226,6 +257,7 @@ def _card(
         "",
         "[region]",
         'method = "lyapunov"   # the certified level set of the linear model',
+        *_rescue_table(joints),
         "",
         "# What the env pays (pidlab.plant.card_env.CardEnv pays these).",
         "[reward]",
@@ -236,6 +268,41 @@ def _card(
     return "\n".join(lines)
 
 
+def _rescue_table(joints: list[Joint]) -> list[str]:
+    """The rescue region's domain: a grid over the first joint's position and rate, the rest guarded.
+
+    The guard box holds every other joint near the operating point (a slide within 0.5 m, a hinge
+    within 0.1 rad, their rates within 0.5): the region is validated only with them there, and the
+    coach takes over when one leaves it. Without it, they would be taken at the operating point
+    and the region would claim states it was never tried from (a cart moving fast).
+    """
+    name, hinge, _, rng = joints[0]
+    half = min(abs(rng[0]), abs(rng[1])) if rng is not None else HINGE_LIMIT
+    half = half if half > 0 else HINGE_LIMIT  # a range that starts at the joint's zero
+    guard = []
+    for other, other_hinge, _, other_rng in joints[1:]:
+        width = GUARD_HINGE if other_hinge else GUARD_SLIDE
+        if other_rng is not None:
+            width = min(width, (other_rng[1] - other_rng[0]) / 4)
+        guard += [f"{_toml_key(other + '_pos')} = {width:g}", f"{_toml_key(other + '_vel')} = {GUARD_RATE:g}"]
+    return [
+        "",
+        "# The rescue region (pidlab rescue): a grid over the first joint's position and rate; the other",
+        "# joints are drawn within the guard box, and the coach takes over when one leaves it. EDIT: widen",
+        "# the guard where the coach still rescues from there (pidlab rescue validates it).",
+        "[rescue]",
+        f"variables = [{_toml_string(name + '_pos')}, {_toml_string(name + '_vel')}]",
+        f"half_range = [{half:g}, {10 * half:g}]",
+        "cells = [40, 40]",
+        f"guard = {{ {', '.join(guard)} }}" if guard else "guard = {}",
+    ]
+
+
+def _toml_key(name: str) -> str:
+    """``name`` as a TOML key: bare when it can be, else quoted."""
+    return name if re.fullmatch(r"[A-Za-z0-9_-]+", name) else _toml_string(name)
+
+
 def _recipe(env_id: str) -> str:
     from pidlab.data import shipped_dir
 
@@ -243,6 +310,14 @@ def _recipe(env_id: str) -> str:
     body = text[text.index("[normalize]") :]
     body = re.sub(r'condition = "[^"]*"', 'condition = "rescue-terminal"', body)
     body = re.sub(r'preset = "[^"]*"', 'preset = "robust"', body)
+    body = re.sub(
+        r"(?ms)^# What `pidlab run .*?(?=^\[pipeline\])", _PIPELINE_NOTE.format(env_id=env_id), body
+    )
+    body = body.replace(
+        "[win]\n",
+        "[win]   # EDIT: a score an episode reaches once the task is learnt (800 of 1000 alive steps)\n",
+        1,
+    )
     head = (
         f"# Training recipe of {env_id}, written by pidlab init: the RL Baselines3 Zoo's pendulum values.\n"
         "# Every field is explained in docs/reference/recipe.md.\n"
@@ -254,24 +329,70 @@ def _recipe(env_id: str) -> str:
     return head + body
 
 
-def _env_module(env_id: str, xml: str) -> str:
-    return f'''"""{env_id}: written by pidlab init. Import it to register the env (pidlab --gym-packages).
+_PIPELINE_NOTE = """\
+# What `pidlab run {env_id}` does: auto-tune a coach (the robust preset), derive its certified core
+# and its rescue region, then train the agent of this recipe with and without it on a short budget.
+# The coach coaches as the condition rescue-terminal says: its rescue region shields the agent, and a
+# takeover ends the agent's episode as a failure. Other conditions: coach/conditions.toml.
+"""
 
-The env is a pidlab.plant.card_env.CardEnv: the MJCF below, observed, ended and paid as its card
-models/{env_id}.toml says. For another reward, subclass CardEnv and override its reward().
+
+def _model_table(relative: str, frame_skip: int, timestep: float) -> str:
+    period = frame_skip * timestep
+    return "\n".join([
+        "",
+        "# The MJCF file (relative to this card's folder) and how its env steps: the control period is",
+        f"# frame_skip x the model's timestep ({frame_skip} x {timestep:g} s = {period:g} s).",
+        "[model]",
+        f"mjcf = {_toml_string(relative)}",
+        f"frame_skip = {frame_skip}",
+        f"max_episode_steps = {MAX_EPISODE_STEPS}   # an episode's time limit, in control periods",
+        "",
+    ])  # fmt: skip
+
+
+def _toml_string(value: str) -> str:
+    """``value`` as a TOML basic string (quotes, backslashes and control characters escaped)."""
+    out = value.replace("\\", "\\\\").replace('"', '\\"')
+    return '"' + "".join(c if c.isprintable() else f"\\U{ord(c):08x}" for c in out) + '"'
+
+
+def _project(module: str) -> str:
+    from pidlab.project import PROJECT_SCHEMA
+
+    return "\n".join([
+        "# pidlab project file, written by pidlab init: every pidlab command run in this folder reads it.",
+        "# Every field is explained in docs/tutorials/your-own-robot.md.",
+        f'schema = "{PROJECT_SCHEMA}"',
+        f'gym_packages = ["{module}"]   # modules that register your envs (found in this folder)',
+        'models = "models"   # your model cards, searched before the shipped ones',
+        'tuning = "tuning"   # your coach specs (pidlab tune writes them here)',
+        'coach = "coach"     # your recipes (conditions.toml falls back to the shipped one)',
+        "",
+    ])  # fmt: skip
+
+
+def _env_module(env_id: str) -> str:
+    return f'''"""{env_id}: written by pidlab init. Import it to register the env (pidlab.toml names it).
+
+The env is a pidlab.plant.card_env.CardEnv: the MJCF file that the card models/{env_id}.toml
+names in its [model] table, observed, ended and paid as the card says, with the card's frame skip
+and time limit. For another reward, subclass CardEnv, override its reward(), and register the
+subclass here instead.
 """
 
 from pathlib import Path
 
 import gymnasium
 
-HERE = Path(__file__).absolute().parent  # the folder of this module (user code)
+from pidlab.plant.card import load_card
+
+CARD = Path(__file__).absolute().parent / "models" / "{env_id}.toml"  # beside this module (user code)
 
 gymnasium.register(
     "{env_id}",
     entry_point="pidlab.plant.card_env:CardEnv",
-    kwargs={{"xml_file": str(HERE / "{xml}"), "card": str(HERE / "models" / "{env_id}.toml"),
-            "frame_skip": 2}},
-    max_episode_steps=1000,
+    kwargs={{"card": str(CARD)}},
+    max_episode_steps=load_card(CARD).model.max_episode_steps,
 )
 '''

@@ -454,7 +454,7 @@ def rescue_view(r: Any, units: dict[str, str]) -> Group:
     cells = " x ".join(str(c) for c in g.cells)
     head.append(
         f"lookup grid {cells} over {', '.join(g.variables)}: {int(g.table.sum()):,} cells marked "
-        f"({g.fraction_marked():.1%}); probes per cell: the centre at each guard corner, then "
+        f"({g.fraction_marked():.1%}); probes per cell: its vertices at each guard corner, then "
         f"{s.probes} random\n"
     )
     samples, failures = r.validation

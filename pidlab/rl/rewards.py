@@ -15,7 +15,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from pidlab.errors import CoachingError, ModelCardError
+from pidlab.errors import CoachingError, ModelCardError, UnknownEnvError
 
 FailureReward = Callable[[float, dict[str, Any]], float]
 """``(reward, info) -> what the step would have paid had it failed``."""
@@ -119,11 +119,11 @@ def _card_facts(env_id: str, needed: str | None, who: str) -> Any:
     CoachingError
         ``needed`` is not given (or the card is missing or damaged), naming the card's file.
     """
-    from pidlab.plant.card import find_card
+    from pidlab.plant.model import load_model
 
     try:
-        card = find_card(env_id)
-    except ModelCardError as exc:
+        card = load_model(env_id).card  # models/' card, else the env's own (a CardEnv's)
+    except (ModelCardError, UnknownEnvError) as exc:
         if needed is None:
             return None
         raise CoachingError(f"{who} needs the {needed} reward of {env_id}: {exc}") from None
