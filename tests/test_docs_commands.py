@@ -98,7 +98,7 @@ def _env() -> dict[str, str]:
     return {**os.environ, "PATH": f"{VENV_BIN}{os.pathsep}{os.environ.get('PATH', '')}", "COLUMNS": "120"}
 
 
-def _serve_ui(argv: list[str], cwd: Path) -> None:
+def serve_ui(argv: list[str], cwd: Path, env: dict[str, str] | None = None) -> None:
     """Start the tuner, fetch its page, stop it with SIGTERM: it must shut down cleanly (exit 130)."""
     port = str(free_port())
     if "--port" in argv:
@@ -106,7 +106,7 @@ def _serve_ui(argv: list[str], cwd: Path) -> None:
     else:
         argv += ["--port", port]
     proc = subprocess.Popen(
-        argv, cwd=cwd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        argv, cwd=cwd, env=env or _env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
     try:
         deadline, page = time.monotonic() + 120, ""
@@ -185,7 +185,7 @@ def run_page(page: str, cwd: Path) -> int:
             if argv[:2] == ["bash", "scripts/main.sh"]:
                 _main_job(argv[2:], cwd, f"{page}: {command}")
             elif argv[0] == "pidlab" and "--ui" in argv:
-                _serve_ui(argv, cwd)
+                serve_ui(argv, cwd)
             else:
                 done = subprocess.run(argv, cwd=cwd, env=_env(), capture_output=True, text=True, timeout=900)
                 _check(done, f"{page}: {' '.join(argv)}")

@@ -16,9 +16,17 @@ from pidlab.plant.model import load_model
 from pidlab.plant.scaffold import scaffold
 from pidlab.project import apply_project, find_project, load_project
 from tests.helpers import cli_in_process
+from tests.test_docs_commands import serve_ui
 
 XML = Path(__file__).resolve().parent / "data" / "cartpole" / "cartpole.xml"
 PIDLAB = str(Path(sys.executable).with_name("pidlab"))
+PREVIEW = """
+import gymnasium
+from pidlab.app.jobs import rollout_preview
+from pidlab.controller.spec import load_spec
+p = rollout_preview(load_spec("tuning/BareCartPole-v0.pidlab-robust.toml"), episodes=2)
+print(p.episodes, p.mean_length, "BareCartPole-v0" in gymnasium.registry)
+"""
 VARIABLES = ("PIDLAB_MODELS", "PIDLAB_TUNING", "PIDLAB_COACH", GYM_PACKAGES_VAR, "PYTHONPATH")
 
 
@@ -156,6 +164,13 @@ def test_the_control_journeys_run_on_a_bare_mjcf_and_training_names_the_scaffold
         assert done.returncode == 0 and "Traceback" not in done.stderr, (args, done.stderr[-2000:])
         if args[0] == "analyze":  # the coach alone ran a full episode on the card's env
             assert "1x time limit" in done.stdout, done.stdout[-2000:]
+    # the tuner serves the file's card and its coach (its preview's episodes run on a CardEnv)
+    with_models = {**os.environ, "PIDLAB_MODELS": env["PIDLAB_MODELS"]}
+    serve_ui([PIDLAB, "tune", "cartpole.xml", "--ui", "--spec", spec], tmp_path, with_models)
+    preview = subprocess.run(
+        [sys.executable, "-c", PREVIEW], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
+    )
+    assert preview.returncode == 0 and preview.stdout.split() == ["2", "1000.0", "False"], preview.stderr[-2000:]
     for args in (["train", "cartpole.xml"], ["train", "BareCartPole-v0"], ["run", "cartpole.xml"]):
         done = subprocess.run(
             [PIDLAB, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
