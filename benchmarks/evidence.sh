@@ -14,6 +14,7 @@
 #   bash benchmarks/evidence.sh --teach4 Hopper-v5    # and its Amendment 4 (half the demonstrations,
 #                                                     # on its own fresh seeds 110-119)
 #   bash benchmarks/evidence.sh --teach5 Hopper-v5    # and its Amendment 5 (residual control)
+#   bash benchmarks/evidence.sh --teach6 Walker2d-v5  # Amendment 7: the locomotion envs' reduced design
 #                                                     # (a teaching sweep copies the runs that the
 #                                                     # env's confirmatory and earlier teaching sweeps
 #                                                     # hold with the same settings: pidlab experiment --reuse)
@@ -37,6 +38,7 @@ case "${1:-}" in
     --teach3) mode=teach3; shift ;;
     --teach4) mode=teach4; shift ;;
     --teach5) mode=teach5; shift ;;
+    --teach6) mode=teach6; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -48,7 +50,7 @@ rescue=none,paper,rescue,rescue-penalty,rescue-terminal,rescue-fading
 design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
     case $mode in
         confirm) confirm_design "$1"; return ;;
-        teach|teach2|teach3|teach4|teach5) teach_design "$1"; return ;;
+        teach|teach2|teach3|teach4|teach5|teach6) teach_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -82,6 +84,10 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
         teach3) echo "$1-teach3 none,rescue-terminal,warm-start-keep,warm-start-keep-shield $steps $seeds" ;;
         teach4) echo "$1-teach4 none,warm-start-keep-shield-short $steps 110-119" ;;
         teach5) echo "$1-teach5 none,residual $steps $seeds" ;;
+        teach6) case $1 in   # Amendment 7: the locomotion envs' reduced design
+                    Hopper-v5|Walker2d-v5) echo "$1-teach6 none,rescue-terminal,warm-start-keep-shield-short $steps $seeds" ;;
+                    *) echo "evidence.sh: --teach6 is for Hopper-v5 and Walker2d-v5 (docs/analysis-plan.md, Amendment 7)" >&2; exit 2 ;;
+                esac ;;
     esac
 }
 
@@ -97,7 +103,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then
