@@ -76,8 +76,6 @@ def load_project(path: str | Path) -> Project:
         One line: an unreadable file, bad TOML, a wrong schema, an unknown field, a module list
         that is no list of module names, or a folder that is no non-empty string or is a file.
     """
-    from pidlab.plant.envs import MODULE_NAME
-
     data = read_toml(path, "project file", ProjectError)
     where = str(path)
     as_table(data, where, ProjectError, "a table (parsed TOML)")
@@ -90,7 +88,7 @@ def load_project(path: str | Path) -> Project:
             f"allowed: {', '.join(sorted(_FIELDS))}"
         )
     modules = data.get("gym_packages", [])
-    if not isinstance(modules, list) or not all(isinstance(m, str) and MODULE_NAME.match(m) for m in modules):
+    if not isinstance(modules, list) or not all(_is_module(m) for m in modules):
         raise ProjectError(
             f"{where}: gym_packages is {shown(modules, 80)}; "
             'expected a list of module names, e.g. ["my_robots"]'
@@ -107,6 +105,12 @@ def load_project(path: str | Path) -> Project:
                 raise ProjectError(f"{where}: {name} = {shown(rel, 80)} is a file; expected a folder")
             folders.append((name, full))
     return Project(root, tuple(modules), tuple(folders))
+
+
+def _is_module(name: object) -> bool:
+    from pidlab.plant.envs import MODULE_NAME
+
+    return isinstance(name, str) and MODULE_NAME.fullmatch(name) is not None
 
 
 def apply_project(project: Project) -> None:

@@ -19,6 +19,7 @@ from urllib.parse import urlparse
 from pidlab.checks import clip
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import PidlabError
+from pidlab.plant.envs import MODULE_NAME
 
 MAX_SESSIONS = 8
 """Browser tabs the tuner serves at once; a further tab gets a page that says so.
@@ -126,7 +127,6 @@ LOCAL_HOSTS = ("localhost", "127.0.0.1")
 The server listens on 127.0.0.1 only, so ``[::1]`` never reaches it directly (and Panel cannot
 serve a page under a bracketed IPv6 host)."""
 _HOST_NAME = re.compile(r"^(\*|[A-Za-z0-9]([A-Za-z0-9.-]{0,252}[A-Za-z0-9])?)$")
-_MODULE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 
 
 def check_hosts(names: Sequence[str]) -> tuple[str, ...]:
@@ -196,7 +196,7 @@ def refuse_unknown_components(app: Any) -> None:
     class _Components(ComponentResourceHandler):  # type: ignore[misc]
         def parse_url_path(self, path: str) -> str:
             module = path.split("/", 1)[0]
-            if not _MODULE_NAME.match(module) or module not in sys.modules:
+            if not MODULE_NAME.fullmatch(module) or module not in sys.modules:
                 raise HTTPError(404, "no such component")
             try:
                 return str(super().parse_url_path(path))

@@ -48,7 +48,7 @@ def import_module(name: str, named_by: str) -> None:
     """
     if name in _IMPORTED:
         return
-    if not MODULE_NAME.match(name):
+    if not MODULE_NAME.fullmatch(name):
         raise UnknownEnvError(f"{named_by}: {shown(name, 80)} is not a module name (expected e.g. my_robots)")
     try:
         importlib.import_module(name)

@@ -276,7 +276,7 @@ def _rescue_table(joints: list[Joint]) -> list[str]:
     coach takes over when one leaves it. Without it, they would be taken at the operating point
     and the region would claim states it was never tried from (a cart moving fast).
     """
-    name, hinge, _, rng = joints[0]
+    name, _, _, rng = joints[0]
     half = min(abs(rng[0]), abs(rng[1])) if rng is not None else HINGE_LIMIT
     half = half if half > 0 else HINGE_LIMIT  # a range that starts at the joint's zero
     guard = []
