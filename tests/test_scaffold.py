@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from pidlab.plant.card import load_card
-from pidlab.plant.scaffold import module_name, scaffold
+from pidlab.plant.scaffold import module_name, scaffold, signal_names
 from pidlab.rl.recipe import load_recipe
 from tests.helpers import cli_in_process
 
@@ -79,3 +79,18 @@ def test_bad_init_is_one_line_and_exit_2(tmp_path: Path) -> None:
 @pytest.mark.parametrize("env_id", ["MyCartPole-v0", "robot.arm-v1"])
 def test_module_names_are_python_names(env_id: str) -> None:
     assert module_name(env_id).isidentifier()
+
+
+def test_joint_names_that_are_no_signal_names_get_signal_names_that_load(tmp_path: Path) -> None:
+    odd = tmp_path / "odd.xml"
+    odd.write_text(XML.read_text().replace('"pole_angle"', '"pole angle"').replace('"cart_x"', '"1cart.x"'))
+    s = scaffold(odd, ENV_ID, out=tmp_path)
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / f"{ENV_ID}.toml").write_text(s.files[f"models/{ENV_ID}.toml"])
+    card = load_card(tmp_path / "models" / f"{ENV_ID}.toml")
+    assert card.observation_names == ("pole_angle_pos", "1cart_x_pos", "pole_angle_vel", "1cart_x_vel")
+    assert [v.joint for v in card.observation] == ["pole angle", "1cart.x", "pole angle", "1cart.x"]
+    assert card.termination[0].signal == "pole angle_pos" and card.rescue is not None
+    assert dict(card.rescue.guard) == {"1cart_x_pos": 0.5, "1cart_x_vel": 0.5}
+    assert signal_names([("a b", True, False, None), ("a_b", True, False, None), ("_x", False, True, None)]) == {
+        "a b": "a_b", "a_b": "a_b_1", "_x": "j_x"}  # fmt: skip

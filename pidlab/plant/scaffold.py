@@ -116,6 +116,7 @@ def scaffold(
     relative = os.path.relpath(os.path.abspath(path), os.path.abspath(Path(out) / "models"))
     card = _card(model, env_id, joints, (qpos, qvel, ctrl, point), path.name)
     card += _model_table(relative, frame_skip, float(model.opt.timestep))
+    _check_card(card, env_id, model, frame_skip, str(mjcf))
     files = {
         f"models/{env_id}.toml": card,
         f"coach/{env_id}.toml": _recipe(env_id),
@@ -149,6 +150,24 @@ def write_scaffold(s: Scaffold, out: str | Path, force: bool = False) -> list[Pa
         p.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(p, text)
     return list(targets)
+
+
+def signal_names(joints: list[Joint]) -> dict[str, str]:
+    """Joint name -> the base of its signals' names (``<base>_pos``, ``<base>_vel``), unique.
+
+    A joint's name as it is when it is a signal name already (letters, digits, ``_``, ``-``);
+    else each other character becomes ``_`` (``"pole angle"`` -> ``pole_angle``), and a clash is
+    numbered. The card's ``joint`` fields keep the MJCF's own names.
+    """
+    out: dict[str, str] = {}
+    for name, *_ in joints:
+        base = re.sub(r"[^A-Za-z0-9_-]", "_", name)[:56]
+        base = base if base[:1].isalnum() else f"j{base}"[:56]
+        unique, k = base, 1
+        while unique in out.values():
+            unique, k = f"{base[:52]}_{k}", k + 1
+        out[name] = unique
+    return out
 
 
 def _joints(model: mujoco.MjModel) -> list[Joint]:
@@ -197,6 +216,7 @@ def _card(
     xml: str,
 ) -> str:
     qpos, qvel, ctrl, point = operating_point
+    sig = signal_names(joints)
     lines = [
         f"# Model card of {env_id}, written by pidlab init from {xml!r}: edit it, then run pidlab.",
         "# Every field is explained in docs/linearization.md (Model cards).",
@@ -217,7 +237,7 @@ def _card(
             lines += [
                 "",
                 "[[observation]]",
-                f"name = {_toml_string(f'{name}_{kind}')}",
+                f"name = {_toml_string(f'{sig[name]}_{kind}')}",
                 f'source = "{source}"',
                 f"joint = {_toml_string(name)}",
                 f'unit = "{unit_of(hinge)}"',
@@ -231,7 +251,7 @@ def _card(
         lines += [
             "",
             "[[termination]]",
-            f"signal = {_toml_string(f'{name}_pos')}",
+            f"signal = {_toml_string(f'{name}_pos')}",  # a joint's position, by the MJCF's name
             f"low = {low!r}",
             f"high = {high!r}",
             f'description = "{why}"',
@@ -247,9 +267,9 @@ def _card(
         lines += [
             "",
             "[[tuning.loop]]",
-            f"name = {_toml_string(name)}",
-            f"signal = {_toml_string(f'{name}_pos')}",
-            f"rate_signal = {_toml_string(f'{name}_vel')}",
+            f"name = {_toml_string(sig[name])}",
+            f"signal = {_toml_string(f'{sig[name]}_pos')}",
+            f"rate_signal = {_toml_string(f'{sig[name]}_vel')}",
             "actuators = {}",
             f"core = {'false' if actuated and i > 0 else 'true'}",
         ]
@@ -276,6 +296,7 @@ def _rescue_table(joints: list[Joint]) -> list[str]:
     coach takes over when one leaves it. Without it, they would be taken at the operating point
     and the region would claim states it was never tried from (a cart moving fast).
     """
+    sig = signal_names(joints)
     name, _, _, rng = joints[0]
     half = min(abs(rng[0]), abs(rng[1])) if rng is not None else HINGE_LIMIT
     half = half if half > 0 else HINGE_LIMIT  # a range that starts at the joint's zero
@@ -284,23 +305,18 @@ def _rescue_table(joints: list[Joint]) -> list[str]:
         width = GUARD_HINGE if other_hinge else GUARD_SLIDE
         if other_rng is not None:
             width = min(width, (other_rng[1] - other_rng[0]) / 4)
-        guard += [f"{_toml_key(other + '_pos')} = {width:g}", f"{_toml_key(other + '_vel')} = {GUARD_RATE:g}"]
+        guard += [f"{sig[other]}_pos = {width:g}", f"{sig[other]}_vel = {GUARD_RATE:g}"]
     return [
         "",
         "# The rescue region (pidlab rescue): a grid over the first joint's position and rate; the other",
         "# joints are drawn within the guard box, and the coach takes over when one leaves it. EDIT: widen",
         "# the guard where the coach still rescues from there (pidlab rescue validates it).",
         "[rescue]",
-        f"variables = [{_toml_string(name + '_pos')}, {_toml_string(name + '_vel')}]",
+        f'variables = ["{sig[name]}_pos", "{sig[name]}_vel"]',
         f"half_range = [{half:g}, {10 * half:g}]",
         "cells = [40, 40]",
         f"guard = {{ {', '.join(guard)} }}" if guard else "guard = {}",
     ]
-
-
-def _toml_key(name: str) -> str:
-    """``name`` as a TOML key: bare when it can be, else quoted."""
-    return name if re.fullmatch(r"[A-Za-z0-9_-]+", name) else _toml_string(name)
 
 
 def _recipe(env_id: str) -> str:
@@ -335,6 +351,19 @@ _PIPELINE_NOTE = """\
 # The coach coaches as the condition rescue-terminal says: its rescue region shields the agent, and a
 # takeover ends the agent's episode as a failure. Other conditions: coach/conditions.toml.
 """
+
+
+def _check_card(text: str, env_id: str, model: mujoco.MjModel, frame_skip: int, where: str) -> None:
+    """Refuse to write a card that would not load on its own model (a scaffold that fails later)."""
+    import tomllib
+
+    from pidlab.errors import ModelCardError
+    from pidlab.plant.card import parse_card
+
+    try:
+        parse_card(tomllib.loads(text), f"models/{env_id}.toml").check_against(model, frame_skip)
+    except (ModelCardError, tomllib.TOMLDecodeError) as exc:
+        raise ArgumentError(f"{where}: the scaffold cannot describe this model: {exc}") from None
 
 
 def _model_table(relative: str, frame_skip: int, timestep: float) -> str:
