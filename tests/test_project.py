@@ -177,3 +177,13 @@ def test_the_control_journeys_run_on_a_bare_mjcf_and_training_names_the_scaffold
         )
         assert done.returncode == 2 and "pidlab init" in done.stderr, (args, done.stderr)
         assert len(done.stderr.strip().splitlines()) == 1
+
+
+def test_a_project_module_that_cannot_be_imported_is_named_only_when_needed(tmp_path: Path, clean_env) -> None:
+    (tmp_path / "pidlab.toml").write_text('schema = "pidlab.project/1"\ngym_packages = ["no_such_robots_here"]\n')
+    clean_env.chdir(tmp_path)
+    code, err = cli_in_process("linearize", "InvertedPendulum-v5")  # registered: the module is not needed
+    assert code == 0, err
+    code, err = cli_in_process("linearize", "MyRobot-v0")
+    assert code == 2 and "cannot import 'no_such_robots_here'" in err and "pidlab.toml" in err
+    assert len(err.strip().splitlines()) == 1

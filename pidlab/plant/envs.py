@@ -97,7 +97,7 @@ def resolve_env_id(text: str, remember: bool = False) -> str:
             add_gym_packages([module])
     if env_id not in gym.registry:
         for name in gym_packages():
-            import_module(name, GYM_PACKAGES_VAR)
+            import_module(name, f"{GYM_PACKAGES_VAR} (from --gym-packages or pidlab.toml)")
     return env_id
 
 
