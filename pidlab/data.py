@@ -14,6 +14,9 @@ Each folder has two layers, searched in this order:
 2. the shipped folder: the source tree when pidlab runs from a checkout (an editable install),
    else the copy inside the installed package (``pidlab/_data/``, after ``pip install .``).
 
+A project file (``pidlab.toml``, :mod:`pidlab.project`) sets these variables for the commands run
+in its folder, unless they are set already.
+
 A file the user's folder lacks is read from the shipped one (:func:`find_data_file`): a user
 folder with only a card of their own robot still finds the shipped cards, recipes, specs and
 ``conditions.toml``. A user's file of the same name replaces the shipped one.

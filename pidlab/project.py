@@ -115,7 +115,6 @@ def _is_module(name: object) -> bool:
 
 def apply_project(project: Project) -> None:
     """Make this process, and the processes it starts, see ``project`` (see the module docstring)."""
-    from pidlab.data import FOLDERS as VARIABLES
     from pidlab.plant.envs import GYM_PACKAGES_VAR, gym_packages
 
     root = str(project.root)
@@ -125,8 +124,8 @@ def apply_project(project: Project) -> None:
     if root not in paths.split(os.pathsep):
         os.environ["PYTHONPATH"] = os.pathsep.join([root, paths]) if paths else root
     for name, folder in project.folders:
-        if not os.environ.get(VARIABLES[name]):  # a variable set by the user wins
-            os.environ[VARIABLES[name]] = str(folder)
+        if not os.environ.get(FOLDERS[name]):  # a variable set by the user wins
+            os.environ[FOLDERS[name]] = str(folder)
     known = list(gym_packages())
     extra = [m for m in project.gym_packages if m not in known]
     if extra:

@@ -112,12 +112,7 @@ def make_env(env_id: str, **kwargs: Any) -> Any:
     """
     import gymnasium as gym
 
-    resolved = resolve_env_id(env_id)
-    if resolved not in gym.registry:
-        card = _card_with_model(resolved)
-        if card is not None:
-            raise UnknownEnvError(_needs_env(resolved, card))
-    return gym.make(resolved, **kwargs)
+    return gym.make(check_trainable(resolve_env_id(env_id)), **kwargs)
 
 
 def check_trainable(env_id: str) -> str:
