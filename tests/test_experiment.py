@@ -23,7 +23,7 @@ from pidlab.experiment.conditions import ConditionError, load_conditions, parse_
 from pidlab.experiment.sweep import ExperimentError, dispatch_order, parse_seeds, plan, run_sweep
 from pidlab.files import read_json
 from pidlab.report.experiment import write_report
-from pidlab.rl.recipe import load_recipe
+from pidlab.rl.recipe import load_recipe, with_overrides
 from pidlab.rl.rundir import read_csv_rows
 from tests.helpers import cli_in_process
 
@@ -58,15 +58,22 @@ def tree_digest(folder: Path) -> dict[str, str]:
 # ---------------------------------------------------------------- conditions
 
 
+SAC_ONLY = ("rescue-replay", "rescue-value")  # the coach's transitions feed an off-policy agent's replay
+
+
 def test_shipped_conditions_resolve_on_all_four_envs():
     conditions = load_conditions()
     assert {"none", "paper", "paper-text", "pidlab", "pidlab-fading"} <= set(conditions)
     for env in (IP, "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5"):
         recipe = load_recipe(ROOT / "coach" / f"{env}.toml")
         for name, cond in conditions.items():
-            r, spec, _source = resolve(cond, recipe)
+            given = with_overrides(recipe, algo="sac") if name in SAC_ONLY else recipe
+            r, spec, _source = resolve(cond, given)
             assert (spec is None) == (name == "none")
             assert r.steps == recipe.steps and r.algorithms == recipe.algorithms  # same agent everywhere
+        for name in SAC_ONLY:  # and refused with PPO, the recipes' algorithm
+            with pytest.raises(ConditionError, match=f"condition {name} on {env}: .*use algo = 'sac'"):
+                resolve(conditions[name], recipe)
     ip = load_recipe(ROOT / "coach" / f"{IP}.toml")
     r, spec, _ = resolve(conditions["paper"], ip)
     assert r.coaching.mode == "nudge" and r.coaching.trigger is not None

@@ -10,7 +10,8 @@ is stored as:
 - ``vecnormalize.npz``: the observation and return statistics of ``VecNormalize`` (plain arrays,
   read with ``allow_pickle=False``);
 - ``replay_buffer.npz`` (off-policy algorithms): the filled part of the replay buffer, plain
-  arrays as well.
+  arrays as well; ``coach_buffer.npz`` likewise for the coach's buffer of a coach-buffer run
+  (:mod:`pidlab.rl.replay`).
 
 ``state.json`` (a checkpoint's) or ``summary.json`` (a finished run's) records each file's
 SHA-256 under ``files``; a file whose digest does not match is refused (a damaged checkpoint, from
@@ -35,6 +36,7 @@ from pidlab.errors import CheckpointError
 MODEL = "model.zip"
 NORMALIZER = "vecnormalize.npz"
 BUFFER = "replay_buffer.npz"
+COACH_BUFFER = "coach_buffer.npz"
 FINAL = {MODEL: "final_model.zip", NORMALIZER: "final_vecnormalize.npz"}
 """A finished run's final agent: the checkpoint file name -> the run folder's file name."""
 
@@ -52,16 +54,18 @@ def file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
-def expected_files(off_policy: bool, normalized: bool) -> tuple[str, ...]:
-    """The files of an agent's checkpoint: the model, and its normalizer and replay buffer if it has them."""
-    return (MODEL, *((NORMALIZER,) if normalized else ()), *((BUFFER,) if off_policy else ()))
+def expected_files(off_policy: bool, normalized: bool, coach: bool = False) -> tuple[str, ...]:
+    """The files of an agent's checkpoint: the model, and its normalizer and buffers if it has them."""
+    buffers = ((BUFFER,) if off_policy else ()) + ((COACH_BUFFER,) if off_policy and coach else ())
+    return (MODEL, *((NORMALIZER,) if normalized else ()), *buffers)
 
 
-def _kinds(model: Any, venv: Any) -> tuple[bool, bool]:
+def _kinds(model: Any, venv: Any) -> tuple[bool, bool, bool]:
     from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
     from stable_baselines3.common.vec_env import VecNormalize
 
-    return isinstance(model, OffPolicyAlgorithm), isinstance(venv, VecNormalize)
+    coach = hasattr(model, "coach_buffer")  # pidlab.rl.replay
+    return isinstance(model, OffPolicyAlgorithm), isinstance(venv, VecNormalize), coach
 
 
 # --------------------------------------------------------------------------- writing
@@ -78,15 +82,17 @@ def save_agent(folder: Path, model: Any, venv: Any, buffer: bool = True) -> dict
     venv : VecEnv
         The training envs (their ``VecNormalize`` statistics are saved when there are some).
     buffer : bool
-        Whether to save an off-policy agent's replay buffer too.
+        Whether to save an off-policy agent's replay buffer (and a coach buffer) too.
     """
     model.save(folder / MODEL)
-    off_policy, normalized = _kinds(model, venv)
-    names = expected_files(off_policy and buffer, normalized)
+    off_policy, normalized, coach = _kinds(model, venv)
+    names = expected_files(off_policy and buffer, normalized, coach)
     if NORMALIZER in names:
         _save_arrays(folder / NORMALIZER, normalizer_arrays(venv))
     if BUFFER in names:
         _save_arrays(folder / BUFFER, buffer_arrays(model.replay_buffer))
+    if COACH_BUFFER in names:
+        _save_arrays(folder / COACH_BUFFER, buffer_arrays(model.coach_buffer))
     return {name: file_digest(folder / name) for name in names}
 
 
@@ -286,4 +292,6 @@ def load_agent_files(
     load_weights(path[MODEL], model)
     if BUFFER in files:
         load_buffer(path[BUFFER], model.replay_buffer)
+    if COACH_BUFFER in files:
+        load_buffer(path[COACH_BUFFER], model.coach_buffer)
     return LoadedAgent(model, venv)

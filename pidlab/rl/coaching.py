@@ -73,6 +73,22 @@ Uninterrupted runs
     intervention or a veto ends it, and so does the episode's end. Each episode record gives its
     ``runs`` and ``longest_run`` (the agent's run length, which a takeover that starves it cuts short).
 
+Value trigger (TS2C-style)
+    :meth:`CoachingWrapper.set_advisor` sets a judge ``advisor(obs, agent_action, proposal)``:
+    before an agent action runs that the predictive trigger let pass (the rescue region is the
+    hard floor), the coach's proposal from the current state (:meth:`~CoachingWrapper.proposal`, the
+    first action a takeover starting now would run) is put to it, and when it answers True the
+    action is vetoed as the predictive trigger vetoes one (``info["veto_reason"] = "value"``;
+    ``total_value_vetoes`` counts them). :mod:`pidlab.rl.couplings` makes the judge from the SAC
+    agent's critic.
+
+Coach transitions
+    With ``record=True`` each step that ran coach steps of a takeover or a veto (not a roll-in, not
+    a demonstration) reports them in ``info["coach_transitions"]``: arrays ``obs``, ``actions``
+    (the action executed, inside the action space), ``rewards``, ``next_obs``, ``terminated`` and
+    ``truncated``, one row per coach step in order (:mod:`pidlab.rl.replay` keeps them for an
+    off-policy agent).
+
 Demonstrations
     :meth:`CoachingWrapper.demonstrate` puts the wrapper in demonstration mode: each ``step()``
     ignores the agent's action and runs one coach step with Gaussian noise on the coach's action
@@ -159,6 +175,8 @@ class GrowthTrigger:
         return bool(sign[-1] != 0 and np.all(sign == sign[-1]) and np.all(np.diff(np.abs(v)) > 0))
 
 
+Advisor = Callable[[np.ndarray, np.ndarray, np.ndarray], bool]
+"""The value trigger's judge: ``(observation, agent's action, coach's proposal) -> take over``."""
 ProgressFn = Callable[[float], float]
 """A value as a function of training progress in [0, 1]; a :class:`pidlab.rl.schedule.Schedule` is one."""
 
@@ -288,6 +306,12 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         the env's alive reward).
     handback : float
         The coach hands back once the state is in ``region.inner(handback)``, in (0, 1].
+    blend : callable, optional
+        ``progress -> w``: the coach's weight in the executed action (see the module docstring).
+    residual : bool
+        The agent's action is added to the weighted coach's (needs ``blend``).
+    record : bool
+        Report the coach's transitions of takeovers and vetoes in ``info["coach_transitions"]``.
     """
 
     def __init__(
@@ -310,6 +334,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         handback: float = 1.0,
         blend: ProgressFn | None = None,
         residual: bool = False,
+        record: bool = False,
     ) -> None:
         instance(env, gym.Env, "env", CoachingError)
         if spec is not None:
@@ -318,7 +343,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self, spec=spec, mode=mode, region=region, trigger=trigger, nudge_steps=nudge_steps,
             max_coach_steps=max_coach_steps, reward=reward, probability=probability, width=width,
             off_after=off_after, loaded=loaded, seed=seed, view=view, cost=cost, handback=handback,
-            blend=blend, residual=residual,
+            blend=blend, residual=residual, record=record,
         )  # fmt: skip
         gym.Wrapper.__init__(self, env)
         _check_options(mode, reward, nudge_steps, max_coach_steps, trigger, view, cost, handback)
@@ -352,6 +377,11 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.rollin_steps = 0
         self._pending_rollin: dict[str, Any] | None = None
         self._set_mix(spec, blend, residual)
+        self.record = bool(record)
+        self._transitions: list[tuple[Any, ...]] = []
+        self._advisor: Advisor | None = None
+        self._proposer: Coach | None = None
+        self.total_value_vetoes = 0
         self._reset_counters()
         self.total_agent_steps = 0
         self.total_coach_steps = 0
@@ -560,12 +590,17 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise CoachingError("no coach to take over")
         coach.reset(obs)
         handback = self._handback_region if self.mode == "takeover" and limit is None else None
+        record = self.record and limit is None  # a roll-in's steps are not a rescue's
         if limit is None:
             limit = self.nudge_steps if self.mode == "nudge" else self.max_coach_steps
         steps, total, terminated, truncated = 0, 0.0, False, False
         first: tuple[Any, float, dict[str, Any]] = (obs, 0.0, {})
         while steps < limit:
-            obs, r, terminated, truncated, info = self.env.step(coach.act(obs))
+            action = coach.act(obs)
+            before = obs
+            obs, r, terminated, truncated, info = self.env.step(action)
+            if record:
+                self._transitions.append((before, action, float(r), obs, bool(terminated), bool(truncated)))
             self._observe(obs)
             steps += 1
             total += float(r)
@@ -626,6 +661,12 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             if self._vetoed(action):
                 self._predictor.discard()
                 return self._veto()
+            if self._advised_against(action):
+                self._predictor.discard()
+                self.total_value_vetoes += 1
+                out = self._veto()
+                out[4]["veto_reason"] = "value"
+                return out
             # the action runs on the data its prediction computed (when it was predicted)
             obs, reward, terminated, truncated, info = self._predictor.execute(self.env.step, action)
         else:
@@ -645,6 +686,38 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if self.view == "penalty":
             paid -= self.cost
         return self._finish(run.obs, paid, run.terminated, run.truncated, info, float(reward), run)
+
+    def set_advisor(self, advisor: Advisor | None) -> None:
+        """The value trigger's judge (None: no value trigger); see the module docstring.
+
+        Raises
+        ------
+        CoachingError
+            An advisor without a coach, or without the predictive trigger (its hard floor).
+        """
+        if advisor is not None and (self.coach is None or self._predictor is None):
+            raise CoachingError(
+                "a value trigger needs a coach and the predictive trigger (the rescue region is its floor)"
+            )
+        self._advisor = advisor
+        if advisor is not None and self._proposer is None and self.coach_spec is not None:
+            self._proposer = Coach(self.coach_spec, self.loaded)
+
+    def proposal(self) -> np.ndarray:
+        """The coach's action from the current state, as a takeover starting now would run it first."""
+        proposer = self._proposer
+        if proposer is None:
+            raise CoachingError("no value trigger: set an advisor first")
+        proposer.reset(self._last_obs)
+        space: Any = self.env.action_space
+        return np.clip(np.asarray(proposer.act(self._last_obs), dtype=np.float64), space.low, space.high)
+
+    def _advised_against(self, action: Any) -> bool:
+        """The value trigger: whether the advisor prefers the coach's proposal (and the coin says act)."""
+        if self._advisor is None or self.intervention_probability() <= 0.0:
+            return False
+        agent = np.asarray(action, dtype=np.float64)
+        return bool(self._advisor(np.asarray(self._last_obs), agent, self.proposal())) and self._coin()
 
     def _veto(self) -> tuple[Any, float, bool, bool, dict]:
         """The agent's action is not executed: the coach takes over from the current state."""
@@ -704,12 +777,30 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             "episode_agent_return": self.episode_agent_return,
             "episode_total_return": self.episode_agent_return + self.episode_coach_return,
         })  # fmt: skip
+        if vetoed:
+            info["veto_reason"] = "region"  # the value trigger's say "value" (set by the caller)
         if terminated or truncated:
             info["coaching_episode"] = self._episode_record(terminated, env_end, fell)
         rollin, self._pending_rollin = self._pending_rollin, None
         if rollin is not None:
             info["rollin"] = rollin
+        if self._transitions:
+            info["coach_transitions"] = self._take_transitions()
         return obs, paid, terminated, truncated, info
+
+    def _take_transitions(self) -> dict[str, np.ndarray]:
+        """The recorded coach steps as arrays, one row each (then forgotten)."""
+        rows, self._transitions = self._transitions, []
+        space: Any = self.env.action_space
+        obs, actions, rewards, next_obs, terminated, truncated = zip(*rows, strict=True)
+        return {
+            "obs": np.array(obs, dtype=np.float64),
+            "actions": np.clip(np.array(actions, dtype=np.float64), space.low, space.high),
+            "rewards": np.array(rewards, dtype=np.float64),
+            "next_obs": np.array(next_obs, dtype=np.float64),
+            "terminated": np.array(terminated, dtype=bool),
+            "truncated": np.array(truncated, dtype=bool),
+        }
 
     def _count_run(self) -> None:
         """One more agent action in the current uninterrupted run (a new run starts at 1)."""

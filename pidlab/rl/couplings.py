@@ -29,6 +29,9 @@ Warm start (:class:`WarmStartCoupling`)
     (:func:`pidlab.rl.cloning.keep_step`; DAPG's augmented gradient, Rajeswaran et al. 2018). The
     rounds are checkpointed counters (``kept_rounds``, and ``kept_at``: SB3's update count at the
     last round, so a resume does not repeat one).
+Value trigger (:class:`ValueTriggerCoupling`, TS2C-style)
+    SAC's critic judges, before each agent action that the rescue region lets pass, whether the
+    coach's proposal is worth more; the coach then takes over as at a veto.
 Roll-in (:class:`RollInCoupling`, Jump-Start RL)
     The coach acts alone for the first ``h`` steps of every env episode (the wrapper's
     :meth:`~pidlab.rl.coaching.CoachingWrapper.set_rollin`). The agent takes the episode over in
@@ -50,7 +53,7 @@ from typing import Any
 
 from pidlab.controller.spec import CoachSpec
 from pidlab.files import load_json, write_json
-from pidlab.rl.recipe import DemonstrationSettings, Recipe, RollIn, WarmStart
+from pidlab.rl.recipe import DemonstrationSettings, Recipe, RollIn, ValueTrigger, WarmStart
 
 RECORD = "warm_start.json"
 ROLLIN_RECORD = "rollin.json"
@@ -206,6 +209,54 @@ class RollInCoupling(Coupling):
         trainer.tb.add_scalar("coaching/rollin_steps", steps, c.env_steps)
 
 
+@dataclass(frozen=True)
+class ValueTriggerCoupling(Coupling):
+    """The coach takes over where the agent's critic values its proposal more (TS2C-style).
+
+    At the start of every session the training envs get a judge (:meth:`CoachingWrapper.set_advisor
+    <pidlab.rl.coaching.CoachingWrapper.set_advisor>`) made from the SAC agent's critic: before an
+    agent action runs that the rescue region lets pass, it compares ``Q(s, a_coach)`` with
+    ``Q(s, a_agent)`` (the smaller of SAC's twin critics, on the normalized observation and the
+    scaled actions) and answers take over when the coach's exceeds the agent's by more than
+    ``margin`` alive rewards of the env. It says nothing until learning starts (an untrained critic
+    judges nothing).
+    """
+
+    settings: ValueTrigger
+    alive: float
+
+    def on_session(self, trainer: Any) -> None:
+        """Give every training env the judge of this session's agent."""
+        trainer.venv.env_method("set_advisor", critic_judge(trainer.model, trainer.venv, self.threshold))
+
+    @property
+    def threshold(self) -> float:
+        """The margin in the critic's units (rewards): ``margin * alive reward``."""
+        return self.settings.margin * self.alive
+
+
+def critic_judge(model: Any, venv: Any, threshold: float) -> Any:
+    """``judge(obs, agent_action, proposal)``: whether the critic prefers the proposal by ``threshold``."""
+    import numpy as np
+    import torch
+
+    normalize = _obs_normalizer(venv)
+
+    def judge(obs: Any, agent: Any, proposal: Any) -> bool:
+        if model.num_timesteps <= model.learning_starts:
+            return False
+        x = np.asarray(obs, dtype=np.float64)[None]
+        x = normalize(x) if normalize is not None else x
+        actions = np.clip(model.policy.scale_action(np.stack([agent, proposal])), -1.0, 1.0)
+        with torch.no_grad():
+            o = torch.as_tensor(np.repeat(x, 2, axis=0), dtype=torch.float32)
+            q = torch.cat(model.critic(o, torch.as_tensor(actions, dtype=torch.float32)), dim=1)
+            low = torch.min(q, dim=1).values
+        return bool(float(low[1] - low[0]) > threshold)
+
+    return judge
+
+
 def _changes(path: Any) -> list[dict[str, int]]:
     """The recorded roll-in changes (none if the record is missing or not pidlab's)."""
     from pidlab.errors import RunDirError
@@ -234,7 +285,21 @@ def couplings_of(recipe: Recipe, spec: CoachSpec | None) -> list[Coupling]:
         out.append(WarmStartCoupling(c.demonstrations, c.warm_start))
     if c.rollin is not None:
         out.append(RollInCoupling(c.rollin, episode_horizon(recipe.env_id) or 0))
+    if c.value_trigger is not None:
+        out.append(ValueTriggerCoupling(c.value_trigger, _alive(recipe.env_id)))
     return out
+
+
+def _alive(env_id: str) -> float:
+    """The env's alive reward per step (:func:`pidlab.rl.rewards.alive_reward`)."""
+    from pidlab.plant.envs import make_env
+    from pidlab.rl.rewards import alive_reward
+
+    env = make_env(env_id)
+    try:
+        return float(alive_reward(env))
+    finally:
+        env.close()
 
 
 def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
@@ -243,9 +308,11 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
     Raises
     ------
     CoachingError
-        Demonstrations, a blend, a residual or a roll-in without a coach; demonstrations as long as
-        the budget; a warm start, a blend or a residual with an algorithm other than PPO; a roll-in
-        on an env without a time limit.
+        Demonstrations, a blend, a residual, a roll-in, a coach buffer or a value trigger without a
+        coach; demonstrations as long as the budget; a warm start, a blend or a residual with an
+        algorithm other than PPO; a coach buffer or a value trigger with PPO; a coach buffer with
+        the ``hidden`` view; a value trigger without the predictive trigger, or with subprocess
+        envs; a roll-in on an env without a time limit.
     """
     from pidlab.errors import CoachingError
 
@@ -258,6 +325,12 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
             "(--coach none)"
         )
     _check_mix_algorithm(recipe)
+    if c.coach_buffer is not None:
+        from pidlab.rl.replay import check_coach_buffer
+
+        check_coach_buffer(recipe, spec)
+    if c.value_trigger is not None:
+        _check_value_trigger(recipe, spec)
     if c.rollin is not None:
         _check_rollin(recipe, spec)
     if c.demonstrations is None:
@@ -291,6 +364,32 @@ def _check_mix_algorithm(recipe: Recipe) -> None:
         "replay buffer would keep agent actions that ran under other weights (their outcome no "
         "longer follows from them); use algo = 'ppo', whose every rollout runs at one weight"
     )
+
+
+def _check_value_trigger(recipe: Recipe, spec: CoachSpec | None) -> None:
+    from pidlab.errors import CoachingError
+
+    c = recipe.coaching
+    if spec is None:
+        raise CoachingError(
+            "coaching.value_trigger: the coach's proposal is judged against the agent's action, and "
+            "this run has no coach (--coach none)"
+        )
+    if recipe.algo != "sac":
+        raise CoachingError(
+            f"coaching.value_trigger with algo = {recipe.algo!r}: it compares the critic's values of two "
+            "actions, and PPO's critic values states only; use algo = 'sac'"
+        )
+    if c.trigger != "predictive":
+        raise CoachingError(
+            "coaching.value_trigger: the rescue region is its hard floor, tested before each action; "
+            "expected trigger = 'predictive'"
+        )
+    if recipe.vec_env == "subproc" and recipe.n_envs > 1:
+        raise CoachingError(
+            "coaching.value_trigger with vec_env = 'subproc': the critic judges every action in the "
+            "trainer's process; use vec_env = 'dummy'"
+        )
 
 
 def _check_rollin(recipe: Recipe, spec: CoachSpec | None) -> None:

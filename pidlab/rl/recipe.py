@@ -51,6 +51,10 @@ Schema ``pidlab.recipe/1``::
     off_after = 1.0              # optional: progress from which the coach never intervenes
     probability = { shape = "linear", start = 1.0, end = 0.0, begin = 0.0, finish = 0.5 }
     width = 1.0                  # a number (constant) or a schedule table (not with region rescue)
+    coach_buffer = { share = 0.5 }   # optional, SAC: the coach's transitions in a replay buffer of
+                                     # their own, this share of every batch
+    value_trigger = { margin = 1.0 } # optional, SAC: take over where the critic values the coach's
+                                     # action more (in alive rewards); needs trigger = "predictive"
 
     [ppo]                        # keyword arguments of stable_baselines3.PPO
     source = "where the values come from"
@@ -206,6 +210,36 @@ class RollIn:
 
 
 @dataclass(frozen=True)
+class CoachBuffer:
+    """The coach's transitions in a replay buffer of their own (off-policy agents; :mod:`pidlab.rl.replay`).
+
+    Attributes
+    ----------
+    share : float
+        Fraction of each training batch drawn from the coach's buffer, in [0, 1] (PVP: 0.5).
+    size : int or None
+        Capacity of the coach's buffer, transitions; None: the agent's ``buffer_size``.
+    """
+
+    share: float = 0.5
+    size: int | None = None
+
+
+@dataclass(frozen=True)
+class ValueTrigger:
+    """The coach takes over where its action is worth more than the agent's (SAC; TS2C-style).
+
+    Attributes
+    ----------
+    margin : float
+        The agent's critic must value the coach's proposal above the agent's action by more than
+        ``margin`` alive rewards of the env (``>= 0``).
+    """
+
+    margin: float = 1.0
+
+
+@dataclass(frozen=True)
 class Coaching:
     """How the coach intervenes (see :class:`pidlab.rl.coaching.CoachingWrapper`).
 
@@ -213,6 +247,8 @@ class Coaching:
     :class:`GrowthTrigger` the paper's. ``cost``: ``None`` is the default (10 alive rewards).
     ``blend`` and ``residual`` (at most one) are the coach's weight ``w`` in the executed action,
     ``w coach + (1 - w) agent`` and ``w coach + agent`` respectively, fading to 0.
+    ``coach_buffer``: the coach's transitions kept for an off-policy agent's updates;
+    ``value_trigger``: a takeover where the agent's critic values the coach's action higher.
     """
 
     mode: str = "takeover"
@@ -232,6 +268,8 @@ class Coaching:
     blend: Schedule | None = None
     rollin: RollIn | None = None
     residual: Schedule | None = None
+    coach_buffer: CoachBuffer | None = None
+    value_trigger: ValueTrigger | None = None
 
 
 @dataclass(frozen=True)
@@ -578,7 +616,7 @@ def check_rollout(kwargs: dict[str, Any], n_envs: int, where: str, param: str | 
 
 _COACHING = {"mode", "region", "nudge_steps", "max_coach_steps", "reward", "probability", "width",
              "off_after", "trigger", "view", "cost", "handback", "demonstrations", "warm_start",
-             "blend", "rollin", "residual"}  # fmt: skip
+             "blend", "rollin", "residual", "coach_buffer", "value_trigger"}  # fmt: skip
 
 
 def _coaching(data: dict[str, Any], where: str) -> Coaching:
@@ -684,10 +722,30 @@ def _rollin(c: dict[str, Any], w: str) -> RollIn | None:
     return RollIn(stages=stages, tolerance=_num(t, "tolerance", where, 0.1, low=0.0, high=1.0))
 
 
+def _coach_buffer(c: dict[str, Any], w: str) -> CoachBuffer | None:
+    """``[coaching] coach_buffer = { share, size }`` (an empty table takes the defaults)."""
+    if "coach_buffer" not in c:
+        return None
+    t = _table(c, "coach_buffer", w, {"share", "size"})
+    where = f"{w}.coach_buffer"
+    size = _int(t, "size", where, low=1, high=10**8) if "size" in t else None
+    return CoachBuffer(share=_num(t, "share", where, 0.5, low=0.0, high=1.0), size=size)
+
+
+def _value_trigger(c: dict[str, Any], w: str) -> ValueTrigger | None:
+    """``[coaching] value_trigger = { margin }`` (an empty table takes the default)."""
+    if "value_trigger" not in c:
+        return None
+    t = _table(c, "value_trigger", w, {"margin"})
+    return ValueTrigger(margin=_num(t, "margin", f"{w}.value_trigger", 1.0, low=0.0))
+
+
 def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
     """``[coaching] demonstrations`` and ``warm_start`` (a warm start needs demonstrations)."""
     out: dict[str, Any] = {"demonstrations": None, "warm_start": None, "blend": _blend(c, w),
-                           "rollin": _rollin(c, w), "residual": _residual(c, w)}  # fmt: skip
+                           "rollin": _rollin(c, w), "residual": _residual(c, w),
+                           "coach_buffer": _coach_buffer(c, w),
+                           "value_trigger": _value_trigger(c, w)}  # fmt: skip
     if "demonstrations" in c:
         d = _table(c, "demonstrations", w, {"steps", "noise"})
         where = f"{w}.demonstrations"
@@ -1053,6 +1111,31 @@ def with_overrides(
     )
 
 
+def _teaching_to_dict(c: Coaching) -> dict[str, Any]:
+    """The teaching couplings' fields of ``c`` that are set (none: the recipe reads as before)."""
+    coaching: dict[str, Any] = {}
+    if c.demonstrations is not None:
+        coaching["demonstrations"] = {"steps": c.demonstrations.steps, "noise": c.demonstrations.noise}
+    if c.warm_start is not None:
+        coaching["warm_start"] = {"epochs": c.warm_start.epochs, "critic": c.warm_start.critic}
+        if c.warm_start.keep is not None:
+            coaching["warm_start"]["keep"] = schedule_to_dict(c.warm_start.keep)
+    if c.blend is not None:
+        coaching["blend"] = schedule_to_dict(c.blend)
+    if c.residual is not None:
+        coaching["residual"] = schedule_to_dict(c.residual)
+    if c.rollin is not None:
+        coaching["rollin"] = {"stages": c.rollin.stages, "tolerance": c.rollin.tolerance}
+    if c.coach_buffer is not None:
+        buffer: dict[str, Any] = {"share": c.coach_buffer.share}
+        if c.coach_buffer.size is not None:
+            buffer["size"] = c.coach_buffer.size
+        coaching["coach_buffer"] = buffer
+    if c.value_trigger is not None:
+        coaching["value_trigger"] = {"margin": c.value_trigger.margin}
+    return coaching
+
+
 def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
     """The TOML tables of ``recipe`` (what :func:`parse_recipe` reads back)."""
     c = recipe.coaching
@@ -1080,18 +1163,7 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
         coaching["view"] = c.view
     if c.cost is not None:
         coaching["cost"] = c.cost
-    if c.demonstrations is not None:
-        coaching["demonstrations"] = {"steps": c.demonstrations.steps, "noise": c.demonstrations.noise}
-    if c.warm_start is not None:
-        coaching["warm_start"] = {"epochs": c.warm_start.epochs, "critic": c.warm_start.critic}
-        if c.warm_start.keep is not None:
-            coaching["warm_start"]["keep"] = schedule_to_dict(c.warm_start.keep)
-    if c.blend is not None:
-        coaching["blend"] = schedule_to_dict(c.blend)
-    if c.residual is not None:
-        coaching["residual"] = schedule_to_dict(c.residual)
-    if c.rollin is not None:
-        coaching["rollin"] = {"stages": c.rollin.stages, "tolerance": c.rollin.tolerance}
+    coaching |= _teaching_to_dict(c)
     out: dict[str, Any] = {
         "schema": RECIPE_SCHEMA,
         "env_id": recipe.env_id,

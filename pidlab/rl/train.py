@@ -110,7 +110,8 @@ class Counters:
     count every real reset of a training env (each env's first of every session included);
     ``falls`` the env's terminations, whoever was acting; ``rollin_stage`` the roll-in's stage
     (:class:`pidlab.rl.couplings.RollInCoupling`, 0 without one); ``kept_rounds`` and ``kept_at``
-    the warm start's rounds on the kept demonstrations and SB3's update count at the last one.
+    the warm start's rounds on the kept demonstrations and SB3's update count at the last one;
+    ``value_vetoes`` the agent actions that the value trigger vetoed (among ``interventions``).
     """
 
     env_steps: int = 0
@@ -129,6 +130,7 @@ class Counters:
     rollin_stage: int = 0
     kept_rounds: int = 0
     kept_at: int = 0
+    value_vetoes: int = 0
 
     def to_dict(self) -> dict[str, int]:
         """Plain dict for JSON."""
@@ -243,9 +245,15 @@ def _algorithm_class(algo: str) -> Any:
 
 
 def new_model(recipe: Recipe, venv: Any) -> Any:
-    """A new agent of ``recipe`` on ``venv``."""
-    cls = _algorithm_class(recipe.algo)
-    return cls("MlpPolicy", venv, seed=recipe.seed, device="cpu", verbose=0, **sb3_arguments(recipe))
+    """A new agent of ``recipe`` on ``venv`` (SAC with a coach buffer: :mod:`pidlab.rl.replay`)."""
+    kwargs = {"policy": "MlpPolicy", "env": venv, "seed": recipe.seed, "device": "cpu", "verbose": 0,
+              **sb3_arguments(recipe)}  # fmt: skip
+    buffer = recipe.coaching.coach_buffer
+    if recipe.algo == "sac" and buffer is not None:
+        from pidlab.rl.replay import coach_replay_sac
+
+        return coach_replay_sac(coach_share=buffer.share, coach_buffer_size=buffer.size, **kwargs)
+    return _algorithm_class(recipe.algo)(**kwargs)
 
 
 # --------------------------------------------------------------------------- checkpoints
@@ -290,7 +298,9 @@ def load_checkpoint(checkpoint: Path, recipe: Recipe, venv: Any) -> tuple[Any, A
     state = read_state(checkpoint)
     record = checkpoint / "state.json"
     data = read_json(record)
-    files = check_manifest(data, record, expected_files(recipe.algo == "sac", isinstance(venv, VecNormalize)))
+    sac = recipe.algo == "sac"
+    coach = sac and recipe.coaching.coach_buffer is not None
+    files = check_manifest(data, record, expected_files(sac, isinstance(venv, VecNormalize), coach))
     agent = load_agent_files(checkpoint, files, record, lambda v: new_model(recipe, v), venv)
     model = agent.model
     model.num_timesteps = state["num_timesteps"]
@@ -298,6 +308,8 @@ def load_checkpoint(checkpoint: Path, recipe: Recipe, venv: Any) -> tuple[Any, A
     for key in ("n_updates", "episode_num"):
         value = sb3.get(key, 0)
         setattr(model, f"_{key}", value if type(value) is int and value >= 0 else 0)
+    if hasattr(model, "restore_counters"):  # a coach buffer's (pidlab.rl.replay)
+        model.restore_counters(sb3)
     return model, agent.venv, state
 
 
@@ -495,6 +507,7 @@ class _Trainer:
             c.coach_steps += coach_steps
             c.env_steps += agent + coach_steps
             c.interventions += int(bool(info.get("intervened", False)))
+            c.value_vetoes += int(info.get("veto_reason") == "value")
             c.falls += int(bool(info.get("fell", False)))
             if info.get("env_ended", False):  # the VecEnv resets this env at once, for real
                 c.env_episodes += 1
@@ -640,6 +653,8 @@ class _Trainer:
         self.timing_log.sync()
         self.tb.flush()
         sb3 = {"n_updates": int(self.model._n_updates), "episode_num": int(self.model._episode_num)}
+        if hasattr(self.model, "counters"):  # a coach buffer's (pidlab.rl.replay)
+            sb3 |= self.model.counters()
         state = {**self.counters.to_dict(), "num_timesteps": int(self.model.num_timesteps), "files": files,
                  "sb3": sb3}  # fmt: skip
         write_json(folder / "state.json", state)  # written last: marks the checkpoint complete

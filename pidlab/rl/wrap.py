@@ -28,4 +28,5 @@ def wrapper_arguments(c: Coaching, coached: bool) -> dict[str, Any]:
         "max_coach_steps": c.max_coach_steps, "reward": c.reward, "probability": c.probability,
         "width": c.width, "off_after": c.off_after, "view": c.view, "cost": c.cost, "handback": c.handback,
         "blend": mix_of(c) if coached else None, "residual": c.residual is not None and coached,
+        "record": c.coach_buffer is not None and coached,
     }  # fmt: skip

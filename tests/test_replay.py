@@ -1,0 +1,320 @@
+"""The coach's transitions in a buffer of their own (``coach_buffer``, SAC): what enters each buffer,
+how batches mix them, how many gradient steps each env step buys, checkpoints, and bad input.
+
+Mechanics, not luck: budgets of a few hundred env steps on a small network; nothing here asserts
+that an agent learned.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import tomli_w
+
+from pidlab.controller.spec import load_spec
+from pidlab.errors import CoachingError, RecipeError
+from pidlab.files import read_json
+from pidlab.rl.coaching import CoachingWrapper
+from pidlab.rl.recipe import CoachBuffer, load_recipe, parse_coaching, parse_recipe, recipe_to_dict
+from pidlab.rl.replay import MixedBatches, check_coach_buffer, coach_rows, updates_per_env_step
+from pidlab.rl.rundir import latest_checkpoint
+from pidlab.rl.train import resume, train
+from tests.helpers import COACH, TUNING, cli_in_process
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+IP = "InvertedPendulum-v5"
+SHIELD = {"mode": "takeover", "region": "rescue", "trigger": "predictive", "handback": 0.5, "view": "terminal"}
+
+
+@pytest.fixture(scope="module")
+def spec():
+    return load_spec(TUNING / f"{IP}.pidlab-rescue.toml")
+
+
+def recipe_data(**coaching) -> dict:
+    """The shipped IP recipe, SAC on a small network, a few hundred env steps, a coach buffer."""
+    data = tomllib.loads((COACH / f"{IP}.toml").read_text())
+    data.update(algo="sac", steps=400, evaluation={"every": 200, "episodes": 2, "seed": 123},
+                checkpoint={"every": 200})  # fmt: skip
+    data["sac"].update(learning_starts=100, buffer_size=2000, batch_size=16, train_freq=8, gradient_steps=8,
+                       policy_kwargs={"net_arch": [16, 16], "log_std_init": -3.0})  # fmt: skip
+    data["coaching"] = {**SHIELD, "coach_buffer": {"share": 0.5}, **coaching}
+    return data
+
+
+def tiny(**coaching):
+    return parse_recipe(recipe_data(**coaching), "tiny")
+
+
+# ----------------------------------------------------------------------------- the recipe field
+
+
+def test_the_field_reads_writes_and_defaults():
+    assert parse_coaching({"coach_buffer": {}}).coach_buffer == CoachBuffer(share=0.5, size=None)
+    recipe = tiny(coach_buffer={"share": 0.25, "size": 300})
+    assert recipe.coaching.coach_buffer == CoachBuffer(0.25, 300)
+    assert parse_recipe(recipe_to_dict(recipe), "again").coaching.coach_buffer == CoachBuffer(0.25, 300)
+    assert "coach_buffer" not in recipe_to_dict(load_recipe(COACH / f"{IP}.toml"))["coaching"]
+
+
+@pytest.mark.parametrize(
+    ("field", "message"),
+    [
+        ({"share": 1.5}, "coaching.coach_buffer.share"),
+        ({"share": -0.1}, "coaching.coach_buffer.share"),
+        ({"share": "half"}, "coaching.coach_buffer.share"),
+        ({"size": 0}, "coaching.coach_buffer.size"),
+        ({"ratio": 1}, "unknown field(s) ['ratio']"),
+        (0.5, "coaching.coach_buffer"),
+    ],
+)
+def test_a_bad_field_is_refused_naming_it(field, message):
+    with pytest.raises(RecipeError, match=None) as info:
+        parse_coaching({"coach_buffer": field})
+    assert message in str(info.value)
+
+
+def test_it_needs_sac_a_coach_a_view_that_labels_and_steps(spec):
+    check_coach_buffer(tiny(), spec)  # the shipped shape is fine
+    cases = [
+        (tiny(), None, "this run has no coach"),
+        (dataclasses.replace(tiny(), algo="ppo"), spec, "use algo = 'sac'"),
+        (tiny(view="hidden"), spec, "use view = 'terminal' or 'penalty'"),
+    ]
+    episodic = recipe_data()
+    episodic["sac"]["train_freq"] = [1, "episode"]
+    cases.append((parse_recipe(episodic, "tiny"), spec, "train_freq = n (steps)"))
+    for recipe, coach, message in cases:
+        with pytest.raises(CoachingError) as info:
+            check_coach_buffer(recipe, coach)
+        assert message in str(info.value)
+
+
+def test_the_command_line_refuses_them_in_one_line(tmp_path):
+    for name, data, message in [
+        ("share.toml", recipe_data(coach_buffer={"share": 2}), "coaching.coach_buffer.share"),
+        ("ppo.toml", {**recipe_data(), "algo": "ppo"}, "use algo = 'sac'"),
+    ]:
+        path = tmp_path / name
+        path.write_text(tomli_w.dumps(data))
+        code, stderr = cli_in_process("train", IP, "--coach", "pidlab-rescue", "--recipe", str(path),
+                                      "--run-dir", str(tmp_path / "r"))  # fmt: skip
+        lines = stderr.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and message in lines[0], stderr
+        assert not (tmp_path / "r").exists()
+
+
+def test_a_condition_with_a_coach_buffer_and_ppo_is_refused_before_any_run(tmp_path):
+    conditions = tmp_path / "c.toml"
+    conditions.write_text(tomli_w.dumps({"schema": "pidlab.conditions/1", "condition": {"pvp": {
+        "description": "d", "coach": "pidlab-rescue", "coaching": {**SHIELD, "coach_buffer": {"share": 0.5}}}}}))
+    code, stderr = cli_in_process("experiment", "--envs", IP, "--conditions", "pvp", "--conditions-file",
+                                  str(conditions), "--seeds", "1", "--algo", "ppo", "--out", str(tmp_path / "x"))  # fmt: skip
+    assert code == 2 and "use algo = 'sac'" in stderr and len(stderr.strip().splitlines()) == 1, stderr
+    assert not (tmp_path / "x").exists()
+
+
+# ----------------------------------------------------------------------------- the wrapper's record
+
+
+def test_the_wrapper_reports_each_coach_step_of_a_rescue(spec):
+    env = CoachingWrapper(gym.make(IP), spec, **SHIELD, record=True)
+    silent = CoachingWrapper(gym.make(IP), spec, **SHIELD)
+    obs, _ = env.reset(seed=4)
+    silent.reset(seed=4)
+    reported = 0
+    for _ in range(300):
+        before = obs
+        obs, _, terminated, truncated, info = env.step(np.array([3.0], dtype=np.float32))
+        same = silent.step(np.array([3.0], dtype=np.float32))
+        np.testing.assert_array_equal(same[0], obs)  # recording changes nothing
+        assert "coach_transitions" not in same[4]
+        rows = info.get("coach_transitions")
+        if info["coach_steps"] == 0:
+            assert rows is None
+        else:
+            reported += 1
+            n = len(rows["rewards"])
+            assert n == info["coach_steps"]
+            np.testing.assert_array_equal(rows["obs"][0], before)  # a veto: the coach acts from s
+            np.testing.assert_array_equal(rows["obs"][1:], rows["next_obs"][:-1])  # a chain of steps
+            assert rows["rewards"].sum() == pytest.approx(info["coach_reward"])
+            assert not rows["terminated"][:-1].any() and not rows["truncated"][:-1].any()
+            assert np.all(np.abs(rows["actions"]) <= 3.0)
+        if terminated or truncated:
+            obs, _ = env.reset()
+            silent.reset()
+    assert reported > 5
+
+
+def test_roll_in_steps_are_not_reported(spec):
+    env = CoachingWrapper(gym.make(IP), spec, **SHIELD, record=True)
+    env.set_rollin(20)
+    env.reset(seed=1)
+    _, _, _, _, info = env.step(np.zeros(1, dtype=np.float32))
+    assert info["rollin"]["steps"] == 20
+    assert len(info.get("coach_transitions", {"rewards": []})["rewards"]) == info["coach_steps"]
+
+
+# ----------------------------------------------------------------------------- batches
+
+
+@pytest.mark.parametrize(
+    ("share", "batch", "agent", "coach", "rows"),
+    [(0.5, 256, 10, 10, 128), (0.5, 5, 10, 10, 3), (0.0, 64, 10, 10, 0), (1.0, 64, 10, 10, 64),
+     (0.5, 64, 0, 10, 64), (0.5, 64, 10, 0, 0), (0.25, 10, 1, 1, 3), (0.3, 10, 5, 5, 3)],
+)  # fmt: skip
+def test_coach_rows_hand_computed(share, batch, agent, coach, rows):
+    assert coach_rows(share, batch, agent, coach) == rows
+
+
+def test_updates_per_env_step_hand_computed():
+    assert updates_per_env_step(-1, 1, 1) == 1.0
+    assert updates_per_env_step(8, 8, 1) == 1.0
+    assert updates_per_env_step(1, 1, 4) == 0.25
+    assert updates_per_env_step(2, 1, 1) == 2.0
+
+
+def test_a_mixed_batch_holds_agent_rows_then_coach_rows():
+    from stable_baselines3.common.buffers import ReplayBuffer
+
+    space = gym.spaces.Box(-1, 1, (2,))
+    agent, coach = (ReplayBuffer(50, space, space, device="cpu") for _ in range(2))
+    for _ in range(20):
+        agent.add(np.full((1, 2), 1.0), np.zeros((1, 2)), np.zeros((1, 2)), np.array([1.0]), np.array([0.0]), [{}])
+        coach.add(np.full((1, 2), -1.0), np.zeros((1, 2)), np.zeros((1, 2)), np.array([-1.0]), np.array([0.0]), [{}])
+    mixed = MixedBatches(agent, coach, 0.25)
+    batch = mixed.sample(8)
+    assert batch.rewards.flatten().tolist() == [1.0] * 6 + [-1.0] * 2
+    assert batch.observations.shape == (8, 2) and mixed.coach_rows_drawn == 2
+
+
+# ----------------------------------------------------------------------------- training
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, spec):
+    folder = tmp_path_factory.mktemp("pvp") / "run"
+    result = train(tiny(), spec, folder, progress_bar=False)
+    return folder, result
+
+
+def test_each_buffer_holds_what_the_docs_say(run):
+    folder, result = run
+    state = read_json(latest_checkpoint(folder) / "state.json")
+    from pidlab.rl.checkpoint import _read_npz
+
+    agent = _read_npz(latest_checkpoint(folder) / "replay_buffer.npz")
+    coach = _read_npz(latest_checkpoint(folder) / "coach_buffer.npz")
+    assert result.completed and result.coach_steps > 0
+    # the coach's buffer: one transition per coach step; the agent's: one per agent action, the
+    # vetoed ones included (each labelled a failure: the agent's episode ended there)
+    assert len(coach["rewards"]) == result.coach_steps == state["sb3"]["coach_transitions"]
+    vetoes = result.interventions
+    assert len(agent["rewards"]) == result.agent_steps + vetoes
+    assert int(agent["dones"].sum()) >= vetoes
+    assert np.all(np.abs(coach["actions"]) <= 1.0)  # scaled as SB3 scales the agent's
+    # SB3's step count is the run's env steps (the coach's added, vetoed actions not counted)
+    assert state["num_timesteps"] == result.env_steps == state["env_steps"]
+
+
+def test_every_env_step_after_learning_starts_buys_one_gradient_step(run):
+    folder, result = run
+    state = read_json(latest_checkpoint(folder) / "state.json")
+    sb3 = state["sb3"]
+    # rate 1 (gradient_steps = train_freq = 8): every coach step counted before the last update
+    # bought one; those of the last rollout are unspent when the budget ends it, as SB3's are
+    assert 0 < sb3["coach_updates"] <= sb3["coach_counted"]
+    assert state["policy_updates"] == sb3["n_updates"]
+    agent_updates = sb3["n_updates"] - sb3["coach_updates"]
+    assert agent_updates % 8 == 0  # SB3's own: 8 per rollout of 8 agent steps
+    after = result.env_steps - 100  # env steps after learning_starts
+    unspent = sb3["coach_counted"] - sb3["coach_updates"]
+    assert after - 8 <= sb3["n_updates"] + unspent <= after + 8  # SB3 trains once per rollout of 8
+
+
+def test_coach_steps_buy_gradient_steps_at_the_recipes_rate(spec):
+    from pidlab.rl.replay import coach_replay_sac
+    from pidlab.rl.train import make_vec_env, sb3_arguments
+
+    recipe = tiny()
+    venv = make_vec_env(recipe, spec)
+    model = coach_replay_sac(policy="MlpPolicy", env=venv, seed=0, device="cpu", **sb3_arguments(recipe))
+    model.learn(120)  # past learning_starts (100): SB3 trains after each rollout of 8 agent steps
+    n, counted, updates = model._n_updates, model.coach_counted, model.coach_updates
+    obs = np.zeros((1, 4))
+    rows = {"obs": np.zeros((5, 4)), "actions": np.zeros((5, 1)), "rewards": np.ones(5),
+            "next_obs": np.zeros((5, 4)), "terminated": np.zeros(5, bool), "truncated": np.zeros(5, bool)}  # fmt: skip
+    model._last_obs, model._last_original_obs = obs, obs
+    steps = model.num_timesteps
+    model._store_transition(model.replay_buffer, np.zeros((1, 1)), obs, np.ones(1), np.zeros(1, bool),
+                            [{"coach_transitions": rows, "vetoed": True}])  # fmt: skip
+    assert model.num_timesteps == steps + 5 - 1  # the vetoed action never ran
+    assert model.coach_counted == counted + 5 - 1 and model.coach_transitions >= 5
+    model.train(gradient_steps=8, batch_size=16)
+    # 8 for the agent's actions, one per coach step, less one for the vetoed action
+    assert model._n_updates == n + 8 + (counted + 4 - updates)
+    assert model.coach_updates == model.coach_counted
+    venv.close()
+
+
+def test_same_seed_same_buffers(run, spec, tmp_path):
+    folder, _ = run
+    again = tmp_path / "again"
+    train(tiny(), spec, again, progress_bar=False)
+    from pidlab.rl.checkpoint import _read_npz
+
+    for name in ("coach_buffer.npz", "replay_buffer.npz"):
+        a, b = _read_npz(latest_checkpoint(folder) / name), _read_npz(latest_checkpoint(again) / name)
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_a_resume_keeps_the_coach_buffer_and_its_counters(run, tmp_path):
+    import shutil
+
+    folder, _ = run
+    copy = tmp_path / "copy"
+    shutil.copytree(folder, copy)
+    before = read_json(latest_checkpoint(copy) / "state.json")["sb3"]
+    extended = resume(copy, steps=600, progress_bar=False)
+    after = read_json(latest_checkpoint(copy) / "state.json")
+    assert extended.completed and after["num_timesteps"] == extended.env_steps >= 600
+    assert after["sb3"]["coach_transitions"] == extended.coach_steps > before["coach_transitions"]
+    assert before["coach_updates"] < after["sb3"]["coach_updates"] <= after["sb3"]["coach_counted"]
+    from pidlab.rl.checkpoint import _read_npz
+
+    assert len(_read_npz(latest_checkpoint(copy) / "coach_buffer.npz")["rewards"]) == extended.coach_steps
+
+
+def test_a_checkpoint_without_its_coach_buffer_is_damaged(run, tmp_path):
+    import shutil
+
+    from pidlab.errors import CheckpointError
+    from pidlab.rl.train import load_checkpoint, make_vec_env
+
+    folder, _ = run
+    copy = tmp_path / "copy"
+    shutil.copytree(folder, copy)
+    checkpoint = latest_checkpoint(copy)
+    (checkpoint / "coach_buffer.npz").write_bytes(b"not a buffer")
+    recipe = tiny()
+    venv = make_vec_env(recipe, load_spec(TUNING / f"{IP}.pidlab-rescue.toml"))
+    with pytest.raises(CheckpointError, match="coach_buffer.npz: damaged"):
+        load_checkpoint(checkpoint, recipe, venv)
+    venv.close()
+
+
+def test_the_final_agent_loads_without_its_buffers(run):
+    folder, _ = run
+    summary = read_json(folder / "summary.json")
+    assert sorted(summary["files"]) == ["model.zip", "vecnormalize.npz"]
+    assert Path(folder / "final_model.zip").is_file()
