@@ -58,7 +58,7 @@ def tree_digest(folder: Path) -> dict[str, str]:
 # ---------------------------------------------------------------- conditions
 
 
-SAC_ONLY = ("rescue-replay", "rescue-value")  # the coach's transitions feed an off-policy agent's replay
+SAC_ONLY = ("rescue-replay", "rescue-value", "rescue-propose")  # the coach's transitions feed an off-policy agent's replay
 
 
 def test_shipped_conditions_resolve_on_all_four_envs():

@@ -8,7 +8,6 @@ that an agent learned.
 from __future__ import annotations
 
 import dataclasses
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -20,39 +19,26 @@ from pidlab.controller.spec import load_spec
 from pidlab.errors import CoachingError, RecipeError
 from pidlab.files import read_json
 from pidlab.rl.coaching import CoachingWrapper
+from pidlab.rl.couplings import check_couplings
 from pidlab.rl.recipe import CoachBuffer, load_recipe, parse_coaching, parse_recipe, recipe_to_dict
-from pidlab.rl.replay import MixedBatches, check_coach_buffer, coach_rows, updates_per_env_step
+from pidlab.rl.replay import MixedBatches, coach_rows, updates_per_env_step
 from pidlab.rl.rundir import latest_checkpoint
 from pidlab.rl.train import resume, train
-from tests.helpers import COACH, TUNING, cli_in_process
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from tests.helpers import COACH, SHIELD, TUNING, cli_in_process, sac_recipe_data
 
 IP = "InvertedPendulum-v5"
-SHIELD = {"mode": "takeover", "region": "rescue", "trigger": "predictive", "handback": 0.5, "view": "terminal"}
+def recipe_data(**coaching) -> dict:
+    """The small SAC recipe of the helpers, with a coach buffer unless ``coaching`` says otherwise."""
+    return sac_recipe_data(**{"coach_buffer": {"share": 0.5}, **coaching})
+
+
+def tiny(**coaching):
+    return parse_recipe(recipe_data(**coaching), "tiny")
 
 
 @pytest.fixture(scope="module")
 def spec():
     return load_spec(TUNING / f"{IP}.pidlab-rescue.toml")
-
-
-def recipe_data(**coaching) -> dict:
-    """The shipped IP recipe, SAC on a small network, a few hundred env steps, a coach buffer."""
-    data = tomllib.loads((COACH / f"{IP}.toml").read_text())
-    data.update(algo="sac", steps=400, evaluation={"every": 200, "episodes": 2, "seed": 123},
-                checkpoint={"every": 200})  # fmt: skip
-    data["sac"].update(learning_starts=100, buffer_size=2000, batch_size=16, train_freq=8, gradient_steps=8,
-                       policy_kwargs={"net_arch": [16, 16], "log_std_init": -3.0})  # fmt: skip
-    data["coaching"] = {**SHIELD, "coach_buffer": {"share": 0.5}, **coaching}
-    return data
-
-
-def tiny(**coaching):
-    return parse_recipe(recipe_data(**coaching), "tiny")
 
 
 # ----------------------------------------------------------------------------- the recipe field
@@ -84,7 +70,7 @@ def test_a_bad_field_is_refused_naming_it(field, message):
 
 
 def test_it_needs_sac_a_coach_a_view_that_labels_and_steps(spec):
-    check_coach_buffer(tiny(), spec)  # the shipped shape is fine
+    check_couplings(tiny(), spec)  # the shipped shape is fine
     cases = [
         (tiny(), None, "this run has no coach"),
         (dataclasses.replace(tiny(), algo="ppo"), spec, "use algo = 'sac'"),
@@ -95,7 +81,7 @@ def test_it_needs_sac_a_coach_a_view_that_labels_and_steps(spec):
     cases.append((parse_recipe(episodic, "tiny"), spec, "train_freq = n (steps)"))
     for recipe, coach, message in cases:
         with pytest.raises(CoachingError) as info:
-            check_coach_buffer(recipe, coach)
+            check_couplings(recipe, coach)
         assert message in str(info.value)
 
 
@@ -243,12 +229,12 @@ def test_every_env_step_after_learning_starts_buys_one_gradient_step(run):
 
 
 def test_coach_steps_buy_gradient_steps_at_the_recipes_rate(spec):
-    from pidlab.rl.replay import coach_replay_sac
+    from pidlab.rl.replay import CoachReplaySAC
     from pidlab.rl.train import make_vec_env, sb3_arguments
 
     recipe = tiny()
     venv = make_vec_env(recipe, spec)
-    model = coach_replay_sac(policy="MlpPolicy", env=venv, seed=0, device="cpu", **sb3_arguments(recipe))
+    model = CoachReplaySAC(policy="MlpPolicy", env=venv, seed=0, device="cpu", **sb3_arguments(recipe))
     model.learn(120)  # past learning_starts (100): SB3 trains after each rollout of 8 agent steps
     n, counted, updates = model._n_updates, model.coach_counted, model.coach_updates
     obs = np.zeros((1, 4))

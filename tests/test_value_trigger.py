@@ -19,8 +19,7 @@ from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.couplings import ValueTriggerCoupling, check_couplings, couplings_of, critic_judge
 from pidlab.rl.recipe import ValueTrigger, parse_coaching, parse_recipe, recipe_to_dict
 from pidlab.rl.train import make_vec_env, new_model, train
-from tests.helpers import TUNING
-from tests.test_replay import SHIELD, recipe_data
+from tests.helpers import SHIELD, TUNING, changed_recipe, sac_recipe_data
 
 IP = "InvertedPendulum-v5"
 
@@ -32,9 +31,7 @@ def spec():
 
 def tiny(**coaching):
     """SAC behind the rescue shield, with a value trigger and no coach buffer."""
-    data = recipe_data(value_trigger={"margin": 1.0}, **coaching)
-    data["coaching"].pop("coach_buffer")
-    return parse_recipe(data, "tiny")
+    return parse_recipe(sac_recipe_data(value_trigger={"margin": 1.0}, **coaching), "tiny")
 
 
 def shield(spec, **kw) -> CoachingWrapper:
@@ -156,12 +153,6 @@ def test_the_field_reads_and_writes():
     ],
 )
 def test_it_is_refused_where_it_cannot_judge(spec, change, coach, message):
-    recipe = tiny()
-    if "coaching" in change:
-        fields = {**recipe_to_dict(recipe)["coaching"], **change["coaching"]}
-        recipe = dataclasses.replace(recipe, coaching=parse_coaching(fields))
-    else:
-        recipe = dataclasses.replace(recipe, **change)
     with pytest.raises(CoachingError) as info:
-        check_couplings(recipe, spec if coach else None)
+        check_couplings(changed_recipe(tiny(), change), spec if coach else None)
     assert message in str(info.value)

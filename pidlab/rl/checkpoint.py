@@ -11,7 +11,8 @@ is stored as:
   read with ``allow_pickle=False``);
 - ``replay_buffer.npz`` (off-policy algorithms): the filled part of the replay buffer, plain
   arrays as well; ``coach_buffer.npz`` likewise for the coach's buffer of a coach-buffer run
-  (:mod:`pidlab.rl.replay`).
+  (:mod:`pidlab.rl.replay`), and ``proposals.npz`` for the coach's proposals beside the replay
+  buffer of a proposer run (:mod:`pidlab.rl.proposer`).
 
 ``state.json`` (a checkpoint's) or ``summary.json`` (a finished run's) records each file's
 SHA-256 under ``files``; a file whose digest does not match is refused (a damaged checkpoint, from
@@ -37,6 +38,7 @@ MODEL = "model.zip"
 NORMALIZER = "vecnormalize.npz"
 BUFFER = "replay_buffer.npz"
 COACH_BUFFER = "coach_buffer.npz"
+PROPOSALS = "proposals.npz"
 FINAL = {MODEL: "final_model.zip", NORMALIZER: "final_vecnormalize.npz"}
 """A finished run's final agent: the checkpoint file name -> the run folder's file name."""
 
@@ -54,18 +56,20 @@ def file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
-def expected_files(off_policy: bool, normalized: bool, coach: bool = False) -> tuple[str, ...]:
+def expected_files(off_policy: bool, normalized: bool, coach: bool = False,
+                   proposals: bool = False) -> tuple[str, ...]:  # fmt: skip
     """The files of an agent's checkpoint: the model, and its normalizer and buffers if it has them."""
-    buffers = ((BUFFER,) if off_policy else ()) + ((COACH_BUFFER,) if off_policy and coach else ())
-    return (MODEL, *((NORMALIZER,) if normalized else ()), *buffers)
+    buffers: tuple[str, ...] = (BUFFER,) if off_policy else ()
+    buffers += ((COACH_BUFFER,) if coach else ()) + ((PROPOSALS,) if proposals else ())
+    return (MODEL, *((NORMALIZER,) if normalized else ()), *(buffers if off_policy else ()))
 
 
-def _kinds(model: Any, venv: Any) -> tuple[bool, bool, bool]:
+def _kinds(model: Any, venv: Any) -> tuple[bool, bool, bool, bool]:
     from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
     from stable_baselines3.common.vec_env import VecNormalize
 
-    coach = hasattr(model, "coach_buffer")  # pidlab.rl.replay
-    return isinstance(model, OffPolicyAlgorithm), isinstance(venv, VecNormalize), coach
+    coach, proposals = hasattr(model, "coach_buffer"), hasattr(model, "next_proposals")
+    return isinstance(model, OffPolicyAlgorithm), isinstance(venv, VecNormalize), coach, proposals
 
 
 # --------------------------------------------------------------------------- writing
@@ -85,14 +89,17 @@ def save_agent(folder: Path, model: Any, venv: Any, buffer: bool = True) -> dict
         Whether to save an off-policy agent's replay buffer (and a coach buffer) too.
     """
     model.save(folder / MODEL)
-    off_policy, normalized, coach = _kinds(model, venv)
-    names = expected_files(off_policy and buffer, normalized, coach)
+    off_policy, normalized, coach, proposals = _kinds(model, venv)
+    names = expected_files(off_policy and buffer, normalized, coach, proposals)
     if NORMALIZER in names:
         _save_arrays(folder / NORMALIZER, normalizer_arrays(venv))
     if BUFFER in names:
         _save_arrays(folder / BUFFER, buffer_arrays(model.replay_buffer))
     if COACH_BUFFER in names:
         _save_arrays(folder / COACH_BUFFER, buffer_arrays(model.coach_buffer))
+    if PROPOSALS in names:
+        rb = model.replay_buffer
+        _save_arrays(folder / PROPOSALS, {"next_proposals": model.next_proposals[: rb.size()]})
     return {name: file_digest(folder / name) for name in names}
 
 
@@ -294,4 +301,8 @@ def load_agent_files(
         load_buffer(path[BUFFER], model.replay_buffer)
     if COACH_BUFFER in files:
         load_buffer(path[COACH_BUFFER], model.coach_buffer)
+    if PROPOSALS in files:
+        size = model.replay_buffer.size()
+        arrays, where = _read_npz(path[PROPOSALS]), path[PROPOSALS]
+        model.next_proposals[:size] = _like(arrays, "next_proposals", model.next_proposals[:size], where)
     return LoadedAgent(model, venv)

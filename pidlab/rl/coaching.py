@@ -82,6 +82,15 @@ Value trigger (TS2C-style)
     ``total_value_vetoes`` counts them). :mod:`pidlab.rl.couplings` makes the judge from the SAC
     agent's critic.
 
+Proposer (IBRL-style)
+    :meth:`CoachingWrapper.set_proposer` sets a judge of the same signature and a progress
+    ``until``: while training progress is below it, the coach's proposal from the current state is
+    put to the judge at every agent step, and when it answers True the proposal runs *as the agent's
+    step* in place of its action (then the trigger and the view apply as to any agent step). The
+    step's info gives ``proposing``, ``proposal_taken``, ``executed_action`` and ``next_proposal``
+    (the coach's proposal from the observation the step returns, for the critic's target);
+    ``total_proposals_taken`` counts them.
+
 Coach transitions
     With ``record=True`` each step that ran coach steps of a takeover or a veto (not a roll-in, not
     a demonstration) reports them in ``info["coach_transitions"]``: arrays ``obs``, ``actions``
@@ -380,8 +389,11 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.record = bool(record)
         self._transitions: list[tuple[Any, ...]] = []
         self._advisor: Advisor | None = None
+        self._picker: Advisor | None = None
+        self._until = 1.0
         self._proposer: Coach | None = None
         self.total_value_vetoes = 0
+        self.total_proposals_taken = 0
         self._reset_counters()
         self.total_agent_steps = 0
         self.total_coach_steps = 0
@@ -630,10 +642,50 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._rescued = None  # a step after a terminal-view takeover without a reset: the env went on
         if self._demo is not None:
             return self._demonstration_step()
+        if self._picker is not None and self.proposing:
+            return self._proposed_step(action)
         blended = self._blended(action)
         if blended is not None:
             return self._with_blend(self._agent_step(blended[0]), blended)
         return self._agent_step(action)
+
+    def set_proposer(self, picker: Advisor | None, until: float = 1.0) -> None:
+        """The proposer's judge (None: no proposer) and the progress from which it proposes no more.
+
+        Raises
+        ------
+        CoachingError
+            A proposer without a coach, or ``until`` outside (0, 1].
+        """
+        if picker is not None and self.coach is None:
+            raise CoachingError("a proposer needs a coach; this env has none (--coach none)")
+        if not (isinstance(until, int | float) and 0.0 < until <= 1.0):
+            raise CoachingError(f"proposer until = {until!r}: expected a fraction of the budget in (0, 1]")
+        self._picker, self._until = picker, float(until)
+        if picker is not None and self._proposer is None and self.coach_spec is not None:
+            self._proposer = Coach(self.coach_spec, self.loaded)
+
+    @property
+    def proposing(self) -> bool:
+        """Whether the coach proposes now (a proposer is set and training progress is below ``until``)."""
+        return self._picker is not None and self.progress < self._until
+
+    def _proposed_step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        """The judge picks the agent's action or the coach's proposal; the pick runs as the agent's step."""
+        space: Any = self.env.action_space
+        picker = self._picker
+        if picker is None:  # pragma: no cover - step() calls this only with a proposer set
+            raise CoachingError("no proposer")
+        proposal = self.proposal()
+        taken = bool(picker(np.asarray(self._last_obs), np.asarray(action, dtype=np.float64), proposal))
+        executed = proposal.astype(space.dtype) if taken else action
+        self.total_proposals_taken += int(taken)
+        obs, reward, terminated, truncated, info = self._agent_step(executed)
+        info["proposing"] = True
+        info["proposal_taken"] = taken
+        info["executed_action"] = np.asarray(executed)
+        info["next_proposal"] = self.proposal(obs)
+        return obs, reward, terminated, truncated, info
 
     def _blended(self, action: Any) -> tuple[Any, float] | None:
         """The executed action and ``w`` (None: no blend).
@@ -703,14 +755,15 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if advisor is not None and self._proposer is None and self.coach_spec is not None:
             self._proposer = Coach(self.coach_spec, self.loaded)
 
-    def proposal(self) -> np.ndarray:
-        """The coach's action from the current state, as a takeover starting now would run it first."""
+    def proposal(self, obs: Any = None) -> np.ndarray:
+        """The coach's action from ``obs`` (default: the current state): a takeover's first there."""
         proposer = self._proposer
         if proposer is None:
-            raise CoachingError("no value trigger: set an advisor first")
-        proposer.reset(self._last_obs)
+            raise CoachingError("no coach proposes: set an advisor or a proposer first")
+        obs = self._last_obs if obs is None else obs
+        proposer.reset(obs)
         space: Any = self.env.action_space
-        return np.clip(np.asarray(proposer.act(self._last_obs), dtype=np.float64), space.low, space.high)
+        return np.clip(np.asarray(proposer.act(obs), dtype=np.float64), space.low, space.high)
 
     def _advised_against(self, action: Any) -> bool:
         """The value trigger: whether the advisor prefers the coach's proposal (and the coin says act)."""

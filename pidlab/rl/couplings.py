@@ -32,6 +32,9 @@ Warm start (:class:`WarmStartCoupling`)
 Value trigger (:class:`ValueTriggerCoupling`, TS2C-style)
     SAC's critic judges, before each agent action that the rescue region lets pass, whether the
     coach's proposal is worth more; the coach then takes over as at a veto.
+Proposer (:class:`ProposerCoupling`, IBRL-style)
+    The coach proposes an action at every agent step and SAC's critic picks which one runs, until
+    the recipe's ``until``.
 Roll-in (:class:`RollInCoupling`, Jump-Start RL)
     The coach acts alone for the first ``h`` steps of every env episode (the wrapper's
     :meth:`~pidlab.rl.coaching.CoachingWrapper.set_rollin`). The agent takes the episode over in
@@ -52,8 +55,9 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from pidlab.controller.spec import CoachSpec
+from pidlab.errors import CoachingError
 from pidlab.files import load_json, write_json
-from pidlab.rl.recipe import DemonstrationSettings, Recipe, RollIn, ValueTrigger, WarmStart
+from pidlab.rl.recipe import DemonstrationSettings, Proposer, Recipe, RollIn, ValueTrigger, WarmStart
 
 RECORD = "warm_start.json"
 ROLLIN_RECORD = "rollin.json"
@@ -235,6 +239,23 @@ class ValueTriggerCoupling(Coupling):
         return self.settings.margin * self.alive
 
 
+@dataclass(frozen=True)
+class ProposerCoupling(Coupling):
+    """The coach proposes, SAC's critic picks (IBRL-style; :mod:`pidlab.rl.proposer`).
+
+    At the start of every session the training envs get a judge made from the SAC agent's critic
+    (:func:`critic_judge` with margin 0: the proposal is picked when its value is higher) and the
+    progress ``until`` from which the coach proposes no more.
+    """
+
+    settings: Proposer
+
+    def on_session(self, trainer: Any) -> None:
+        """Give every training env this session's judge and the proposer's end."""
+        judge = critic_judge(trainer.model, trainer.venv, 0.0)
+        trainer.venv.env_method("set_proposer", judge, self.settings.until)
+
+
 def critic_judge(model: Any, venv: Any, threshold: float) -> Any:
     """``judge(obs, agent_action, proposal)``: whether the critic prefers the proposal by ``threshold``."""
     import numpy as np
@@ -287,6 +308,8 @@ def couplings_of(recipe: Recipe, spec: CoachSpec | None) -> list[Coupling]:
         out.append(RollInCoupling(c.rollin, episode_horizon(recipe.env_id) or 0))
     if c.value_trigger is not None:
         out.append(ValueTriggerCoupling(c.value_trigger, _alive(recipe.env_id)))
+    if c.proposer is not None:
+        out.append(ProposerCoupling(c.proposer))
     return out
 
 
@@ -310,12 +333,11 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
     CoachingError
         Demonstrations, a blend, a residual, a roll-in, a coach buffer or a value trigger without a
         coach; demonstrations as long as the budget; a warm start, a blend or a residual with an
-        algorithm other than PPO; a coach buffer or a value trigger with PPO; a coach buffer with
-        the ``hidden`` view; a value trigger without the predictive trigger, or with subprocess
+        algorithm other than PPO; a coach buffer, a value trigger or a proposer with PPO; a coach
+        buffer with the ``hidden`` view; a proposer with several envs, a coach buffer or a value
+        trigger; a value trigger without the predictive trigger, or with subprocess
         envs; a roll-in on an env without a time limit.
     """
-    from pidlab.errors import CoachingError
-
     c = recipe.coaching
     if c.blend is not None and spec is None:
         raise CoachingError("coaching.blend: blending the coach's action needs a coach; this run has none")
@@ -326,11 +348,11 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
         )
     _check_mix_algorithm(recipe)
     if c.coach_buffer is not None:
-        from pidlab.rl.replay import check_coach_buffer
-
-        check_coach_buffer(recipe, spec)
+        _check_coach_buffer(recipe, spec)
     if c.value_trigger is not None:
         _check_value_trigger(recipe, spec)
+    if c.proposer is not None:
+        _check_proposer(recipe, spec)
     if c.rollin is not None:
         _check_rollin(recipe, spec)
     if c.demonstrations is None:
@@ -353,8 +375,6 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
 
 def _check_mix_algorithm(recipe: Recipe) -> None:
     """A fading mix needs an on-policy learner: a replay buffer would keep actions of other weights."""
-    from pidlab.errors import CoachingError
-
     c = recipe.coaching
     key = "blend" if c.blend is not None else "residual" if c.residual is not None else None
     if key is None or recipe.algo == "ppo":
@@ -366,8 +386,71 @@ def _check_mix_algorithm(recipe: Recipe) -> None:
     )
 
 
+def _check_coach_buffer(recipe: Recipe, spec: CoachSpec | None) -> None:
+    """Refuse a coach buffer that cannot work with this recipe and coach.
+
+    Raises
+    ------
+    CoachingError
+        No coach, an algorithm other than SAC, the ``hidden`` view, or an episodic ``train_freq``.
+    """
+    if spec is None:
+        raise CoachingError(
+            "coaching.coach_buffer: it keeps the coach's transitions, and this run has no coach "
+            "(--coach none)"
+        )
+    if recipe.algo != "sac":
+        raise CoachingError(
+            f"coaching.coach_buffer with algo = {recipe.algo!r}: the coach's transitions feed an "
+            "off-policy agent's replay; use algo = 'sac'"
+        )
+    if recipe.coaching.view == "hidden":
+        raise CoachingError(
+            "coaching.coach_buffer with view = 'hidden': the agent's transition at a takeover would "
+            "carry the coach's steps as its own, and nothing would mark its action as worse than the "
+            "coach's; use view = 'terminal' or 'penalty'"
+        )
+    freq = recipe.hyperparameters.get("train_freq", 1)
+    if isinstance(freq, list | tuple) and len(freq) == 2 and freq[1] == "episode":
+        raise CoachingError(
+            "coaching.coach_buffer with an episodic train_freq: the coach's steps buy gradient steps at "
+            "the recipe's rate per env step, which train_freq = [n, 'episode'] does not set; use "
+            "train_freq = n (steps)"
+        )
+
+
+def _check_proposer(recipe: Recipe, spec: CoachSpec | None) -> None:
+    """Refuse a proposer that cannot work with this recipe and coach.
+
+    Raises
+    ------
+    CoachingError
+        No coach, an algorithm other than SAC, more than one env, or a coach buffer or a value
+        trigger beside it.
+    """
+    c = recipe.coaching
+    if spec is None:
+        raise CoachingError("coaching.proposer: the coach proposes the actions, and this run has no coach "
+                            "(--coach none)")  # fmt: skip
+    if recipe.algo != "sac":
+        raise CoachingError(
+            f"coaching.proposer with algo = {recipe.algo!r}: the critic picks between two actions by their "
+            "values, and PPO's critic values states only; use algo = 'sac'"
+        )
+    if recipe.n_envs != 1:
+        raise CoachingError(
+            f"coaching.proposer with n_envs = {recipe.n_envs}: the coach's proposals at the next states "
+            "are kept per transition of one env; use n_envs = 1"
+        )
+    if c.coach_buffer is not None or c.value_trigger is not None:
+        other = "coach_buffer" if c.coach_buffer is not None else "value_trigger"
+        raise CoachingError(
+            f"coaching.proposer and coaching.{other}: the proposer already runs the coach's actions as "
+            "the agent's and asks the critic at every step; expected one of them"
+        )
+
+
 def _check_value_trigger(recipe: Recipe, spec: CoachSpec | None) -> None:
-    from pidlab.errors import CoachingError
 
     c = recipe.coaching
     if spec is None:
@@ -393,7 +476,6 @@ def _check_value_trigger(recipe: Recipe, spec: CoachSpec | None) -> None:
 
 
 def _check_rollin(recipe: Recipe, spec: CoachSpec | None) -> None:
-    from pidlab.errors import CoachingError
 
     if spec is None:
         raise CoachingError("coaching.rollin: a roll-in is the coach acting first, and this run has no coach")

@@ -55,6 +55,7 @@ Schema ``pidlab.recipe/1``::
                                      # their own, this share of every batch
     value_trigger = { margin = 1.0 } # optional, SAC: take over where the critic values the coach's
                                      # action more (in alive rewards); needs trigger = "predictive"
+    proposer = { until = 0.5 }       # optional, SAC: the coach proposes, the critic picks, until then
 
     [ppo]                        # keyword arguments of stable_baselines3.PPO
     source = "where the values come from"
@@ -240,6 +241,20 @@ class ValueTrigger:
 
 
 @dataclass(frozen=True)
+class Proposer:
+    """The coach proposes an action at every agent step; SAC's critic picks (IBRL-style).
+
+    Attributes
+    ----------
+    until : float
+        Training progress (fraction of the budget) from which the coach proposes no more, in
+        (0, 1]: the agent acts alone from then on, and its critic's target is SAC's own.
+    """
+
+    until: float = 0.5
+
+
+@dataclass(frozen=True)
 class Coaching:
     """How the coach intervenes (see :class:`pidlab.rl.coaching.CoachingWrapper`).
 
@@ -248,7 +263,8 @@ class Coaching:
     ``blend`` and ``residual`` (at most one) are the coach's weight ``w`` in the executed action,
     ``w coach + (1 - w) agent`` and ``w coach + agent`` respectively, fading to 0.
     ``coach_buffer``: the coach's transitions kept for an off-policy agent's updates;
-    ``value_trigger``: a takeover where the agent's critic values the coach's action higher.
+    ``value_trigger``: a takeover where the agent's critic values the coach's action higher;
+    ``proposer``: the critic picks the agent's action or the coach's at every step, until ``until``.
     """
 
     mode: str = "takeover"
@@ -270,6 +286,7 @@ class Coaching:
     residual: Schedule | None = None
     coach_buffer: CoachBuffer | None = None
     value_trigger: ValueTrigger | None = None
+    proposer: Proposer | None = None
 
 
 @dataclass(frozen=True)
@@ -616,7 +633,7 @@ def check_rollout(kwargs: dict[str, Any], n_envs: int, where: str, param: str | 
 
 _COACHING = {"mode", "region", "nudge_steps", "max_coach_steps", "reward", "probability", "width",
              "off_after", "trigger", "view", "cost", "handback", "demonstrations", "warm_start",
-             "blend", "rollin", "residual", "coach_buffer", "value_trigger"}  # fmt: skip
+             "blend", "rollin", "residual", "coach_buffer", "value_trigger", "proposer"}  # fmt: skip
 
 
 def _coaching(data: dict[str, Any], where: str) -> Coaching:
@@ -740,12 +757,20 @@ def _value_trigger(c: dict[str, Any], w: str) -> ValueTrigger | None:
     return ValueTrigger(margin=_num(t, "margin", f"{w}.value_trigger", 1.0, low=0.0))
 
 
+def _proposer(c: dict[str, Any], w: str) -> Proposer | None:
+    """``[coaching] proposer = { until }`` (an empty table takes the default)."""
+    if "proposer" not in c:
+        return None
+    t = _table(c, "proposer", w, {"until"})
+    return Proposer(until=_num(t, "until", f"{w}.proposer", 0.5, low=0.0, low_open=True, high=1.0))
+
+
 def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
     """``[coaching] demonstrations`` and ``warm_start`` (a warm start needs demonstrations)."""
     out: dict[str, Any] = {"demonstrations": None, "warm_start": None, "blend": _blend(c, w),
                            "rollin": _rollin(c, w), "residual": _residual(c, w),
                            "coach_buffer": _coach_buffer(c, w),
-                           "value_trigger": _value_trigger(c, w)}  # fmt: skip
+                           "value_trigger": _value_trigger(c, w), "proposer": _proposer(c, w)}  # fmt: skip
     if "demonstrations" in c:
         d = _table(c, "demonstrations", w, {"steps", "noise"})
         where = f"{w}.demonstrations"
@@ -1133,6 +1158,8 @@ def _teaching_to_dict(c: Coaching) -> dict[str, Any]:
         coaching["coach_buffer"] = buffer
     if c.value_trigger is not None:
         coaching["value_trigger"] = {"margin": c.value_trigger.margin}
+    if c.proposer is not None:
+        coaching["proposer"] = {"until": c.proposer.until}
     return coaching
 
 

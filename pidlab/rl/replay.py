@@ -46,46 +46,13 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-
-from pidlab.controller.spec import CoachSpec
-from pidlab.errors import CoachingError
-from pidlab.rl.recipe import Recipe
+import torch
+from stable_baselines3 import SAC
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 COUNTERS = ("coach_transitions", "coach_counted", "coach_updates")
 """The coach buffer's counters that a checkpoint keeps (in ``state.json``'s ``sb3`` table)."""
-
-
-def check_coach_buffer(recipe: Recipe, spec: CoachSpec | None) -> None:
-    """Refuse a coach buffer that cannot work with this recipe and coach.
-
-    Raises
-    ------
-    CoachingError
-        No coach, an algorithm other than SAC, the ``hidden`` view, or an episodic ``train_freq``.
-    """
-    if spec is None:
-        raise CoachingError(
-            "coaching.coach_buffer: it keeps the coach's transitions, and this run has no coach "
-            "(--coach none)"
-        )
-    if recipe.algo != "sac":
-        raise CoachingError(
-            f"coaching.coach_buffer with algo = {recipe.algo!r}: the coach's transitions feed an "
-            "off-policy agent's replay; use algo = 'sac'"
-        )
-    if recipe.coaching.view == "hidden":
-        raise CoachingError(
-            "coaching.coach_buffer with view = 'hidden': the agent's transition at a takeover would "
-            "carry the coach's steps as its own, and nothing would mark its action as worse than the "
-            "coach's; use view = 'terminal' or 'penalty'"
-        )
-    freq = recipe.hyperparameters.get("train_freq", 1)
-    if isinstance(freq, list | tuple) and len(freq) == 2 and freq[1] == "episode":
-        raise CoachingError(
-            "coaching.coach_buffer with an episodic train_freq: the coach's steps buy gradient steps at "
-            "the recipe's rate per env step, which train_freq = [n, 'episode'] does not set; use "
-            "train_freq = n (steps)"
-        )
 
 
 def updates_per_env_step(gradient_steps: int, train_freq: int, n_envs: int) -> float:
@@ -117,9 +84,6 @@ class MixedBatches:
 
     def sample(self, batch_size: int, env: Any = None) -> Any:
         """``batch_size`` transitions: the agent's rows first, then the coach's."""
-        import torch
-        from stable_baselines3.common.type_aliases import ReplayBufferSamples
-
         n = coach_rows(self.share, batch_size, self.agent.size(), self.coach.size())
         self.coach_rows_drawn += n
         parts = [b.sample(k, env=env) for b, k in ((self.agent, batch_size - n), (self.coach, n)) if k > 0]
@@ -129,104 +93,83 @@ class MixedBatches:
         return ReplayBufferSamples(*joined)  # type: ignore[arg-type]  # discounts may be None
 
 
-def coach_replay_sac(**kwargs: Any) -> Any:
-    """A :class:`CoachReplaySAC` (the class is defined on first use: SB3 is imported late)."""
-    return _sac_class()(**kwargs)
+class CoachReplaySAC(SAC):
+    """SAC that keeps the coach's transitions and trains on both buffers (module docstring).
 
+    Parameters
+    ----------
+    coach_share : float
+        Fraction of each batch from the coach's buffer, in [0, 1].
+    coach_buffer_size : int, optional
+        Capacity of the coach's buffer (default: ``buffer_size``).
+    **kwargs
+        SB3's ``SAC`` arguments.
+    """
 
-_CLASS: Any = None
+    def __init__(self, *args: Any, coach_share: float = 0.5, coach_buffer_size: int | None = None,
+                 **kwargs: Any) -> None:  # fmt: skip
+        self.coach_share = float(coach_share)
+        self._coach_size = coach_buffer_size
+        self.coach_transitions = 0  # coach steps stored
+        # env steps after learning_starts that SB3 does not buy gradient steps for: the coach's,
+        # less one per vetoed agent action (SB3 buys it one, and it was no env step)
+        self.coach_counted = 0
+        self.coach_updates = 0  # gradient steps made for them
+        super().__init__(*args, **kwargs)
 
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self.coach_buffer = ReplayBuffer(
+            int(self._coach_size or self.buffer_size), self.observation_space, self.action_space,
+            device=self.device, n_envs=1, optimize_memory_usage=False, handle_timeout_termination=True,
+        )  # fmt: skip
 
-def _sac_class() -> Any:
-    global _CLASS
-    if _CLASS is None:
-        _CLASS = _define()
-    return _CLASS
+    def _store_transition(self, replay_buffer: Any, buffer_action: np.ndarray, new_obs: Any,
+                          reward: np.ndarray, dones: np.ndarray,
+                          infos: list[dict[str, Any]]) -> None:  # fmt: skip
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        for info in infos:
+            vetoed = bool(info.get("vetoed"))
+            if vetoed:  # SB3 counted the agent's action, which never ran, and buys it a gradient step
+                self.num_timesteps -= 1
+                self.coach_counted -= int(self.num_timesteps >= self.learning_starts)
+            rows = info.get("coach_transitions")
+            if rows is not None:
+                self._keep(rows)
 
-
-def _define() -> Any:
-    from stable_baselines3 import SAC
-    from stable_baselines3.common.buffers import ReplayBuffer
-
-    class CoachReplaySAC(SAC):
-        """SAC that keeps the coach's transitions and trains on both buffers (module docstring).
-
-        Parameters
-        ----------
-        coach_share : float
-            Fraction of each batch from the coach's buffer, in [0, 1].
-        coach_buffer_size : int, optional
-            Capacity of the coach's buffer (default: ``buffer_size``).
-        **kwargs
-            SB3's ``SAC`` arguments.
-        """
-
-        def __init__(self, *args: Any, coach_share: float = 0.5, coach_buffer_size: int | None = None,
-                     **kwargs: Any) -> None:  # fmt: skip
-            self.coach_share = float(coach_share)
-            self._coach_size = coach_buffer_size
-            self.coach_transitions = 0  # coach steps stored
-            # env steps after learning_starts that SB3 does not buy gradient steps for: the coach's,
-            # less one per vetoed agent action (SB3 buys it one, and it was no env step)
-            self.coach_counted = 0
-            self.coach_updates = 0  # gradient steps made for them
-            super().__init__(*args, **kwargs)
-
-        def _setup_model(self) -> None:
-            super()._setup_model()
-            self.coach_buffer = ReplayBuffer(
-                int(self._coach_size or self.buffer_size), self.observation_space, self.action_space,
-                device=self.device, n_envs=1, optimize_memory_usage=False, handle_timeout_termination=True,
+    def _keep(self, rows: dict[str, np.ndarray]) -> None:
+        """Add a step's coach transitions; count them as env steps that buy gradient steps."""
+        actions = np.clip(self.policy.scale_action(rows["actions"]), -1.0, 1.0)
+        for i in range(len(rows["rewards"])):
+            terminated, truncated = bool(rows["terminated"][i]), bool(rows["truncated"][i])
+            self.coach_buffer.add(
+                rows["obs"][i][None], rows["next_obs"][i][None], actions[i][None],
+                np.array([rows["rewards"][i]]), np.array([terminated or truncated]),
+                [{"TimeLimit.truncated": truncated and not terminated}],
             )  # fmt: skip
+            self.coach_transitions += 1
+            self.num_timesteps += 1
+            self.coach_counted += int(self.num_timesteps > self.learning_starts)
 
-        def _store_transition(self, replay_buffer: Any, buffer_action: np.ndarray, new_obs: Any,
-                              reward: np.ndarray, dones: np.ndarray,
-                              infos: list[dict[str, Any]]) -> None:  # fmt: skip
-            super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
-            for info in infos:
-                vetoed = bool(info.get("vetoed"))
-                if vetoed:  # SB3 counted the agent's action, which never ran, and buys it a gradient step
-                    self.num_timesteps -= 1
-                    self.coach_counted -= int(self.num_timesteps >= self.learning_starts)
-                rows = info.get("coach_transitions")
-                if rows is not None:
-                    self._keep(rows)
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        """SB3's updates for the agent's steps, plus those the coach's steps bought."""
+        freq = int(self.train_freq.frequency)  # type: ignore[union-attr]  # a TrainFreq by now
+        rate = updates_per_env_step(int(self.gradient_steps), freq, int(self.n_envs))
+        extra = max(int(self.coach_counted * rate) - self.coach_updates, 0)
+        self.coach_updates += extra
+        agent = self.replay_buffer
+        self.replay_buffer = MixedBatches(agent, self.coach_buffer, self.coach_share)  # type: ignore[assignment]
+        try:
+            super().train(gradient_steps + extra, batch_size)
+        finally:
+            self.replay_buffer = agent
 
-        def _keep(self, rows: dict[str, np.ndarray]) -> None:
-            """Add a step's coach transitions; count them as env steps that buy gradient steps."""
-            actions = np.clip(self.policy.scale_action(rows["actions"]), -1.0, 1.0)
-            for i in range(len(rows["rewards"])):
-                terminated, truncated = bool(rows["terminated"][i]), bool(rows["truncated"][i])
-                self.coach_buffer.add(
-                    rows["obs"][i][None], rows["next_obs"][i][None], actions[i][None],
-                    np.array([rows["rewards"][i]]), np.array([terminated or truncated]),
-                    [{"TimeLimit.truncated": truncated and not terminated}],
-                )  # fmt: skip
-                self.coach_transitions += 1
-                self.num_timesteps += 1
-                self.coach_counted += int(self.num_timesteps > self.learning_starts)
+    def counters(self) -> dict[str, int]:
+        """The coach buffer's counters, for a checkpoint."""
+        return {k: int(getattr(self, k)) for k in COUNTERS}
 
-        def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-            """SB3's updates for the agent's steps, plus those the coach's steps bought."""
-            freq = int(self.train_freq.frequency)  # type: ignore[union-attr]  # a TrainFreq by now
-            rate = updates_per_env_step(int(self.gradient_steps), freq, int(self.n_envs))
-            extra = max(int(self.coach_counted * rate) - self.coach_updates, 0)
-            self.coach_updates += extra
-            agent = self.replay_buffer
-            self.replay_buffer = MixedBatches(agent, self.coach_buffer, self.coach_share)  # type: ignore[assignment]
-            try:
-                super().train(gradient_steps + extra, batch_size)
-            finally:
-                self.replay_buffer = agent
-
-        def counters(self) -> dict[str, int]:
-            """The coach buffer's counters, for a checkpoint."""
-            return {k: int(getattr(self, k)) for k in COUNTERS}
-
-        def restore_counters(self, saved: dict[str, Any]) -> None:
-            """Set the counters a checkpoint kept (a missing or bad one reads 0)."""
-            for k in COUNTERS:
-                value = saved.get(k, 0)
-                setattr(self, k, value if type(value) is int and value >= 0 else 0)
-
-    return CoachReplaySAC
+    def restore_counters(self, saved: dict[str, Any]) -> None:
+        """Set the counters a checkpoint kept (a missing or bad one reads 0)."""
+        for k in COUNTERS:
+            value = saved.get(k, 0)
+            setattr(self, k, value if type(value) is int and value >= 0 else 0)

@@ -258,7 +258,7 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 STATE_KEYS = ("env_steps", "agent_steps", "coach_steps", "interventions", "episodes", "evaluations",
               "next_evaluation", "next_checkpoint", "resumes", "num_timesteps", "policy_updates",
               "env_episodes", "env_resets", "falls", "rollin_stage", "kept_rounds", "kept_at",
-              "value_vetoes")  # fmt: skip
+              "value_vetoes", "proposals_taken")  # fmt: skip
 """The counters a checkpoint's ``state.json`` holds (``pidlab.rl.train.Counters`` and SB3's)."""
 LATER_KEYS = (
     "policy_updates",
@@ -269,6 +269,7 @@ LATER_KEYS = (
     "kept_rounds",
     "kept_at",
     "value_vetoes",
+    "proposals_taken",
 )
 """Counters that checkpoints written by earlier versions of pidlab lack (the trainer derives them)."""
 

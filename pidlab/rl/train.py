@@ -111,7 +111,8 @@ class Counters:
     ``falls`` the env's terminations, whoever was acting; ``rollin_stage`` the roll-in's stage
     (:class:`pidlab.rl.couplings.RollInCoupling`, 0 without one); ``kept_rounds`` and ``kept_at``
     the warm start's rounds on the kept demonstrations and SB3's update count at the last one;
-    ``value_vetoes`` the agent actions that the value trigger vetoed (among ``interventions``).
+    ``value_vetoes`` the agent actions that the value trigger vetoed (among ``interventions``);
+    ``proposals_taken`` the agent steps that ran the coach's proposal (a proposer's).
     """
 
     env_steps: int = 0
@@ -131,6 +132,7 @@ class Counters:
     kept_rounds: int = 0
     kept_at: int = 0
     value_vetoes: int = 0
+    proposals_taken: int = 0
 
     def to_dict(self) -> dict[str, int]:
         """Plain dict for JSON."""
@@ -250,9 +252,13 @@ def new_model(recipe: Recipe, venv: Any) -> Any:
               **sb3_arguments(recipe)}  # fmt: skip
     buffer = recipe.coaching.coach_buffer
     if recipe.algo == "sac" and buffer is not None:
-        from pidlab.rl.replay import coach_replay_sac
+        from pidlab.rl.replay import CoachReplaySAC
 
-        return coach_replay_sac(coach_share=buffer.share, coach_buffer_size=buffer.size, **kwargs)
+        return CoachReplaySAC(coach_share=buffer.share, coach_buffer_size=buffer.size, **kwargs)
+    if recipe.algo == "sac" and recipe.coaching.proposer is not None:
+        from pidlab.rl.proposer import ProposerSAC
+
+        return ProposerSAC(**kwargs)
     return _algorithm_class(recipe.algo)(**kwargs)
 
 
@@ -299,8 +305,10 @@ def load_checkpoint(checkpoint: Path, recipe: Recipe, venv: Any) -> tuple[Any, A
     record = checkpoint / "state.json"
     data = read_json(record)
     sac = recipe.algo == "sac"
-    coach = sac and recipe.coaching.coach_buffer is not None
-    files = check_manifest(data, record, expected_files(sac, isinstance(venv, VecNormalize), coach))
+    coach, proposals = recipe.coaching.coach_buffer is not None, recipe.coaching.proposer is not None
+    files = check_manifest(
+        data, record, expected_files(sac, isinstance(venv, VecNormalize), sac and coach, sac and proposals)
+    )
     agent = load_agent_files(checkpoint, files, record, lambda v: new_model(recipe, v), venv)
     model = agent.model
     model.num_timesteps = state["num_timesteps"]
@@ -508,6 +516,7 @@ class _Trainer:
             c.env_steps += agent + coach_steps
             c.interventions += int(bool(info.get("intervened", False)))
             c.value_vetoes += int(info.get("veto_reason") == "value")
+            c.proposals_taken += int(bool(info.get("proposal_taken", False)))
             c.falls += int(bool(info.get("fell", False)))
             if info.get("env_ended", False):  # the VecEnv resets this env at once, for real
                 c.env_episodes += 1
