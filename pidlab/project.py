@@ -11,8 +11,10 @@
 Every field but ``schema`` is optional; folders are relative to the project folder. A ``pidlab``
 command run in a folder that holds ``pidlab.toml`` applies it first (:func:`apply_project`):
 
-- the folder goes in front of the module search path, as ``python -m`` puts the current folder
-  there, and in front of ``PYTHONPATH`` for the processes pidlab starts;
+- the folder goes at the end of the module search path, so that its modules are found and a file
+  there named like an installed package (``control.py``) does not hide the package; it is named
+  in ``PIDLAB_PROJECT`` for the processes pidlab starts, which put it at the end of theirs
+  before they import a module that registers envs (:func:`pidlab.plant.envs.import_module`);
 - each data folder becomes ``PIDLAB_MODELS``, ``PIDLAB_TUNING`` or ``PIDLAB_COACH``, unless that
   variable is set already (the environment wins, see :mod:`pidlab.data`);
 - ``gym_packages`` join ``PIDLAB_GYM_PACKAGES`` (imported when an env id is not registered yet,
@@ -113,16 +115,18 @@ def _is_module(name: object) -> bool:
     return isinstance(name, str) and MODULE_NAME.fullmatch(name) is not None
 
 
+PROJECT_VAR = "PIDLAB_PROJECT"
+"""The environment variable that names the project folder for the processes pidlab starts."""
+
+
 def apply_project(project: Project) -> None:
     """Make this process, and the processes it starts, see ``project`` (see the module docstring)."""
     from pidlab.plant.envs import GYM_PACKAGES_VAR, gym_packages
 
     root = str(project.root)
     if root not in sys.path:
-        sys.path.insert(0, root)
-    paths = os.environ.get("PYTHONPATH", "")
-    if root not in paths.split(os.pathsep):
-        os.environ["PYTHONPATH"] = os.pathsep.join([root, paths]) if paths else root
+        sys.path.append(root)
+    os.environ[PROJECT_VAR] = root
     for name, folder in project.folders:
         if not os.environ.get(FOLDERS[name]):  # a variable set by the user wins
             os.environ[FOLDERS[name]] = str(folder)

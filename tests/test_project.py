@@ -27,7 +27,7 @@ from pidlab.controller.spec import load_spec
 p = rollout_preview(load_spec("tuning/BareCartPole-v0.pidlab-robust.toml"), episodes=2)
 print(p.episodes, p.mean_length, "BareCartPole-v0" in gymnasium.registry)
 """
-VARIABLES = ("PIDLAB_MODELS", "PIDLAB_TUNING", "PIDLAB_COACH", GYM_PACKAGES_VAR, "PYTHONPATH")
+VARIABLES = ("PIDLAB_MODELS", "PIDLAB_TUNING", "PIDLAB_COACH", GYM_PACKAGES_VAR, "PIDLAB_PROJECT", "PYTHONPATH")
 
 
 @pytest.fixture
@@ -63,7 +63,8 @@ def test_a_project_sets_folders_modules_and_the_search_path(tmp_path: Path, clea
     assert os.environ["PIDLAB_MODELS"] == str(tmp_path / "cards")
     assert os.environ["PIDLAB_COACH"] == "/somewhere/mine" and "PIDLAB_TUNING" not in os.environ
     assert os.environ[GYM_PACKAGES_VAR] == "robots_here"
-    assert sys.path[0] == str(tmp_path) and os.environ["PYTHONPATH"].split(os.pathsep)[0] == str(tmp_path)
+    assert sys.path[-1] == str(tmp_path) and os.environ["PIDLAB_PROJECT"] == str(tmp_path)
+    assert "PYTHONPATH" not in os.environ  # children find the folder by PIDLAB_PROJECT, at the end
     apply_project(project)  # twice: nothing repeated
     assert os.environ[GYM_PACKAGES_VAR] == "robots_here" and sys.path.count(str(tmp_path)) == 1
 
@@ -187,3 +188,30 @@ def test_a_project_module_that_cannot_be_imported_is_named_only_when_needed(tmp_
     code, err = cli_in_process("linearize", "MyRobot-v0")
     assert code == 2 and "cannot import 'no_such_robots_here'" in err and "pidlab.toml" in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_a_project_file_named_like_an_installed_package_does_not_hide_it(tmp_path: Path) -> None:
+    """The folder goes at the end of the search path: ``control.py`` there is not python-control,
+    in the command's process or in the processes it starts, while the project's own modules load."""
+    (tmp_path / "control.py").write_text("raise SystemExit('the project shadowed python-control')\n")
+    (tmp_path / "robots_here.py").write_text("import control\nFOUND = control.__file__\n")
+    (tmp_path / "pidlab.toml").write_text('schema = "pidlab.project/1"\ngym_packages = ["robots_here"]\n')
+    env = {k: v for k, v in os.environ.items() if k not in VARIABLES}
+    probe = (
+        "import multiprocessing as mp\n"
+        "from pidlab.plant.envs import import_module\n"
+        "def child(q):\n"
+        "    import_module('robots_here', 'test'); import robots_here; q.put(robots_here.FOUND)\n"
+        "if __name__ == '__main__':\n"
+        "    from pidlab.project import apply_project, load_project\n"
+        "    apply_project(load_project('pidlab.toml'))\n"
+        "    import control; print(control.__file__)\n"
+        "    ctx = mp.get_context('spawn'); q = ctx.Queue(); p = ctx.Process(target=child, args=(q,))\n"
+        "    p.start(); print(q.get(timeout=120)); p.join()\n"
+    )
+    (tmp_path / "probe.py").write_text(probe)
+    done = subprocess.run([sys.executable, "probe.py"], cwd=tmp_path, env={**env, "PYTHONSAFEPATH": "1"},
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    here, child = done.stdout.split()
+    assert str(tmp_path) not in here and str(tmp_path) not in child  # python-control, both times

@@ -87,7 +87,9 @@ def test_a_judge_that_never_picks_changes_nothing_and_the_proposals_end(spec):
 def test_the_wrapper_refuses_a_proposer_it_cannot_run(spec):
     with pytest.raises(CoachingError, match="needs a coach"):
         CoachingWrapper(gym.make(IP), None).set_proposer(lambda *a: True)
-    for until in (0.0, 1.5, float("nan")):
+    with pytest.raises(CoachingError, match=r"expected \(obs, action, proposal\) -> bool"):
+        CoachingWrapper(gym.make(IP), spec, **SHIELD).set_proposer(3)
+    for until in (0.0, 1.5, float("nan"), True):
         with pytest.raises(CoachingError, match=r"expected a fraction of the budget in \(0, 1\]"):
             CoachingWrapper(gym.make(IP), spec, **SHIELD).set_proposer(lambda *a: True, until)
 

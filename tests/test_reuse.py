@@ -7,6 +7,8 @@ import shutil
 from pathlib import Path
 
 import pytest
+import tomli_w
+import tomllib
 
 from pidlab.experiment.reuse import REUSED_NAME, copy_run, find_reuses
 from pidlab.experiment.sweep import ExperimentError, plan, run_sweep
@@ -69,6 +71,48 @@ def test_other_settings_unfinished_or_started_runs_are_not_copied(tmp_path, earl
     shutil.rmtree(same.out)
     (_run(src) / "summary.json").unlink()
     assert find_reuses(same.tasks, [src], same.out) == ()  # unfinished there: trained here
+
+
+def _other_sac_table(recipe: Path, folder: Path) -> Path:
+    """The recipe with its [sac] table changed (a table the PPO runs do not use)."""
+    data = tomllib.loads(recipe.read_text())
+    data["sac"]["learning_starts"] = int(data["sac"].get("learning_starts", 100)) + 1
+    changed = folder / "changed.toml"
+    changed.write_text(tomli_w.dumps(data))
+    return changed
+
+
+def test_a_run_is_known_by_what_it_used_not_by_the_tables_it_did_not(tmp_path, earlier):
+    recipe, a = earlier
+    changed = _other_sac_table(recipe, tmp_path)
+    p = plan([IP], ["none"], [SEED], tmp_path / "b", recipe_files=[str(changed)])
+    # a PPO run's settings digest ignores the [sac] table: the earlier run is the same run
+    assert p.tasks[0].digest == plan([IP], ["none"], [SEED], tmp_path / "c", recipe_files=[str(recipe)]).tasks[0].digest
+    assert len(find_reuses(p.tasks, [a], p.out)) == 1
+    sac = plan([IP], ["none"], [SEED], tmp_path / "d", recipe_files=[str(changed)], algo="sac")
+    assert find_reuses(sac.tasks, [a], sac.out) == ()  # another algorithm: another run
+
+
+def test_an_older_record_is_read_by_its_runs_own_settings_and_made_current(tmp_path, earlier):
+    recipe, a = earlier
+    old = tmp_path / "old"
+    shutil.copytree(a, old)
+    record = read_json(old / "experiment.json")
+    identity = record["identity"]
+    identity.pop("digests")  # as written before digests covered the run's own algorithm only
+    identity["runs"] = {k: "0123456789abcdef" for k in identity["runs"]}  # digests of the older kind
+    (old / "experiment.json").write_text(json.dumps(record))
+    changed = _other_sac_table(recipe, tmp_path)
+    again = run_sweep(plan([IP], ["none"], [SEED], old, recipe_files=[str(changed)]), workers=1, progress_bar=False)
+    assert again.count("skipped") == 1  # the same experiment: its run recorded the same settings
+    upgraded = read_json(old / "experiment.json")["identity"]
+    assert upgraded["digests"] == 2 and upgraded["runs"] != identity["runs"]
+    # a run that recorded other settings (another budget) is another experiment: refused, unchanged
+    (old / "experiment.json").write_text(json.dumps(record))
+    with pytest.raises(ExperimentError, match="holds another experiment"):
+        run_sweep(plan([IP], ["none"], [SEED], old, recipe_files=[str(recipe)], steps=400), workers=1,
+                  progress_bar=False)  # fmt: skip
+    assert read_json(old / "experiment.json") == record
 
 
 def test_a_copy_killed_halfway_or_a_run_killed_before_its_checkpoint_is_replaced(tmp_path, earlier):

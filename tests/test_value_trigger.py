@@ -87,6 +87,10 @@ def test_the_region_is_the_floor_and_the_judge_needs_it(spec):
         env.set_advisor(lambda *a: True)
     with pytest.raises(CoachingError, match="needs a coach"):
         CoachingWrapper(gym.make(IP), None).set_advisor(lambda *a: True)
+    with pytest.raises(CoachingError, match=r"expected \(obs, action, proposal\) -> bool"):
+        shield(spec).set_advisor("always")
+    with pytest.raises(CoachingError, match="record='yes': expected True or False"):
+        shield(spec, record="yes")
 
 
 # ----------------------------------------------------------------------------- the critic's judge

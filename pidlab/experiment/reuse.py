@@ -3,8 +3,9 @@
 An experiment that adds conditions to an earlier one (``none`` and ``rescue-terminal`` again,
 beside a new coupling) names the earlier folder with ``pidlab experiment --reuse DIR``. Each of
 its runs that has not started yet and that DIR holds finished, for the same env, condition and
-seed with the same settings digest (:attr:`pidlab.experiment.sweep.RunTask.digest`: the recipe,
-the budget and the coach, not the folder), is copied instead of trained. Training is
+seed whose own ``config.toml`` records the same settings (their digest,
+:func:`pidlab.rl.rundir.settings_digest`: the recipe with the run's algorithm, the budget and the
+coach, not the folder), is copied instead of trained. Training is
 deterministic for a seed and its settings, so the copy is the run that training would have
 made; each copy keeps its own ``run.json`` (the command and git SHA that trained it) and gets a
 ``reused.json`` saying where it came from. The experiment's ``experiment.json`` lists the copies
@@ -25,7 +26,7 @@ from typing import Any
 from pidlab.errors import ExperimentError, PidlabError, RunDirError
 from pidlab.files import write_json
 from pidlab.provenance import LOCK_NAME, now, read_record, write_record
-from pidlab.rl.rundir import finished_summary, latest_checkpoint
+from pidlab.rl.rundir import finished_summary, latest_checkpoint, stored_settings_digest
 
 REUSED_NAME = "reused.json"
 """The file in a copied run that says where it came from."""
@@ -116,7 +117,8 @@ def find_reuses(tasks: Iterable[Any], folders: Sequence[str | Path], out: Path) 
             continue
         for src in sources:
             run = src.folder / "runs" / task.env_id / task.condition / f"seed-{task.seed}"
-            if src.runs.get(key) == task.digest and _offered(run, int(task.recipe["steps"])):
+            same = key in src.runs and stored_settings_digest(run) == task.digest  # what the run itself did
+            if same and _offered(run, int(task.recipe["steps"])):
                 origin = {"experiment": str(src.folder), "command": list(src.command), "git": src.git,
                           "digest": task.digest}  # fmt: skip
                 found.append(Reuse(key, run, target, origin))

@@ -72,7 +72,6 @@ from pidlab.provenance import (
     Refusals,
     add_resume,
     check_folder,
-    digest,
     hold_lock,
     new_record,
     read_record,
@@ -87,9 +86,13 @@ from pidlab.rl.recipe import (
     recipe_to_dict,
     with_overrides,
 )
-from pidlab.rl.rundir import config_dict, finished_summary, latest_checkpoint
+from pidlab.rl.rundir import finished_summary, latest_checkpoint, settings_digest, stored_settings_digest
 
 EXPERIMENT_SCHEMA = "pidlab.experiment/1"
+DIGESTS = 2
+"""How a run's settings digest is made: :func:`pidlab.rl.rundir.settings_digest` (2: of the run's own
+algorithm table only). Records without ``digests`` hold digests of every algorithm table (1); a
+sweep reads such a folder by its runs' own ``config.toml`` (:func:`_recorded_identity`)."""
 BACKENDS = ("process", "ray")
 
 
@@ -135,10 +138,13 @@ class Plan:
     descriptions: dict[str, str] = field(compare=False)
 
     def identity(self) -> dict[str, Any]:
-        """What makes two experiments the same: envs, conditions, seeds and every run's settings."""
+        """What makes two experiments the same: envs, conditions, seeds and every run's settings.
+
+        ``digests`` names how the runs' digests are made (:data:`DIGESTS`).
+        """
         runs = {f"{t.env_id}/{t.condition}/{t.seed}": t.digest for t in self.tasks}
         return {"envs": list(self.envs), "conditions": list(self.conditions), "seeds": list(self.seeds),
-                "runs": runs}  # fmt: skip
+                "runs": runs, "digests": DIGESTS}  # fmt: skip
 
 
 def parse_seeds(seeds: str, default_count: int | None = None) -> tuple[int, ...]:
@@ -235,9 +241,6 @@ def _load_recipes(
 def _task(env_id: str, cond: Condition, base: Recipe, spec: CoachSpec | None, source: str | None, seed: int,
           root: Path) -> RunTask:  # fmt: skip
     recipe = replace(base, seed=int(seed))
-    # what the run does, not where its files came from (a moved clone still resumes)
-    settings = config_dict(recipe, spec, None)
-    settings.pop("recipe_source", None)
     return RunTask(
         env_id=env_id,
         condition=cond.name,
@@ -246,7 +249,7 @@ def _task(env_id: str, cond: Condition, base: Recipe, spec: CoachSpec | None, so
         recipe=recipe_to_dict(recipe),
         spec=spec_to_dict(spec) if spec is not None else None,
         coach_source=source,
-        digest=digest(settings, 16),
+        digest=settings_digest(recipe, spec),  # what the run does, not where its files came from
     )
 
 
@@ -343,6 +346,34 @@ def _describe_difference(old: Record, new: dict[str, Any]) -> str:
     )
 
 
+def _recorded_identity(p: Plan) -> dict[str, Any] | None:
+    """The identity a folder's older record holds, when that record is of this very experiment.
+
+    A record without ``digests`` (made before :data:`DIGESTS` 2) holds digests that cover every
+    algorithm table of the recipes. It is this experiment when its envs, conditions, seeds and run
+    keys are the plan's and every run that has started (it has a ``config.toml``) records settings
+    whose digest is the plan's for it: what each run did is read from the run itself. Runs that
+    have not started will run with the plan's settings. None otherwise (and for a current record).
+    """
+    try:
+        old = read_record(p.out / "experiment.json", EXPERIMENT_SCHEMA, ExperimentError)
+    except (ExperimentError, OSError):
+        return None
+    recorded = old.identity if isinstance(old.identity, dict) else None
+    if recorded is None or "digests" in recorded:
+        return None
+    new = p.identity()
+    if any(recorded.get(k) != new[k] for k in ("envs", "conditions", "seeds")):
+        return None
+    if not isinstance(recorded.get("runs"), dict) or set(recorded["runs"]) != set(new["runs"]):
+        return None
+    for t in p.tasks:
+        stored = stored_settings_digest(t.run_dir)
+        if (Path(t.run_dir) / "config.toml").exists() and stored != t.digest:
+            return None
+    return recorded
+
+
 def check_out_folder(p: Plan) -> Record | None:
     """The folder's ``experiment.json`` when it holds this experiment, None when new or empty.
 
@@ -354,6 +385,7 @@ def check_out_folder(p: Plan) -> Record | None:
         The folder is a file, or holds another experiment, or files that are not an experiment's.
     """
     out, identity = p.out, p.identity()
+    identity = _recorded_identity(p) or identity
 
     def another(old: Record) -> str:
         return (
@@ -383,6 +415,7 @@ def write_experiment_record(p: Plan, argv: Sequence[str], backend: str) -> Recor
     meta = p.out / "experiment.json"
     if meta.exists():
         record = add_resume(read_record(meta, EXPERIMENT_SCHEMA, ExperimentError), argv, backend=backend)
+        record = replace(record, identity=p.identity())  # an older record's digests, made current
     else:
         recipes = {env: portable_name(r.path or "") for env, r in p.recipes.items()}  # not the writer's path
         kind = {"backend": backend, "descriptions": p.descriptions, "recipes": recipes,

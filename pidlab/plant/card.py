@@ -96,6 +96,9 @@ from pidlab.data import data_files, find_data_file, models_dir
 from pidlab.errors import ModelCardError
 from pidlab.files import read_toml
 
+MJCF_SUFFIXES = (".xml", ".mjcf", ".mjb")
+"""The suffixes of model files: MJCF (``.xml``, ``.mjcf``) and MuJoCo's binary models (``.mjb``)."""
+
 CARD_SCHEMA = "pidlab.model-card/1"
 OBS_SOURCES = ("qpos", "qvel", "qfrc_constraint")
 OBS_TRANSFORMS = ("identity", "sin", "cos")
@@ -610,7 +613,7 @@ def _parse_model(data: dict[str, Any], path: str) -> CardModel | None:
     mjcf = text(_require(table, "mjcf", str, where), f"{where}.mjcf", ModelCardError, empty=False)
     if "\0" in mjcf:
         raise ModelCardError(f"{where}.mjcf: {shown(mjcf)} is no path; expected the MJCF file's path")
-    if not mjcf.lower().endswith((".xml", ".mjcf", ".mjb")):
+    if not mjcf.lower().endswith(MJCF_SUFFIXES):
         raise ModelCardError(
             f"{where}.mjcf: {shown(mjcf)}; expected an MJCF file (.xml) or a compiled model (.mjb)"
         )

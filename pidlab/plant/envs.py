@@ -20,6 +20,7 @@ from __future__ import annotations
 import importlib
 import os
 import re
+import sys
 from collections.abc import Sequence
 from typing import Any
 
@@ -38,6 +39,13 @@ def gym_packages() -> tuple[str, ...]:
     return tuple(m.strip() for m in os.environ.get(GYM_PACKAGES_VAR, "").split(",") if m.strip())
 
 
+def _project_on_path() -> None:
+    """The project folder that started this process (``PIDLAB_PROJECT``) at the end of ``sys.path``."""
+    root = os.environ.get("PIDLAB_PROJECT", "")
+    if root and root not in sys.path:
+        sys.path.append(root)
+
+
 def import_module(name: str, named_by: str) -> None:
     """Import the module ``name`` that registers envs (once per process).
 
@@ -51,6 +59,7 @@ def import_module(name: str, named_by: str) -> None:
     if not MODULE_NAME.fullmatch(name):
         raise UnknownEnvError(f"{named_by}: {shown(name, 80)} is not a module name (expected e.g. my_robots)")
     try:
+        _project_on_path()
         importlib.import_module(name)
     except (Exception, SystemExit) as exc:  # the user's module: any failure is theirs to read, in one line
         msg = " ".join(str(exc).split()) or type(exc).__name__
@@ -129,7 +138,9 @@ def check_trainable(env_id: str) -> str:
 
     if env_id in gym.registry:
         return env_id
-    if env_id.lower().endswith((".xml", ".mjcf", ".mjb")):
+    from pidlab.plant.card import MJCF_SUFFIXES
+
+    if env_id.lower().endswith(MJCF_SUFFIXES):
         raise UnknownEnvError(
             f"{shown(env_id, 80)}: an MJCF file is no env; training needs a Gymnasium env: "
             f"pidlab init {shown(env_id, 80)} --env-id ID writes the module that registers one"

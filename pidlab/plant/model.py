@@ -19,7 +19,7 @@ import numpy as np
 
 from pidlab.checks import exists, path_argument, shown
 from pidlab.errors import ModelCardError, ModelCompileError, UnknownEnvError
-from pidlab.plant.card import ModelCard, card_for_mjcf, find_card
+from pidlab.plant.card import MJCF_SUFFIXES, ModelCard, card_for_mjcf, find_card
 
 _LOG = logging.getLogger("pidlab.mujoco")
 
@@ -211,7 +211,7 @@ def actuator_names(model: mujoco.MjModel) -> tuple[str, ...]:
 
 
 def _is_mjcf_path(target: str) -> bool:
-    return target.lower().endswith((".xml", ".mjcf", ".mjb")) or exists(target)
+    return target.lower().endswith(MJCF_SUFFIXES) or exists(target)
 
 
 def load_model(target: str | Path) -> LoadedModel:
@@ -267,8 +267,17 @@ def _mujoco_warnings() -> Iterator[list[str]]:
         mujoco.set_mju_user_warning(old)
 
 
-def _load_mjcf(path: Path, card: ModelCard | None = None, find: bool = True) -> LoadedModel:
-    """The MJCF file ``path`` with its card: ``card``, else (``find``) the card whose ``[model]`` names it."""
+def compile_mjcf(path: str | Path) -> mujoco.MjModel:
+    """MuJoCo's compiled model of the MJCF (``.xml``, ``.mjcf``) or binary (``.mjb``) file ``path``.
+
+    MuJoCo's warnings about a model that compiled are passed on as ``UserWarning``.
+
+    Raises
+    ------
+    ModelCompileError
+        A missing or unreadable file, or one MuJoCo cannot compile (with MuJoCo's message).
+    """
+    path = Path(path)
     _check_model_file(path)
     with _mujoco_warnings() as caught:
         try:
@@ -280,8 +289,14 @@ def _load_mjcf(path: Path, card: ModelCard | None = None, find: bool = True) -> 
             msg = " ".join(str(exc).split())
             raise ModelCompileError(f"MuJoCo could not compile {str(path)!r}: {msg}") from exc
     for text in caught:  # the model loaded: MuJoCo's warnings about it are worth passing on
-        warnings.warn(f"MuJoCo: {text}", UserWarning, stacklevel=3)
-    card = card_for_mjcf(path) if card is None and find else card
+        warnings.warn(f"MuJoCo: {text}", UserWarning, stacklevel=4)
+    return model
+
+
+def _load_mjcf(path: Path, card: ModelCard | None = None) -> LoadedModel:
+    """The MJCF file ``path`` with its card: ``card``, else the card whose ``[model]`` names it."""
+    model = compile_mjcf(path)
+    card = card_for_mjcf(path) if card is None else card
     if card is None:
         return LoadedModel(model=model, source=str(path.resolve()), env_id=None, frame_skip=1, card=None)
     frame_skip = card.model.frame_skip if card.model is not None else 1  # a card found for a file names it

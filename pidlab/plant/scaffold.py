@@ -93,7 +93,7 @@ def scaffold(
         MuJoCo cannot load the file.
     """
     from pidlab.checks import integer
-    from pidlab.plant.model import _load_mjcf
+    from pidlab.plant.model import compile_mjcf
 
     check_name(env_id, "--env-id", ArgumentError)
     path = Path(mjcf)
@@ -101,7 +101,7 @@ def scaffold(
         raise ArgumentError(f"{mjcf}: expected an MJCF file (.xml)")
     if frame_skip is not None:
         frame_skip = integer(frame_skip, "frame_skip", ArgumentError, low=1, high=1000, param="frame_skip")
-    model = _load_mjcf(path, card=None, find=False).model
+    model = compile_mjcf(path)
     if frame_skip is None:
         frame_skip = max(1, round(CONTROL_PERIOD / float(model.opt.timestep)))
     if model.nu == 0:

@@ -386,7 +386,9 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.rollin_steps = 0
         self._pending_rollin: dict[str, Any] | None = None
         self._set_mix(spec, blend, residual)
-        self.record = bool(record)
+        if not isinstance(record, bool):
+            raise CoachingError(f"record={record!r}: expected True or False")
+        self.record = record
         self._transitions: list[tuple[Any, ...]] = []
         self._advisor: Advisor | None = None
         self._picker: Advisor | None = None
@@ -657,9 +659,11 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         CoachingError
             A proposer without a coach, or ``until`` outside (0, 1].
         """
+        if picker is not None and not callable(picker):
+            raise CoachingError(f"picker {picker!r}: expected (obs, action, proposal) -> bool, or None")
         if picker is not None and self.coach is None:
             raise CoachingError("a proposer needs a coach; this env has none (--coach none)")
-        if not (isinstance(until, int | float) and 0.0 < until <= 1.0):
+        if isinstance(until, bool) or not (isinstance(until, int | float) and 0.0 < until <= 1.0):
             raise CoachingError(f"proposer until = {until!r}: expected a fraction of the budget in (0, 1]")
         self._picker, self._until = picker, float(until)
         if picker is not None and self._proposer is None and self.coach_spec is not None:
@@ -747,6 +751,8 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         CoachingError
             An advisor without a coach, or without the predictive trigger (its hard floor).
         """
+        if advisor is not None and not callable(advisor):
+            raise CoachingError(f"advisor {advisor!r}: expected (obs, action, proposal) -> bool, or None")
         if advisor is not None and (self.coach is None or self._predictor is None):
             raise CoachingError(
                 "a value trigger needs a coach and the predictive trigger (the rescue region is its floor)"

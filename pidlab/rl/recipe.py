@@ -65,6 +65,7 @@ Schema ``pidlab.recipe/1``::
     policy_kwargs = { net_arch = { pi = [64, 64], vf = [64, 64] }, activation_fn = "tanh" }
 
     [sac]                        # keyword arguments of stable_baselines3.SAC
+    normalize = { obs = false, reward = false }   # optional: this algorithm's [normalize]
     ...
 
     [pipeline]                   # optional: what `pidlab run ENV` does (not part of a run's settings)
@@ -315,6 +316,10 @@ class Recipe:
         Per algorithm, where its values come from.
     algorithm_envs : dict
         Per algorithm, its parallel envs (``n_envs`` is ``algorithm_envs[algo]``).
+    algorithm_normalize : dict
+        Per algorithm, ``(obs, reward)``: what ``VecNormalize`` normalizes for it (its table's
+        ``normalize``, else the top-level ``[normalize]``); ``normalize_obs`` and
+        ``normalize_reward`` are the chosen algorithm's.
     path : str or None
     """
 
@@ -335,6 +340,7 @@ class Recipe:
     algorithms: dict[str, dict[str, Any]]
     sources: dict[str, str]
     algorithm_envs: dict[str, int] = field(default_factory=dict)
+    algorithm_normalize: dict[str, tuple[bool, bool]] = field(default_factory=dict)
     path: str | None = None
 
     def __post_init__(self) -> None:
@@ -590,7 +596,7 @@ def algorithm_arguments(algo: str) -> tuple[str, ...]:
     return tuple(ARGUMENTS[algo])
 
 
-PIDLAB_KEYS = ("source", "n_envs")
+PIDLAB_KEYS = ("source", "n_envs", "normalize")
 """Keys of an algorithm table that are pidlab's, not SB3 arguments."""
 
 
@@ -1015,10 +1021,8 @@ def parse_recipe(data: dict[str, Any], where: str = "recipe") -> Recipe:
     data = _top(data, where)
     env_id = check_name(data.get("env_id"), f"{where}.env_id", RecipeError)
     algorithms, sources, algo = _algorithms(data, where)
-    norm = _table(data, "normalize", where, {"obs", "reward"})
-    obs, reward = (
-        flag(norm.get(key, False), f"{where}.normalize.{key}", RecipeError) for key in ("obs", "reward")
-    )
+    normalize = _algorithm_normalize(data, algorithms, where)
+    obs, reward = normalize[algo]
     steps = _int(data, "steps", where, low=1, high=MAX_STEPS)
     envs = _algorithm_envs(data, algorithms, where)
     if "ppo" in algorithms:
@@ -1043,8 +1047,27 @@ def parse_recipe(data: dict[str, Any], where: str = "recipe") -> Recipe:
         algorithms=algorithms,
         sources=sources,
         algorithm_envs=envs,
+        algorithm_normalize=normalize,
         path=None,
     )
+
+
+def _normalize(table: dict[str, Any], where: str, default: tuple[bool, bool]) -> tuple[bool, bool]:
+    """A ``normalize = { obs, reward }`` table (each flag defaults to ``default``'s)."""
+    norm = _table(table, "normalize", where, {"obs", "reward"})
+    obs, reward = (
+        flag(norm.get(key, d), f"{where}.normalize.{key}", RecipeError)
+        for key, d in zip(("obs", "reward"), default, strict=True)
+    )
+    return obs, reward
+
+
+def _algorithm_normalize(
+    data: dict[str, Any], algorithms: dict[str, Any], where: str
+) -> dict[str, tuple[bool, bool]]:
+    """What ``VecNormalize`` normalizes per algorithm: its table's ``normalize``, else ``[normalize]``."""
+    default = _normalize(data, where, (False, False))
+    return {algo: _normalize(data[algo], f"{where}.{algo}", default) for algo in algorithms}
 
 
 def _algorithm_envs(data: dict[str, Any], algorithms: dict[str, Any], where: str) -> dict[str, int]:
@@ -1126,9 +1149,12 @@ def with_overrides(
         n_envs = recipe.algorithm_envs.get(chosen, recipe.n_envs)
     if seed is not None:
         check_seed(seed, "seed", RecipeError, param="seed")
+    obs, reward = recipe.algorithm_normalize.get(chosen, (recipe.normalize_obs, recipe.normalize_reward))
     return replace(
         recipe,
         algo=algo or recipe.algo,
+        normalize_obs=obs,
+        normalize_reward=reward,
         steps=steps or recipe.steps,
         seed=recipe.seed if seed is None else seed,
         n_envs=n_envs or recipe.n_envs,
@@ -1219,7 +1245,11 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
         # the top level holds the chosen algorithm's envs (what the run uses); another algorithm's
         # table says its own only where it differs, so recipes without per-algorithm envs read as before
         envs = recipe.algorithm_envs.get(algo, recipe.n_envs)
-        own = {"n_envs": envs} if algo != recipe.algo and envs != recipe.n_envs else {}
+        own: dict[str, Any] = {"n_envs": envs} if algo != recipe.algo and envs != recipe.n_envs else {}
+        chosen = (recipe.normalize_obs, recipe.normalize_reward)
+        norm = recipe.algorithm_normalize.get(algo, chosen)
+        if algo != recipe.algo and norm != chosen:
+            own["normalize"] = {"obs": norm[0], "reward": norm[1]}
         out[algo] = {"source": recipe.sources.get(algo, ""), **own, **kwargs}
     return out
 

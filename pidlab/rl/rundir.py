@@ -23,7 +23,7 @@ import tomli_w
 
 from pidlab.checks import path_under
 from pidlab.controller.spec import CoachSpec, dumps_spec, loads_spec
-from pidlab.errors import CheckpointError, RunDirError
+from pidlab.errors import CheckpointError, PidlabError, RunDirError
 from pidlab.files import atomic_write_text, load_json, make_folder, read_text, read_toml
 from pidlab.provenance import (
     Refusals,
@@ -34,7 +34,7 @@ from pidlab.provenance import (
     read_record,
     write_record,
 )
-from pidlab.rl.recipe import Recipe, parse_recipe, recipe_to_dict
+from pidlab.rl.recipe import ALGOS, Recipe, parse_recipe, recipe_to_dict
 
 EPISODE_COLUMNS = (
     "episode",
@@ -329,6 +329,39 @@ def config_dict(recipe: Recipe, spec: CoachSpec | None, coach_source: str | None
         "coach": coach,
         "recipe": recipe_to_dict(recipe),
     }
+
+
+def run_settings(recipe: Recipe, spec: CoachSpec | None) -> dict[str, Any]:
+    """What a run does, as data: :func:`config_dict` less what does not change it.
+
+    Not the recipe's file or the coach spec's file (the spec's SHA-256 identifies the coach), and
+    of the recipe's algorithm tables only the one the run trains with: a change to another
+    algorithm's table changes no run of this one.
+    """
+    settings = config_dict(recipe, spec, None)
+    settings.pop("recipe_source", None)
+    settings["coach"].pop("source", None)
+    tables = settings["recipe"]
+    for algo in ALGOS:
+        if algo != recipe.algo:
+            tables.pop(algo, None)
+    return settings
+
+
+def settings_digest(recipe: Recipe, spec: CoachSpec | None) -> str:
+    """The digest of :func:`run_settings` (16 hex digits): two runs with the same one train alike."""
+    return digest(run_settings(recipe, spec), 16)
+
+
+def stored_settings_digest(run_dir: str | Path) -> str | None:
+    """:func:`settings_digest` of what a run folder's ``config.toml`` records (None: nothing readable)."""
+    if not (Path(run_dir) / "config.toml").is_file():
+        return None
+    try:
+        recipe, spec, _ = load_run_config(run_dir)
+    except PidlabError:
+        return None
+    return settings_digest(recipe, spec)
 
 
 def load_run_config(run_dir: str | Path) -> tuple[Recipe, CoachSpec | None, dict[str, Any]]:
