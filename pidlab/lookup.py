@@ -1,5 +1,8 @@
 """A boolean lookup table on a rectangular grid, and its TOML form: the data of a rescue region.
 
+Also the data of the model predictor's measured forecast error (``[bounds.forecast]``,
+:class:`ForecastError`): :mod:`pidlab.region.forecast` computes it, the spec reader checks it.
+
 The rescue region of :mod:`pidlab.region.rescue` is stored in a coach spec's ``[bounds.rescue]``
 table as a :class:`LookupGrid`; :mod:`pidlab.region.takeover` tests membership in it. The data
 structure lives here, below every stage, because the spec reader of :mod:`pidlab.controller.spec`
@@ -14,6 +17,10 @@ from typing import Any
 import numpy as np
 
 from pidlab.errors import SpecError
+from pidlab.provenance import digest
+
+MODELS = ("linear",)
+"""The forecast models: the discrete linear model at the card's operating point."""
 
 TRIGGERS = ("reactive", "predictive")
 """What a rescue region was derived for: a check after the agent's step, or one before it."""
@@ -141,6 +148,23 @@ def _check_guard(value: Any, grid_vars: list[str], where: str) -> dict[str, tupl
     return out
 
 
+LOOKUP_FIELDS = ("trigger", "action_fraction", "variables", "lower", "upper", "cells", "guard", "rows",
+                 "provenance")  # fmt: skip
+"""The fields of a ``[bounds.rescue]`` table."""
+FORECAST_FIELDS = ("model", "region", "transitions", "held_out", "escapes", "seed", "margins", "median",
+                   "p99", "agreement")  # fmt: skip
+"""The fields of a ``[bounds.forecast]`` table."""
+
+
+def _check_fields(t: Any, where: str, allowed: tuple[str, ...]) -> None:
+    """``t`` is a table with no field but ``allowed``."""
+    if not isinstance(t, dict):
+        raise SpecError(f"{where}: expected a table")
+    unknown = set(t) - set(allowed)
+    if unknown:
+        raise SpecError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {', '.join(sorted(allowed))}")
+
+
 def parse_lookup(t: Any, where: str = "bounds.rescue") -> LookupGrid:
     """Read and check a ``[bounds.rescue]`` table.
 
@@ -149,13 +173,7 @@ def parse_lookup(t: Any, where: str = "bounds.rescue") -> LookupGrid:
     SpecError
         A field missing, of the wrong type or out of range; the message names it.
     """
-    if not isinstance(t, dict):
-        raise SpecError(f"{where}: expected a table")
-    allowed = {"trigger", "action_fraction", "variables", "lower", "upper", "cells", "guard", "rows"}
-    allowed.add("provenance")
-    unknown = set(t) - allowed
-    if unknown:
-        raise SpecError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {', '.join(sorted(allowed))}")
+    _check_fields(t, where, LOOKUP_FIELDS)
     trigger = t.get("trigger")
     if trigger not in TRIGGERS:
         raise SpecError(f"{where}.trigger: {trigger!r}; expected one of {', '.join(TRIGGERS)}")
@@ -178,3 +196,138 @@ def parse_lookup(t: Any, where: str = "bounds.rescue") -> LookupGrid:
     guard = _check_guard(t.get("guard", {}), names, f"{where}.guard")
     grid = (tuple(names), tuple(lower), tuple(upper), tuple(cells))
     return LookupGrid(*grid, table, guard, trigger, float(frac))
+
+
+# ----------------------------------------------------------------------------- the forecast's error
+
+
+@dataclass(frozen=True)
+class ForecastError:
+    """How far the forecast missed, per region variable, on recorded transitions.
+
+    Attributes
+    ----------
+    model : str
+        The forecast model (:data:`MODELS`).
+    variables : tuple of str
+        The rescue region's variables (grid and guard).
+    margins : tuple of float
+        Per variable, the largest error over the transitions: the amount the region is shrunk by.
+    median, p99 : tuple of float
+        Per variable, the median and 99th percentile of the error.
+    transitions : int
+        How many transitions the margins were measured on.
+    held_out : int
+        How many further transitions checked them (and the agreement).
+    escapes : int
+        Held-out transitions whose true next observation lay outside the margins of the forecast.
+    seed : int
+        The recording's seed.
+    agreement : dict
+        Of the held-out actions put to both predictors (the model's against the shrunk region):
+        ``both`` vetoed, ``exact_only``, ``model_only``, ``neither``.
+    region : str
+        Digest of the ``[bounds.rescue]`` table measured on.
+    """
+
+    model: str
+    variables: tuple[str, ...]
+    margins: tuple[float, ...]
+    median: tuple[float, ...]
+    p99: tuple[float, ...]
+    transitions: int
+    held_out: int
+    escapes: int
+    seed: int
+    agreement: dict[str, int]
+    region: str
+
+    @property
+    def margin(self) -> dict[str, float]:
+        """``variable -> margin``."""
+        return dict(zip(self.variables, self.margins, strict=True))
+
+    @property
+    def veto_agreement(self) -> float:
+        """Of the actions either predictor vetoes, the share both veto (1 when neither vetoes any)."""
+        a = self.agreement
+        either = a["both"] + a["exact_only"] + a["model_only"]
+        return a["both"] / either if either else 1.0
+
+    def to_table(self) -> dict[str, Any]:
+        """The ``[bounds.forecast]`` table."""
+        return {
+            "model": self.model,
+            "region": self.region,
+            "transitions": self.transitions,
+            "held_out": self.held_out,
+            "escapes": self.escapes,
+            "seed": self.seed,
+            "margins": self.margin,
+            "median": dict(zip(self.variables, self.median, strict=True)),
+            "p99": dict(zip(self.variables, self.p99, strict=True)),
+            "agreement": dict(self.agreement),
+        }
+
+
+AGREEMENT = ("both", "exact_only", "model_only", "neither")
+
+
+def region_digest(rescue: dict[str, Any]) -> str:
+    """The digest that ties a forecast's measurement to the ``[bounds.rescue]`` table it was made on."""
+    return digest(rescue, 16)
+
+
+def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
+    """Read and check a ``[bounds.forecast]`` table.
+
+    Raises
+    ------
+    SpecError
+        A field missing, of the wrong type or out of range; the message names it.
+    """
+    _check_fields(t, where, FORECAST_FIELDS)
+    if t.get("model") not in MODELS:
+        raise SpecError(f"{where}.model: {t.get('model')!r}; expected one of {', '.join(MODELS)}")
+    if not isinstance(t.get("region"), str) or not t["region"]:
+        raise SpecError(f"{where}.region: expected the digest of the rescue region it was measured on")
+    counts = {}
+    for key, low in (("transitions", 1), ("held_out", 0), ("escapes", 0), ("seed", 0)):
+        v = t.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise SpecError(f"{where}.{key}: {v!r}; expected an integer >= {low}")
+        counts[key] = v
+    if counts["escapes"] > counts["held_out"]:
+        raise SpecError(f"{where}.escapes: {counts['escapes']} of {counts['held_out']} held-out transitions")
+    margins = _per_variable(t.get("margins"), f"{where}.margins", None)
+    names = tuple(margins)
+    median = _per_variable(t.get("median"), f"{where}.median", names)
+    p99 = _per_variable(t.get("p99"), f"{where}.p99", names)
+    agreement = t.get("agreement")
+    if not isinstance(agreement, dict) or set(agreement) != set(AGREEMENT) or not all(
+        isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in agreement.values()
+    ):  # fmt: skip
+        raise SpecError(f"{where}.agreement: expected counts >= 0 of {', '.join(AGREEMENT)}")
+    if sum(agreement.values()) != counts["held_out"]:
+        raise SpecError(f"{where}.agreement: the counts add up to {sum(agreement.values())}, "
+                        f"not to the {counts['held_out']} held-out transitions")  # fmt: skip
+    return ForecastError(
+        model=t["model"], variables=names, margins=tuple(margins.values()),
+        median=tuple(median[n] for n in names),
+        p99=tuple(p99[n] for n in names), transitions=counts["transitions"], held_out=counts["held_out"],
+        escapes=counts["escapes"], seed=counts["seed"],
+        agreement={k: int(agreement[k]) for k in AGREEMENT}, region=t["region"],
+    )  # fmt: skip
+
+
+def _per_variable(value: Any, where: str, names: tuple[str, ...] | None) -> dict[str, float]:
+    """A ``variable = number >= 0`` table (with exactly ``names``, when given)."""
+    ok = isinstance(value, dict) and bool(value) and all(
+        isinstance(k, str) and isinstance(v, int | float) and not isinstance(v, bool)
+        and bool(np.isfinite(v)) and v >= 0
+        for k, v in value.items()
+    )  # fmt: skip
+    if not ok or (names is not None and tuple(value) != names):
+        expected = f"the variables {', '.join(names)}" if names else "observation variables"
+        raise SpecError(f"{where}: expected a table of {expected} = finite numbers >= 0")
+    return {k: float(v) for k, v in value.items()}

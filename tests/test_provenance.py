@@ -39,7 +39,7 @@ from pidlab.provenance import (
     write_record,
 )
 from pidlab.rl.recipe import load_recipe
-from pidlab.rl.rundir import RUN_SCHEMA, prepare_run_dir, record_resume, spec_digest
+from pidlab.rl.rundir import RUN_SCHEMA, prepare_run_dir, record_resume, spec_digest, stored_settings_digest
 from tests.helpers import ROOT, TUNING
 
 IP = "InvertedPendulum-v5"
@@ -86,6 +86,17 @@ def test_spec_digest_is_the_full_sha256_of_the_spec_text():
     assert len(spec_digest(spec)) == 64
 
 
+def published_copy(path: Path, out: Path) -> Path:
+    """A published experiment's record and its runs' ``config.toml``, ``coach.toml`` (what a sweep reads of them)."""
+    out.mkdir()
+    shutil.copy(path, out / "experiment.json")
+    for config in [*path.parent.glob("runs/*/*/seed-*/config.toml"), *path.parent.glob("runs/*/*/seed-*/coach.toml")]:
+        dest = out / config.relative_to(path.parent)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(config, dest)
+    return out
+
+
 @pytest.mark.parametrize("path", PUBLISHED, ids=lambda p: p.parent.name)
 def test_published_experiments_plan_to_their_recorded_identity(tmp_path, path):
     """`pidlab experiment` with a published experiment's own command and recipes still accepts its folder.
@@ -93,7 +104,8 @@ def test_published_experiments_plan_to_their_recorded_identity(tmp_path, path):
     The experiments published before the recipes vectorized PPO ran with the recipes of
     tests/data/legacy/recipes; those published before the analysis plan refined the evaluation grid
     with tests/data/legacy/recipes-before-plan; the later ones with the shipped recipes, and a
-    conditions file of their command (a path in pidlab's tree).
+    conditions file of their command (a path in pidlab's tree). A record made before ``digests`` 2 holds
+    digests of every algorithm table: a sweep reads it by each run's own ``config.toml``.
     """
     record = read_json(path)
     ident, command = record["identity"], record["command"]
@@ -104,20 +116,25 @@ def test_published_experiments_plan_to_their_recorded_identity(tmp_path, path):
     steps = int(option("--steps")) if option("--steps") else None
     cond = ROOT / option("--conditions-file") if option("--conditions-file") else None
     kw = {"steps": steps, "algo": option("--algo"), "conditions_file": cond}
-    out = tmp_path / "exp"
+    out = published_copy(path, tmp_path / "exp")
     args = (ident["envs"], ident["conditions"], ident["seeds"], out)
-    p = plan(*args, **kw)
-    legacy = p.identity() != ident
-    for folder in (RECIPES_BEFORE_PLAN, RECIPES_THEN):
-        if p.identity() != ident:
-            p = plan(*args, recipe_files=recipes_then(ident["envs"], folder), **kw)
-    assert p.identity() == ident
-    out.mkdir()
-    shutil.copy(path, out / "experiment.json")
-    assert check_out_folder(p) is not None
-    if legacy:
-        with pytest.raises(ExperimentError, match="holds another experiment"):  # the recipes changed since
-            check_out_folder(plan(*args, **kw))
+    shipped = plan(*args, **kw)
+    candidates = [shipped] + [plan(*args, recipe_files=recipes_then(ident["envs"], f), **kw)
+                              for f in (RECIPES_BEFORE_PLAN, RECIPES_THEN)]  # fmt: skip
+    p = next((c for c in candidates if _accepts(c)), None)
+    assert p is not None, "no recipes of pidlab's history plan this experiment"
+    assert all(stored_settings_digest(t.run_dir) == t.digest for t in p.tasks)  # every run read, every run matched
+    assert set(p.identity()["runs"]) == set(ident["runs"])
+    if p is not shipped:  # the recipes changed since: the shipped ones make another experiment
+        with pytest.raises(ExperimentError, match="holds another experiment"):
+            check_out_folder(shipped)
+
+
+def _accepts(p) -> bool:
+    try:
+        return check_out_folder(p) is not None
+    except ExperimentError:
+        return False
 
 
 # ---------------------------------------------------------------- new, resume, read, write
@@ -219,9 +236,12 @@ def test_published_experiment_record_migrates_and_resumes(tmp_path):
     assert [r["at"] for r in new["resumes"][:2]] == [r["time"] for r in old["resumes"]]
     assert all("time" not in r for r in new["resumes"]) and len(new["resumes"]) == 3
     assert new["resumes"][2]["backend"] == "process" and new["resumes"][2]["command"] == ARGV
-    for key in ("schema", "created", "command", "backend", "identity", "descriptions", "recipes", "versions",
+    for key in ("schema", "created", "command", "backend", "descriptions", "recipes", "versions",
                 "git", "python", "notes"):  # fmt: skip
         assert new[key] == old[key], key
+    assert new["identity"] == p.identity() and new["identity"]["digests"] == 2  # its digests made current
+    assert {k: new["identity"][k] for k in ("envs", "conditions", "seeds")} == {
+        k: ident[k] for k in ("envs", "conditions", "seeds")}
     assert check_out_folder(p) is not None  # and it still resumes after the rewrite
 
 

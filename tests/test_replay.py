@@ -302,5 +302,5 @@ def test_a_checkpoint_without_its_coach_buffer_is_damaged(run, tmp_path):
 def test_the_final_agent_loads_without_its_buffers(run):
     folder, _ = run
     summary = read_json(folder / "summary.json")
-    assert sorted(summary["files"]) == ["model.zip", "vecnormalize.npz"]
+    assert sorted(summary["files"]) == ["model.zip"]  # the shipped [sac] tables normalize nothing
     assert Path(folder / "final_model.zip").is_file()

@@ -96,11 +96,15 @@ def test_the_region_is_the_floor_and_the_judge_needs_it(spec):
 # ----------------------------------------------------------------------------- the critic's judge
 
 
-def test_the_judge_compares_the_smaller_twin_critic_by_the_margin(spec):
+@pytest.mark.parametrize("normalized", [False, True], ids=["raw-obs", "normalized-obs"])
+def test_the_judge_compares_the_smaller_twin_critic_by_the_margin(spec, normalized):
     import torch
 
-    recipe = tiny()
+    data = sac_recipe_data(value_trigger={"margin": 1.0})
+    data["sac"]["normalize"] = {"obs": normalized, "reward": False}
+    recipe = parse_recipe(data, "tiny")
     venv = make_vec_env(recipe, spec)
+    assert hasattr(venv, "normalize_obs") == normalized
     model = new_model(recipe, venv)
     rng = np.random.default_rng(1)
     model.num_timesteps = 0
@@ -108,7 +112,7 @@ def test_the_judge_compares_the_smaller_twin_critic_by_the_margin(spec):
     model.num_timesteps = model.learning_starts + 1
     for _ in range(20):
         obs, a, p = rng.normal(size=4), rng.uniform(-3, 3, 1), rng.uniform(-3, 3, 1)
-        x = venv.normalize_obs(obs[None])
+        x = venv.normalize_obs(obs[None]) if normalized else obs[None]
         acts = model.policy.scale_action(np.stack([a, p]))
         with torch.no_grad():
             q = torch.cat(model.critic(torch.as_tensor(np.repeat(x, 2, 0), dtype=torch.float32),

@@ -990,6 +990,72 @@ def rescue(
             con.print(f"wrote the rescue region into {path} as its takeover region")
 
 
+@app.command()
+@friendly_errors
+def forecast(
+    spec_file: Annotated[
+        str, typer.Argument(metavar="SPEC", help="A coach spec (TOML) with a rescue region.")
+    ],
+    transitions: Annotated[int, typer.Option(help="Actions put to the shield that set the margins.")] = 5000,
+    held_out: Annotated[
+        int, typer.Option(help="Further actions that check the margins and the vetoes.")
+    ] = 5000,
+    seed: Annotated[int, typer.Option(help="Seed of the env's resets and the random agent.")] = 0,
+    write: Annotated[bool, typer.Option("--write", help="Write [bounds.forecast] into SPEC.")] = False,
+    output: Annotated[
+        str | None,
+        typer.Option(
+            "--output", "-o",
+            help="Write a copy of SPEC with its [bounds.forecast] here "
+            "(named NAME when the file is ENV.NAME.toml).",
+        ),
+    ] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace the --output file if it exists.")] = False,
+) -> None:  # fmt: skip
+    """Measure the model predictor's forecast error on a spec's rescue region, and its vetoes."""
+    from pathlib import Path
+
+    from rich.progress import Progress
+
+    from pidlab.controller.spec import editing_spec, save_spec, writing_spec
+    from pidlab.lookup import parse_lookup
+    from pidlab.plant.model import load_model
+    from pidlab.region.forecast import kept_share
+    from pidlab.region.takeover import GridRegion
+    from pidlab.report.console import forecast_view, wide_console
+    from pidlab.rl.calibrate import measure_forecast
+
+    if write and output:
+        _fail("--write and --output: choose one (into SPEC, or into a copy)")
+    copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
+    with editing_spec(spec_file, write) as spec, copy as write_copy:
+        loaded = load_model(spec.env_id)
+        with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
+            task = bar.add_task("forecast error", total=transitions + held_out)
+            found = measure_forecast(
+                spec, loaded, transitions=transitions, held_out=held_out, seed=seed,
+                progress=lambda done, total: bar.update(task, completed=done),
+            )  # fmt: skip
+        card = loaded.require_card()
+        units = {v.name: v.unit for v in card.observation}
+        con = wide_console()
+        region = GridRegion(parse_lookup((spec.bounds or {}).get("rescue")), card.observation_names)
+        con.print(forecast_view(found, units, kept_share(region, found.margin)))
+        new = _with_forecast(spec, found)
+        if write:
+            con.print(f"wrote the forecast's error into {save_spec(new, spec_file)}")
+        elif output and write_copy is not None:
+            stem = Path(output).name.removesuffix(".toml")
+            name = stem.removeprefix(f"{spec.env_id}.") if stem.startswith(f"{spec.env_id}.") else spec.name
+            path = write_copy(dataclasses.replace(new, name=name))
+            con.print(f"wrote the spec with its forecast's error to {path}")
+
+
+def _with_forecast(spec: Any, found: Any) -> Any:
+    """``spec`` with ``found`` as its ``[bounds.forecast]``."""
+    return dataclasses.replace(spec, bounds={**(spec.bounds or {}), "forecast": found.to_table()})
+
+
 def _write_rescue_plot(spec: Any, region: Any, units: dict[str, str], plots: str, write: bool) -> Any:
     """``rescue --plots``: the region with the certified core and the takeover box, as PNG.
 

@@ -51,7 +51,7 @@ import tomli_w
 from pidlab.checks import as_table, check_name, number, shown, text
 from pidlab.errors import SpecError
 from pidlab.files import parse_toml, read_toml
-from pidlab.lookup import parse_lookup
+from pidlab.lookup import parse_forecast, parse_lookup
 
 SPEC_SCHEMA = "pidlab.coach-spec/1"
 ACTIONS = ("reverse", "direct")
@@ -382,11 +382,11 @@ def _check_ellipsoid(e: Any, where: str) -> None:
 
 def _check_bounds(b: Any, where: str) -> None:
     b = _table(b, where, "a table")
-    unknown = set(b) - {"method", "ellipsoid", "box", "rescue", "takeover", "provenance"}
+    unknown = set(b) - {"method", "ellipsoid", "box", "rescue", "takeover", "forecast", "provenance"}
     if unknown:
         raise SpecError(
             f"{where}: unknown field(s) {sorted(unknown)}; "
-            "allowed: method, ellipsoid, box, rescue, takeover, provenance"
+            "allowed: method, ellipsoid, box, rescue, takeover, forecast, provenance"
         )
     _str(b.get("method"), f"{where}.method")
     _free_form(b.get("provenance", {}), f"{where}.provenance")
@@ -398,6 +398,11 @@ def _check_bounds(b: Any, where: str) -> None:
             _limits(lim, f"{where}.box.{name}", finite=True)
     if "rescue" in b:
         parse_lookup(b["rescue"], f"{where}.rescue")
+    if "forecast" in b:
+        if "rescue" not in b:
+            raise SpecError(f"{where}.forecast: the forecast's error is measured on a rescue region; "
+                            "the table has no [bounds.rescue]")  # fmt: skip
+        parse_forecast(b["forecast"], f"{where}.forecast")
     if "takeover" in b:
         kind = _choice(b["takeover"], f"{where}.takeover", ("box", "ellipsoid", "rescue"))
         if kind not in b:
@@ -412,6 +417,7 @@ def bound_variables(spec: CoachSpec) -> list[str]:
     names += [n for n in spec.bounds.get("box", {}) if n not in names]
     rescue = spec.bounds.get("rescue", {})
     names += [n for n in (*rescue.get("variables", []), *rescue.get("guard", {})) if n not in names]
+    names += [n for n in spec.bounds.get("forecast", {}).get("margins", {}) if n not in names]
     return names
 
 

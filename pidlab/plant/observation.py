@@ -16,7 +16,8 @@ from pidlab.errors import UnknownSignalError
 from pidlab.plant.card import ModelCard, ObservationVariable, TerminationLimit
 
 
-def _address(model: mujoco.MjModel, var: ObservationVariable) -> int:
+def variable_address(model: mujoco.MjModel, var: ObservationVariable) -> int:
+    """Where ``var`` sits in its source array (``qpos`` address, else the joint's dof address)."""
     jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, var.joint)
     if var.source == "qpos":
         return int(model.jnt_qposadr[jid])
@@ -40,7 +41,7 @@ def observe(card: ModelCard, model: mujoco.MjModel, data: mujoco.MjData) -> np.n
     out = np.empty(len(card.observation))
     for i, var in enumerate(card.observation):
         arr = getattr(data, var.source)
-        value = float(arr[_address(model, var)])
+        value = float(arr[variable_address(model, var)])
         if var.transform == "sin":
             value = float(np.sin(value))
         elif var.transform == "cos":
@@ -132,7 +133,7 @@ class CompiledCard:
         n = len(card.observation)
         self._plain = _gather_index(card, model)
         self._source = [v.source for v in card.observation]
-        self._addr = np.array([_address(model, v) for v in card.observation])
+        self._addr = np.array([variable_address(model, v) for v in card.observation])
         self._sin = np.array([v.transform == "sin" for v in card.observation])
         self._cos = np.array([v.transform == "cos" for v in card.observation])
         self._lo = np.array([v.clip[0] if v.clip else -np.inf for v in card.observation])
@@ -196,5 +197,5 @@ def _gather_index(card: ModelCard, model: mujoco.MjModel) -> tuple[tuple[str, ..
     sources = tuple(dict.fromkeys(v.source for v in card.observation))
     sizes = [int(getattr(model, _SOURCE_SIZE[k])) for k in sources]
     base = dict(zip(sources, np.cumsum([0, *sizes]), strict=False))
-    flat = np.array([int(base[v.source]) + _address(model, v) for v in card.observation])
+    flat = np.array([int(base[v.source]) + variable_address(model, v) for v in card.observation])
     return sources, flat, any(v.clip for v in card.observation)

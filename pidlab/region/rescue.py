@@ -663,11 +663,15 @@ def default_settings(spec: CoachSpec, loaded: LoadedModel, trigger: str = "predi
 
 
 def with_rescue(spec: CoachSpec, region: RescueRegion, takeover: bool = True) -> CoachSpec:
-    """A copy of ``spec`` whose ``[bounds]`` holds ``region`` (as its takeover region if ``takeover``)."""
+    """A copy of ``spec`` whose ``[bounds]`` holds ``region`` (as its takeover region if ``takeover``).
+
+    A ``[bounds.forecast]`` measured on the region it replaces is dropped.
+    """
     instance(spec, CoachSpec, "spec")
     instance(region, RescueRegion, "region")
     b = dict(spec.bounds or {})
     b["rescue"] = region.to_table()
+    b.pop("forecast", None)  # measured on the region it replaces
     if takeover:
         b["takeover"] = "rescue"
     else:

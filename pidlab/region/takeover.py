@@ -63,7 +63,7 @@ def observation_indices(
     return out
 
 
-def _checked(obs: Any, size: int, inside: Callable[[Any], bool]) -> bool:
+def checked_observation(obs: Any, size: int, inside: Callable[[Any], bool]) -> bool:
     """``inside(obs)`` for an observation of ``size`` numbers; else the error ``contains`` raises."""
     try:
         if len(obs) == size:
@@ -107,7 +107,7 @@ class BoxRegion:
     def __init__(self, box: dict[str, Any], observation_names: tuple[str, ...], scale: float = 1.0) -> None:
         self.box = {k: (float(v[0]), float(v[1])) for k, v in box.items()}
         self.variables = tuple(self.box)
-        self._obs_names = observation_names
+        self.observation_names = observation_names
         idx = observation_indices(self.variables, observation_names, "bounds.box")
         lo = np.array([v[0] for v in self.box.values()])
         hi = np.array([v[1] for v in self.box.values()])
@@ -138,11 +138,13 @@ class BoxRegion:
         CoachingError
             ``obs`` is not an observation of the env (another length, not numbers).
         """
-        return _checked(obs, self._size, lambda o: all(lo <= o[i] <= hi for i, lo, hi in self._limits))
+        inside = lambda o: all(lo <= o[i] <= hi for i, lo, hi in self._limits)  # noqa: E731
+        return checked_observation(obs, self._size, inside)
 
     def inner(self, fraction: float) -> BoxRegion:
         """The box with its half-widths times ``fraction``."""
-        return BoxRegion(self.box, self._obs_names, self._scale * _check_fraction(fraction, "hand-back"))
+        scale = self._scale * _check_fraction(fraction, "hand-back")
+        return BoxRegion(self.box, self.observation_names, scale)
 
 
 class EllipsoidRegion:
@@ -167,7 +169,7 @@ class EllipsoidRegion:
         self.ellipsoid = ellipsoid
         self.certified = certified
         self.variables = tuple(ellipsoid["variables"])
-        self._obs_names = observation_names
+        self.observation_names = observation_names
         self.index = np.array(observation_indices(self.variables, observation_names, "bounds.ellipsoid"))
         self._size = len(observation_names)
         self.center = np.array(ellipsoid["center"], dtype=float)
@@ -196,7 +198,7 @@ class EllipsoidRegion:
     def inner(self, fraction: float) -> EllipsoidRegion:
         """The ellipsoid with its semi-axes times ``fraction``."""
         f = self.scale * _check_fraction(fraction, "hand-back")
-        return EllipsoidRegion(self.ellipsoid, self._obs_names, f, self.certified)
+        return EllipsoidRegion(self.ellipsoid, self.observation_names, f, self.certified)
 
 
 class GridRegion:
@@ -216,7 +218,7 @@ class GridRegion:
         self.grid = grid
         self.variables = grid.variables
         self.min_depth = int(min_depth)
-        self._obs_names = observation_names
+        self.observation_names = observation_names
         self._depth = grid.depth()
         marked = self._depth > self.min_depth if self.min_depth > 0 else grid.table
         self._flat = [bool(v) for v in np.asarray(marked).ravel()]
@@ -251,12 +253,14 @@ class GridRegion:
         CoachingError
             ``obs`` is not an observation of the env (another length, not numbers).
         """
-        return _checked(obs, self._size, self._contains)
+        return checked_observation(obs, self._size, self._contains)
+
+    def _in_guard(self, obs: np.ndarray) -> bool:
+        return all(lo <= obs[i] <= hi for i, lo, hi in self._guard)
 
     def _contains(self, obs: np.ndarray) -> bool:
-        for i, lo, hi in self._guard:
-            if not lo <= obs[i] <= hi:
-                return False
+        if not self._in_guard(obs):
+            return False
         flat = 0
         for i, lo, hi, inv, n, stride in self._axes:
             x = float(obs[i])
@@ -273,7 +277,7 @@ class GridRegion:
         """
         f = _check_fraction(fraction, "hand-back")
         depth = min(int(np.floor((1.0 - f) * self.max_depth)), max(self.centre_depth - 1, 0))
-        return GridRegion(self.grid, self._obs_names, max(depth, self.min_depth))
+        return GridRegion(self.grid, self.observation_names, max(depth, self.min_depth))
 
 
 def takeover_kind(bounds: dict[str, Any] | None) -> str | None:

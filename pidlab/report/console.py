@@ -507,3 +507,32 @@ def train_view(result: Any, win_target: float) -> Group:
         style="green" if result.completed else "yellow",
     )
     return Group(t, status)
+
+
+def forecast_view(f: Any, units: dict[str, str], kept: float | None = None) -> Group:
+    """What ``pidlab forecast`` prints: the forecast's error per region variable, and the vetoes."""
+    head = Text()
+    head.append(f"{f.model} forecast, measured behind the exact shield with a random agent (seed {f.seed})\n",
+                style="bold")  # fmt: skip
+    head.append(
+        f"margins from {f.transitions:,} actions; {f.held_out:,} held-out actions: {f.escapes} outside "
+        "the margins of their forecast\n"
+    )
+    if kept is not None:
+        head.append(f"{kept:.1%} of the rescue region has its margin box inside it (sampled)\n")
+    t = Table(title="Forecast error, |true - forecast| one control period ahead", title_justify="left")
+    for col in ("variable", "median", "99th percentile", "margin (largest)"):
+        t.add_column(col, justify="left" if col == "variable" else "right")
+    for v, med, p99, m in zip(f.variables, f.median, f.p99, f.margins, strict=True):
+        unit = units.get(v, "")
+        t.add_row(f"{v} ({unit})", f"{med:.3g}", f"{p99:.3g}", f"{m:.3g}")
+    a = f.agreement
+    v = Table(title=f"Vetoes on the held-out actions: agreement {f.veto_agreement:.1%}",
+              title_justify="left")  # fmt: skip
+    for col in ("exact vetoes", "model vetoes", "actions"):
+        v.add_column(col, justify="left" if col != "actions" else "right")
+    rows = [("both", "yes", "yes"), ("exact_only", "yes", "no"), ("model_only", "no", "yes")]
+    rows.append(("neither", "no", "no"))
+    for key, exact, model in rows:
+        v.add_row(exact, model, f"{a[key]:,}")
+    return Group(head, t, v)

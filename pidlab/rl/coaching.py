@@ -34,7 +34,11 @@ What the agent sees of a takeover (``view``)
     the env's failure reward, :func:`pidlab.rl.rewards.failure_reward`); the coach rescues the
     real env (inside the same ``step()``) and the next ``reset()`` returns the rescued state
     instead of resetting, unless the rescue ended the env's episode, or the reset has a seed or
-    options. The look-ahead of the predictive trigger is :class:`pidlab.rl.predict.Predictor`.
+    options. The look-ahead of the predictive trigger is :class:`pidlab.rl.predict.Predictor`
+    (``predictor = "exact"``, a copy of the env's MuJoCo data) or
+    :class:`pidlab.rl.predict.ModelPredictor` (``"model"``: the discrete linear model; the whole
+    box of the forecast's measured error, ``[bounds.forecast]``, about the forecast must lie in the
+    rescue region, :class:`pidlab.region.forecast.MarginRegion`).
 
 Rewards
     By default the agent is given its own step's reward only; the coach's rewards are reported
@@ -125,8 +129,9 @@ from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
 from pidlab.plant.model import LoadedModel, load_model
+from pidlab.region.forecast import MarginRegion, check_forecastable, spec_forecast
 from pidlab.region.takeover import KINDS, GridRegion, Region, observation_indices, region_from_bounds
-from pidlab.rl.predict import Predictor
+from pidlab.rl.predict import ModelPredictor, Predictor
 from pidlab.rl.rewards import alive_reward, failure_function
 
 MODES = ("takeover", "nudge")
@@ -219,6 +224,55 @@ def _check_options(
             "reward 'total' with view 'terminal': the takeover starts after the agent's episode ended, "
             "so its rewards are no agent's; use reward = 'agent'"
         )
+
+
+PREDICTORS = ("exact", "model")
+"""The predictive trigger's look-ahead: a copy of the MuJoCo data, or the discrete linear model."""
+
+
+def _check_predictor(predictor: object, trigger: object) -> None:
+    if predictor not in PREDICTORS:
+        raise CoachingError(f"predictor {predictor!r}: expected one of {', '.join(PREDICTORS)}")
+    if predictor == "model" and trigger != "predictive":
+        raise CoachingError(
+            "predictor 'model' is the predictive trigger's look-ahead; use trigger = 'predictive'"
+        )
+
+
+def model_region(spec: CoachSpec, loaded: LoadedModel, region: Region) -> MarginRegion:
+    """The rescue region the model predictor asks: of the box of the measured error about a forecast.
+
+    Raises
+    ------
+    CoachingError
+        The region tests a variable no joint-state forecast gives; the spec has no forecast
+        measurement, or one of another region; the error leaves nothing of the region, or leaves
+        out the operating point (where the coach hands back).
+    """
+    from pidlab.plant.observation import observe_at
+    from pidlab.plant.operating_point import resolve_operating_point
+
+    card = loaded.require_card()
+    if not isinstance(region, GridRegion):
+        raise CoachingError(f"{spec.name}: predictor 'model' tests the rescue region (a lookup grid)")
+    grid = region.grid
+    check_forecastable(card, (*grid.variables, *grid.guard), f"{spec.name}: predictor 'model'")
+    forecast = spec_forecast(spec.bounds, spec.name)
+    try:
+        shrunk = MarginRegion(region, forecast.margin)
+    except CoachingError as exc:
+        raise CoachingError(f"{spec.name}: {exc}") from None
+    op = resolve_operating_point(loaded)
+    if not shrunk.contains(observe_at(card, loaded.model, op.qpos, op.qvel)):
+        raise CoachingError(
+            f"{spec.name}: the forecast's error ({_margins(forecast.margin)}) is too wide for the rescue "
+            "region even at the operating point, where the coach hands back; use predictor = 'exact'"
+        )
+    return shrunk
+
+
+def _margins(margin: dict[str, float]) -> str:
+    return ", ".join(f"{k} {v:.3g}" for k, v in margin.items())
 
 
 def _constant_one(width: ProgressFn | None) -> bool:
@@ -321,6 +375,9 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         The agent's action is added to the weighted coach's (needs ``blend``).
     record : bool
         Report the coach's transitions of takeovers and vetoes in ``info["coach_transitions"]``.
+    predictor : {"exact", "model"}
+        The predictive trigger's look-ahead: a copy of the env's MuJoCo data, or the linear model
+        with the spec's ``[bounds.forecast]`` margins about its forecast.
     """
 
     def __init__(
@@ -344,6 +401,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         blend: ProgressFn | None = None,
         residual: bool = False,
         record: bool = False,
+        predictor: str = "exact",
     ) -> None:
         instance(env, gym.Env, "env", CoachingError)
         if spec is not None:
@@ -352,10 +410,12 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self, spec=spec, mode=mode, region=region, trigger=trigger, nudge_steps=nudge_steps,
             max_coach_steps=max_coach_steps, reward=reward, probability=probability, width=width,
             off_after=off_after, loaded=loaded, seed=seed, view=view, cost=cost, handback=handback,
-            blend=blend, residual=residual, record=record,
+            blend=blend, residual=residual, record=record, predictor=predictor,
         )  # fmt: skip
         gym.Wrapper.__init__(self, env)
         _check_options(mode, reward, nudge_steps, max_coach_steps, trigger, view, cost, handback)
+        _check_predictor(predictor, trigger)
+        self.predictor_kind = predictor
         self.coach_spec = spec
         self.mode = mode
         self.nudge_steps = nudge_steps
@@ -372,7 +432,7 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.coach: Coach | None = None
         self.region: Any = None  # a Region (box, ellipsoid or rescue) with a settable scale
         self._handback_region: Region | None = None
-        self._predictor: Predictor | None = None
+        self._predictor: Predictor | ModelPredictor | None = None
         if spec is not None:
             self._set_coach(env, spec, region, loaded, cost)
         self._history: deque[float] = deque(maxlen=(self.trigger.steps + 1) if self.trigger else 1)
@@ -394,9 +454,13 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._picker: Advisor | None = None
         self._until = 1.0
         self._proposer: Coach | None = None
+        self._reset_counters()
+        self._zero_totals()
+
+    def _zero_totals(self) -> None:
+        """The lifetime totals, all zero (they are never reset after)."""
         self.total_value_vetoes = 0
         self.total_proposals_taken = 0
-        self._reset_counters()
         self.total_agent_steps = 0
         self.total_coach_steps = 0
         self.total_interventions = 0
@@ -417,11 +481,14 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.coach = Coach(spec, self.loaded)
         if self.trigger is None:
             self.region = takeover_region(spec, names, region, self.predictive, self.width)
+            if self.predictor_kind == "model":
+                self.region = model_region(spec, self.loaded, self.region)
             self._update_handback()
         else:
             self._trigger_index = observation_indices([self.trigger.variable], names, "growth trigger")[0]
         if self.predictive:
-            self._predictor = Predictor(env, card)
+            exact = self.predictor_kind == "exact"
+            self._predictor = Predictor(env, card) if exact else ModelPredictor(env, self.loaded)
         if self.view == "terminal":
             self._failure = failure_function(spec.env_id)
         if self.view == "penalty":
@@ -430,6 +497,11 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _update_handback(self) -> None:
         if self.region is not None:
             self._handback_region = self.region if self.handback == 1.0 else self.region.inner(self.handback)
+
+    @property
+    def lookahead(self) -> Predictor | ModelPredictor | None:
+        """The predictive trigger's look-ahead (None with another trigger)."""
+        return self._predictor
 
     @property
     def coached(self) -> bool:

@@ -57,6 +57,7 @@ from typing import Any
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
 from pidlab.files import load_json, write_json
+from pidlab.lookup import parse_lookup
 from pidlab.rl.recipe import DemonstrationSettings, Proposer, Recipe, RollIn, ValueTrigger, WarmStart
 
 RECORD = "warm_start.json"
@@ -325,6 +326,19 @@ def _alive(env_id: str) -> float:
         env.close()
 
 
+def _check_model_predictor(spec: CoachSpec) -> None:
+    """The model predictor's region, built as a run would build it (refused as a run would be)."""
+    from pidlab.plant.model import load_model
+    from pidlab.region.takeover import GridRegion
+    from pidlab.rl.coaching import model_region
+
+    rescue = (spec.bounds or {}).get("rescue")
+    if rescue is None:
+        raise CoachingError(f"{spec.name}: predictor 'model' tests the spec's rescue region, and it has none")
+    loaded = load_model(spec.env_id)
+    model_region(spec, loaded, GridRegion(parse_lookup(rescue), loaded.require_card().observation_names))
+
+
 def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
     """Refuse couplings that cannot run with this recipe and coach.
 
@@ -336,7 +350,8 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
         algorithm other than PPO; a coach buffer, a value trigger or a proposer with PPO; a coach
         buffer with the ``hidden`` view; a proposer with several envs, a coach buffer or a value
         trigger; a value trigger without the predictive trigger, or with subprocess
-        envs; a roll-in on an env without a time limit.
+        envs; a roll-in on an env without a time limit; the model predictor with a spec whose
+        region it cannot serve (see :func:`pidlab.rl.coaching.model_region`).
     """
     c = recipe.coaching
     if c.blend is not None and spec is None:
@@ -347,6 +362,8 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
             "(--coach none)"
         )
     _check_mix_algorithm(recipe)
+    if c.predictor == "model" and spec is not None:
+        _check_model_predictor(spec)
     if c.coach_buffer is not None:
         _check_coach_buffer(recipe, spec)
     if c.value_trigger is not None:

@@ -1,4 +1,11 @@
-"""The predictive trigger's look-ahead: the env's next observation, from a copy of its MuJoCo data."""
+"""The predictive trigger's look-ahead: the env's next observation.
+
+:class:`Predictor` (``predictor = "exact"``) steps a copy of the env's MuJoCo data: the answer is
+exact, and it is an oracle no real robot has. :class:`ModelPredictor` (``predictor = "model"``)
+forecasts from the env's discrete linear model and the current joint state
+(:class:`pidlab.region.forecast.LinearForecast`); the whole box of the forecast's measured error
+about it must lie in the rescue region (:class:`pidlab.region.forecast.MarginRegion`).
+"""
 
 from __future__ import annotations
 
@@ -11,7 +18,21 @@ import numpy as np
 
 from pidlab.errors import CoachingError
 from pidlab.plant.card import ModelCard
+from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import CompiledCard
+from pidlab.region.forecast import LinearForecast, linear_forecast
+
+
+def _refuse_action_wrappers(env: gym.Env, what: str) -> None:
+    """The prediction needs the action the env will simulate: no action wrapper may change it."""
+    inner: Any = env
+    while isinstance(inner, gym.Wrapper):
+        if isinstance(inner, gym.ActionWrapper):
+            raise CoachingError(
+                f"{what}: {type(inner).__name__} changes the agent's action on its way to the env; "
+                "put it outside the coaching wrapper"
+            )
+        inner = inner.env
 
 
 class Predictor:
@@ -43,14 +64,7 @@ class Predictor:
         mujoco_env = isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData)
         if not mujoco_env or not isinstance(skip, int):
             raise CoachingError("trigger 'predictive' needs a Gymnasium MuJoCo env (model, data, frame_skip)")
-        inner: Any = env
-        while isinstance(inner, gym.Wrapper):  # the prediction needs the action the env will simulate
-            if isinstance(inner, gym.ActionWrapper):
-                raise CoachingError(
-                    f"trigger 'predictive': {type(inner).__name__} changes the agent's action on its way to "
-                    "the env; put it outside the coaching wrapper"
-                )
-            inner = inner.env
+        _refuse_action_wrappers(env, "trigger 'predictive'")
         self._env = u
         self._model = model
         self._copy = mujoco.MjData(model)
@@ -61,6 +75,11 @@ class Predictor:
         self._copy_back = hasattr(type(u), "_step_mujoco_simulation")
         self._predicted = False
         self._action: Any = None
+        self._listeners: list[Callable[[Any, Any, np.ndarray], None]] = []
+
+    def listen(self, listener: Callable[[Any, Any, np.ndarray], None]) -> None:
+        """Call ``listener(data, action, obs)`` at each prediction (``data``: the env's data before it)."""
+        self._listeners.append(listener)
 
     def predict(self, action: Any) -> np.ndarray:
         """The observation after ``action`` from the env's current state (the env is not touched)."""
@@ -70,7 +89,10 @@ class Predictor:
         mujoco.mj_step(self._model, d, nstep=self._frame_skip)
         self._predicted = True
         self._action = action
-        return self._card.observe(d)
+        obs = self._card.observe(d)
+        for listener in self._listeners:
+            listener(self._env.data, action, obs)
+        return obs
 
     def discard(self) -> None:
         """Forget the last prediction (its action was vetoed: the env moves on without it)."""
@@ -103,3 +125,62 @@ class Predictor:
         self._predicted = False
         mujoco.mj_copyData(u.data, model, d)
         mujoco.mj_rnePostConstraint(model, u.data)
+
+
+_FORECASTS: dict[str, LinearForecast] = {}
+
+
+def forecast_of(loaded: LoadedModel) -> LinearForecast:
+    """The linear forecast of a model at its card's operating point (made once per model source)."""
+    from pidlab.linear.linearize import linearize
+
+    key = str(loaded.source)
+    if key not in _FORECASTS:
+        _FORECASTS[key] = linear_forecast(linearize(loaded), loaded.require_card(), loaded.model)
+    return _FORECASTS[key]
+
+
+class ModelPredictor:
+    """The observation one control period ahead, forecast by the env's discrete linear model.
+
+    The current joint state (``qpos``, ``qvel``, ``act``: what a state estimator gives a real
+    robot; on the paper's four envs the observation holds it, less the walkers' forward position,
+    which the dynamics do not depend on) and the action go through
+    :class:`~pidlab.region.forecast.LinearForecast`. Nothing is simulated; the columns no joint
+    state gives are NaN. :meth:`execute` is the env's own step.
+
+    Parameters
+    ----------
+    env : gymnasium.Env
+        A Gymnasium MuJoCo env.
+    loaded : LoadedModel
+        The env's model (its card and its linear model).
+
+    Raises
+    ------
+    CoachingError
+        ``env`` is not a MuJoCo env, or an action wrapper sits between the wrapper and the env.
+    """
+
+    def __init__(self, env: gym.Env, loaded: LoadedModel) -> None:
+        u: Any = env.unwrapped
+        if not isinstance(getattr(u, "data", None), mujoco.MjData):
+            raise CoachingError(
+                "predictor 'model' needs a Gymnasium MuJoCo env (its data hold the joint state)"
+            )
+        _refuse_action_wrappers(env, "predictor 'model'")
+        self._env = u
+        self._model = loaded.model
+        self.forecast = forecast_of(loaded)
+
+    def predict(self, action: Any) -> np.ndarray:
+        """The forecast observation after ``action`` (NaN where no joint state gives a column)."""
+        d = self._env.data
+        return self.forecast.observation(self._model, d.qpos, d.qvel, d.act, action)
+
+    def discard(self) -> None:
+        """Nothing to forget: the forecast holds no simulated state."""
+
+    def execute(self, step: Callable[[Any], tuple], action: Any) -> tuple:
+        """``step(action)``: the env simulates as usual."""
+        return step(action)

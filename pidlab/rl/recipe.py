@@ -42,6 +42,9 @@ Schema ``pidlab.recipe/1``::
                                  # (the agent's action is vetoed when its predicted state leaves
                                  # the rescue region; takeover only) | a growth-trigger table:
     # trigger = { variable = "hinge_vel", low = 0.0, high = 0.3, steps = 2 }   # nudge only
+    predictor = "exact"          # the predictive trigger's look-ahead: exact (a copy of the MuJoCo
+                                 # data) | model (the linear model, against the rescue region
+                                 # shrunk by the spec's [bounds.forecast]: `pidlab forecast`)
     handback = 1.0               # the coach hands back inside region.inner(handback), in (0, 1]
     view = "hidden"              # what the agent sees of a takeover: hidden | penalty | terminal
     cost = 10.0                  # penalty view: a takeover's cost (>= 0; default 10 alive rewards)
@@ -104,7 +107,7 @@ from pidlab.controller.rollout import MAX_EPISODES
 from pidlab.data import coach_dir, data_files, find_data_file
 from pidlab.errors import PidlabError, RecipeError, ScheduleError
 from pidlab.files import read_toml
-from pidlab.rl.coaching import MODES, REGIONS, REWARDS, TRIGGERS, VIEWS, GrowthTrigger
+from pidlab.rl.coaching import MODES, PREDICTORS, REGIONS, REWARDS, TRIGGERS, VIEWS, GrowthTrigger
 from pidlab.rl.schedule import Schedule, parse_schedule, schedule_to_dict
 
 RECIPE_SCHEMA = "pidlab.recipe/1"
@@ -260,7 +263,9 @@ class Coaching:
     """How the coach intervenes (see :class:`pidlab.rl.coaching.CoachingWrapper`).
 
     ``trigger``: ``None`` is the ``exit`` trigger, ``"predictive"`` the predictive one, a
-    :class:`GrowthTrigger` the paper's. ``cost``: ``None`` is the default (10 alive rewards).
+    :class:`GrowthTrigger` the paper's. ``predictor``: the predictive trigger's look-ahead,
+    ``"exact"`` (a copy of the MuJoCo data) or ``"model"`` (the discrete linear model).
+    ``cost``: ``None`` is the default (10 alive rewards).
     ``blend`` and ``residual`` (at most one) are the coach's weight ``w`` in the executed action,
     ``w coach + (1 - w) agent`` and ``w coach + agent`` respectively, fading to 0.
     ``coach_buffer``: the coach's transitions kept for an off-policy agent's updates;
@@ -277,6 +282,7 @@ class Coaching:
     width: Schedule = field(default_factory=lambda: Schedule("constant", 1.0, 1.0))
     off_after: float | None = None
     trigger: GrowthTrigger | str | None = None
+    predictor: str = "exact"
     view: str = "hidden"
     cost: float | None = None
     handback: float = 1.0
@@ -638,7 +644,7 @@ def check_rollout(kwargs: dict[str, Any], n_envs: int, where: str, param: str | 
 
 
 _COACHING = {"mode", "region", "nudge_steps", "max_coach_steps", "reward", "probability", "width",
-             "off_after", "trigger", "view", "cost", "handback", "demonstrations", "warm_start",
+             "off_after", "trigger", "predictor", "view", "cost", "handback", "demonstrations", "warm_start",
              "blend", "rollin", "residual", "coach_buffer", "value_trigger", "proposer"}  # fmt: skip
 
 
@@ -666,6 +672,11 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
             f"{w}.trigger: a growth trigger needs mode = 'nudge' (takeover is triggered by the region)"
         )
     region = _region(c, w, trigger, width)
+    predictor = _choice(c, "predictor", w, PREDICTORS, "exact")
+    if predictor == "model" and trigger != "predictive":
+        raise RecipeError(
+            f"{w}.predictor = 'model' is the predictive trigger's look-ahead; expected trigger = 'predictive'"
+        )
     reward = _choice(c, "reward", w, REWARDS, "agent")
     view = _choice(c, "view", w, VIEWS, "hidden")
     if view == "terminal" and reward == "total":
@@ -683,6 +694,7 @@ def _coaching(data: dict[str, Any], where: str) -> Coaching:
         width=width,
         off_after=off_after,
         trigger=trigger,
+        predictor=predictor,
         view=view,
         cost=_num(c, "cost", w, low=0.0) if "cost" in c else None,
         handback=_num(c, "handback", w, 1.0, low=0.0, low_open=True, high=1.0),
@@ -1208,6 +1220,8 @@ def recipe_to_dict(recipe: Recipe) -> dict[str, Any]:
         coaching["trigger"] = {"variable": t.variable, "low": t.low, "high": t.high, "steps": t.steps}
     elif c.trigger is not None:
         coaching["trigger"] = c.trigger
+    if c.predictor != "exact":
+        coaching["predictor"] = c.predictor
     # written only when they differ from the defaults, so a run's settings (and their digest) read
     # as before for the recipes that do not use them
     if c.handback != 1.0:

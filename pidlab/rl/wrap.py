@@ -24,7 +24,8 @@ def mix_of(c: Coaching) -> Any:
 def wrapper_arguments(c: Coaching, coached: bool) -> dict[str, Any]:
     """The :class:`~pidlab.rl.coaching.CoachingWrapper` arguments of ``c`` (``coached``: a coach is given)."""
     return {
-        "mode": c.mode, "region": c.region, "trigger": c.trigger, "nudge_steps": c.nudge_steps,
+        "mode": c.mode, "region": c.region, "trigger": c.trigger, "predictor": c.predictor,
+        "nudge_steps": c.nudge_steps,
         "max_coach_steps": c.max_coach_steps, "reward": c.reward, "probability": c.probability,
         "width": c.width, "off_after": c.off_after, "view": c.view, "cost": c.cost, "handback": c.handback,
         "blend": mix_of(c) if coached else None, "residual": c.residual is not None and coached,

@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# The model predictor's measurement per env: `pidlab forecast` on each pidlab-rescue spec writes
+# tuning/ENV.pidlab-rescue-model.toml (the spec with its [bounds.forecast]: 5,000 actions of a random
+# agent behind the exact shield set the margins, 5,000 more check them; seed 0), then
+# benchmarks/forecast_table.py writes the table of docs/rescue.md from those files (and the training
+# falls of docs/results/InvertedPendulum-v5-model, when published).
+#
+#   bash benchmarks/forecast.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+for env in InvertedPendulum-v5 InvertedDoublePendulum-v5 Hopper-v5 Walker2d-v5; do
+    .venv/bin/pidlab forecast "tuning/$env.pidlab-rescue.toml" --transitions 5000 --held-out 5000 --seed 0 \
+        -o "tuning/$env.pidlab-rescue-model.toml" --force
+done
+.venv/bin/python benchmarks/forecast_table.py

@@ -1,0 +1,130 @@
+"""The model predictor's tables in docs/rescue.md, from the shipped model specs and the published runs.
+
+The forecast's error, the vetoes it agrees on and the share of the region left are read from each
+``tuning/ENV.pidlab-rescue-model.toml`` (its ``[bounds.forecast]``, as ``pidlab forecast`` wrote it;
+the share is :func:`pidlab.region.forecast.kept_share`, a seeded sample). Whether a run can use the
+model predictor is asked of :func:`pidlab.rl.coaching.model_region`, as a run asks it. The falls in
+training are read from the per-run ``summary.json`` files of ``docs/results/InvertedPendulum-v5-model``.
+The tables sit in docs/rescue.md between ``<!-- forecast-table -->`` and ``<!-- /forecast-table -->``.
+
+Run: .venv/bin/python benchmarks/forecast_table.py [--check]
+(--check: exit 1 when the page's tables differ from the files'.)
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+from pathlib import Path
+
+from pidlab.controller.spec import load_spec
+from pidlab.errors import CoachingError
+from pidlab.lookup import parse_lookup
+from pidlab.plant.model import load_model
+from pidlab.region.forecast import kept_share, spec_forecast
+from pidlab.region.takeover import GridRegion
+from pidlab.rl.coaching import model_region
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGE = ROOT / "docs" / "rescue.md"
+ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")
+RUNS = ROOT / "docs" / "results" / "InvertedPendulum-v5-model"
+CONDITIONS = ("none", "rescue-terminal", "rescue-terminal-model")
+START, END = "<!-- forecast-table -->", "<!-- /forecast-table -->"
+
+
+def _unit(unit: str) -> str:
+    return "" if unit in ("", "1") else f" {unit}"
+
+
+def _error_cell(f, units: dict[str, str]) -> str:
+    return "; ".join(
+        f"{v} {med:.2g} / {p99:.2g} / {m:.2g}{_unit(units.get(v, ''))}"
+        for v, med, p99, m in zip(f.variables, f.median, f.p99, f.margins, strict=True)
+    )
+
+
+def row(env: str) -> str:
+    """One env's row: the error per variable, the escapes, the vetoes, the region left, usable or not."""
+    spec = load_spec(ROOT / "tuning" / f"{env}.pidlab-rescue-model.toml")
+    loaded = load_model(env)
+    card = loaded.require_card()
+    f = spec_forecast(spec.bounds, spec.name)
+    region = GridRegion(parse_lookup(spec.bounds["rescue"]), card.observation_names)
+    try:
+        model_region(spec, loaded, region)
+        usable = "yes"
+    except CoachingError:
+        usable = "no"
+    a = f.agreement
+    units = {v.name: v.unit for v in card.observation}
+    return (
+        f"| {env} | {_error_cell(f, units)} | {f.escapes} of {f.held_out:,} | {a['both']:,} | "
+        f"{a['exact_only']:,} | {a['model_only']:,} | {a['neither']:,} | "
+        f"**{100 * f.veto_agreement:.1f} %** | "
+        f"{100 * kept_share(region, f.margin):.1f} % | {usable} |"
+    )
+
+
+def error_table() -> str:
+    """The forecast's error and vetoes, one row per env."""
+    head = (
+        "| env | error per variable: median / 99th percentile / margin (largest) | held-out states outside "
+        "the margins | both veto | exact only | model only | neither | veto agreement | region whose margin "
+        "box fits | model predictor usable |\n|---|---|---|---|---|---|---|---|---|---|"
+    )
+    return "\n".join([head, *(row(env) for env in ENVS)])
+
+
+def _summaries(condition: str) -> list[dict]:
+    folder = RUNS / "runs" / "InvertedPendulum-v5" / condition
+    return [json.loads(p.read_text()) for p in sorted(folder.glob("seed-*/summary.json"))]
+
+
+def training_table() -> str:
+    """Falls, coach share and the agent-alone score per condition, from the published runs."""
+    head = (
+        "| condition | runs | falls per run: median [min, max] | coach's share of env steps (median) | "
+        "agent-alone final score (median) |\n|---|---|---|---|---|"
+    )
+    rows = []
+    for cond in CONDITIONS:
+        s = [x for x in _summaries(cond) if x.get("completed")]
+        if not s:
+            rows.append(f"| {cond} | 0 | — | — | — |")
+            continue
+        falls = [x["falls"] for x in s]
+        share = statistics.median(x.get("coach_step_fraction", 0.0) for x in s)
+        score = statistics.median(x["final_evaluation"]["mean"] for x in s)
+        rows.append(
+            f"| {cond} | {len(s)} | {statistics.median(falls):g} [{min(falls)}, {max(falls)}] | "
+            f"{100 * share:.1f} % | {score:.0f} |"
+        )
+    return "\n".join([head, *rows])
+
+
+def tables() -> str:
+    """Both tables, in Markdown."""
+    return error_table() + "\n\n" + training_table()
+
+
+def main(argv: list[str]) -> int:
+    """Print the tables; write them into the page (or, with --check, compare)."""
+    text = PAGE.read_text()
+    start, end = text.index(START) + len(START), text.index(END)
+    body = tables()
+    new = text[:start] + "\n" + body + "\n" + text[end:]
+    print(body)
+    if "--check" in argv:
+        if new != text:
+            print(f"{PAGE}: its forecast tables differ from the files'; run benchmarks/forecast_table.py",
+                  file=sys.stderr)  # fmt: skip
+            return 1
+        return 0
+    PAGE.write_text(new)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,288 @@
+"""A look-ahead without a copy of the simulator: the next observation from the discrete linear model.
+
+The predictive trigger (:class:`pidlab.rl.predict.Predictor`) asks where the agent's action would
+take the env, and answers on an exact copy of the MuJoCo state: an oracle a real robot has not.
+:class:`LinearForecast` answers from the env's discrete linear model instead (the one
+:func:`pidlab.linear.linearize.linearize` builds at the card's operating point, at the control
+period): from the current joint state ``(qpos, qvel, act)`` and the action,
+
+    x' = Ad (x - x_op) + Bd (u - u_op)
+
+in tangent coordinates, mapped to the observation variables through the model card. Only the
+variables read from ``qpos`` or ``qvel`` can be forecast (a constraint force cannot).
+
+The forecast is wrong by some amount. :class:`ForecastError` is that amount per region variable,
+measured on recorded transitions (:func:`pidlab.rl.calibrate.measure_forecast`), and
+:class:`MarginRegion` asks the rescue region about the whole box of that size about a forecast:
+when every state within the error of the forecast is inside the region, the rescue region's
+guarantee holds for the real next state whenever the error holds. A spec keeps the measurement
+in its ``[bounds.forecast]`` table, with the digest of the rescue region it was measured on; a
+forecast of another region is refused.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from pidlab.errors import CoachingError, SpecError
+from pidlab.lookup import ForecastError, parse_forecast, region_digest
+from pidlab.plant.card import ModelCard
+from pidlab.plant.observation import variable_address
+from pidlab.region.takeover import GridRegion
+
+SOURCES = ("qpos", "qvel")
+"""The observation sources a forecast of the joint state can give."""
+
+
+@dataclass(frozen=True)
+class LinearForecast:
+    """The discrete linear model of an env, read as a one-step forecast of its observation.
+
+    Attributes
+    ----------
+    Ad, Bd : ndarray
+        Discrete state and input matrices at the control period (states ``(dq, dqvel, dact)`` in
+        tangent coordinates about the operating point, inputs ``ctrl - ctrl_op``).
+    qpos_op, qvel_op, act_op, ctrl_op : ndarray
+        The operating point.
+    ctrl_low, ctrl_high : ndarray
+        Where MuJoCo clamps each control (``-inf, inf`` for an unlimited actuator).
+    columns : tuple of (int, str, int, str or None, tuple or None)
+        Per observation variable that can be forecast: its column in the observation, its source
+        (``qpos``/``qvel``), its address there, its transform and its clip.
+    size : int
+        The observation's length.
+    """
+
+    Ad: np.ndarray
+    Bd: np.ndarray
+    qpos_op: np.ndarray
+    qvel_op: np.ndarray
+    act_op: np.ndarray
+    ctrl_op: np.ndarray
+    ctrl_low: np.ndarray
+    ctrl_high: np.ndarray
+    columns: tuple[tuple[int, str, int, str | None, tuple[float, float] | None], ...]
+    size: int
+
+    @property
+    def variables(self) -> tuple[int, ...]:
+        """Columns of the observation the forecast fills (the others are NaN)."""
+        return tuple(c[0] for c in self.columns)
+
+    def state(self, model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray) -> np.ndarray:
+        """Tangent-space deviation ``x - x_op`` of a joint state, shape ``(2 nv + na,)``."""
+        dq = np.zeros(model.nv)
+        mujoco.mj_differentiatePos(model, dq, 1.0, self.qpos_op, np.asarray(qpos, dtype=float))
+        return np.concatenate([dq, np.asarray(qvel, dtype=float) - self.qvel_op,
+                               np.asarray(act, dtype=float) - self.act_op])  # fmt: skip
+
+    def observation(
+        self, model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, action: np.ndarray
+    ) -> np.ndarray:
+        """The forecast observation one control period after ``action`` from ``(qpos, qvel, act)``.
+
+        NaN in the columns the forecast cannot fill (sources other than ``qpos`` and ``qvel``).
+        """
+        u = np.clip(np.asarray(action, dtype=float).reshape(-1), self.ctrl_low, self.ctrl_high) - self.ctrl_op
+        x = self.Ad @ self.state(model, qpos, qvel, act) + self.Bd @ u
+        nv = model.nv
+        q = self.qpos_op.copy()
+        mujoco.mj_integratePos(model, q, x[:nv], 1.0)
+        values = {"qpos": q, "qvel": self.qvel_op + x[nv : 2 * nv]}
+        out = np.full(self.size, np.nan)
+        for col, source, address, transform, clip in self.columns:
+            v = float(values[source][address])
+            if transform == "sin":
+                v = float(np.sin(v))
+            elif transform == "cos":
+                v = float(np.cos(v))
+            if clip is not None:
+                v = min(max(v, clip[0]), clip[1])
+            out[col] = v
+        return out
+
+
+def forecastable(card: ModelCard) -> tuple[str, ...]:
+    """The card's observation variables a forecast of the joint state gives (read from qpos or qvel)."""
+    return tuple(v.name for v in card.observation if v.source in SOURCES)
+
+
+def check_forecastable(card: ModelCard, variables: tuple[str, ...] | list[str], where: str) -> None:
+    """Refuse a region over a variable that no joint-state forecast gives.
+
+    Raises
+    ------
+    CoachingError
+        Naming the variable and its source.
+    """
+    can = forecastable(card)
+    sources = {v.name: v.source for v in card.observation}
+    for name in variables:
+        if name not in can:
+            raise CoachingError(
+                f"{where}: the region tests {name!r}, read from {sources.get(name, '?')}; "
+                "the model predictor "
+                f"forecasts only variables read from qpos or qvel ({', '.join(can) or 'none here'}); "
+                "use predictor = 'exact'"
+            )
+
+
+def linear_forecast(lin: Any, card: ModelCard, model: mujoco.MjModel) -> LinearForecast:
+    """The forecast of a :class:`~pidlab.linear.linearize.Linearization` (``discretization="step"``).
+
+    Raises
+    ------
+    CoachingError
+        The linearization's discrete model is not at the env's control period.
+    """
+    if lin.frame_skip < 1 or not np.isfinite(lin.Ad).all() or not np.isfinite(lin.Bd).all():
+        raise CoachingError(
+            f"{lin.source}: the linear model is not finite; the model predictor cannot use it"
+        )
+    op = lin.op
+    limited = np.asarray(model.actuator_ctrllimited, dtype=bool)
+    rng = np.asarray(model.actuator_ctrlrange, dtype=float).reshape(-1, 2)
+    low = np.where(limited, rng[:, 0], -np.inf)
+    high = np.where(limited, rng[:, 1], np.inf)
+    columns = tuple(
+        (i, v.source, variable_address(model, v), v.transform,
+         (float(v.clip[0]), float(v.clip[1])) if v.clip is not None else None)
+        for i, v in enumerate(card.observation)
+        if v.source in SOURCES
+    )  # fmt: skip
+    act = np.asarray(getattr(op, "act", np.zeros(model.na)), dtype=float).reshape(-1)
+    return LinearForecast(
+        Ad=np.asarray(lin.Ad, dtype=float), Bd=np.asarray(lin.Bd, dtype=float),
+        qpos_op=np.asarray(op.qpos, dtype=float), qvel_op=np.asarray(op.qvel, dtype=float),
+        act_op=act if act.size == model.na else np.zeros(model.na), ctrl_op=np.asarray(op.ctrl, dtype=float),
+        ctrl_low=low, ctrl_high=high, columns=columns, size=len(card.observation),
+    )  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- the error and the region
+
+
+def spec_forecast(bounds: dict[str, Any] | None, name: str) -> ForecastError:
+    """The forecast measurement of a spec's ``[bounds]``, checked against its rescue region.
+
+    Raises
+    ------
+    CoachingError
+        No ``[bounds.forecast]``, or one measured on another rescue region, or one that misses a
+        variable the region tests.
+    """
+    b = bounds or {}
+    if "forecast" not in b:
+        raise CoachingError(
+            f"{name}: predictor 'model', but the spec has no [bounds.forecast] "
+            "(the forecast's measured error); "
+            "run `pidlab forecast SPEC --write`"
+        )
+    try:
+        forecast = parse_forecast(b["forecast"])
+    except SpecError as exc:
+        raise CoachingError(f"{name}: {exc}") from None
+    rescue = b.get("rescue")
+    if rescue is None or forecast.region != region_digest(rescue):
+        raise CoachingError(
+            f"{name}: [bounds.forecast] was measured on another rescue region (region {forecast.region}); "
+            "run `pidlab forecast SPEC --write` again"
+        )
+    tested = (*rescue.get("variables", ()), *rescue.get("guard", {}))
+    missing = [v for v in tested if v not in forecast.margin]
+    if missing:
+        raise CoachingError(
+            f"{name}: [bounds.forecast] has no margin for {', '.join(missing)}, which the region tests"
+        )
+    return forecast
+
+
+class MarginRegion(GridRegion):
+    """The rescue region asked of a forecast: whether every state within its margins is inside.
+
+    A forecast ``g`` passes when the box ``[g - m, g + m]`` (``m`` the forecast's margins) lies in
+    the guard and touches only marked cells of the grid. Then the true next state, wherever it
+    lies within the margins of the forecast, is in the rescue region, and the region's guarantee
+    holds for it. The box is tested as it is, not rounded to whole cells: a margin far below a
+    cell's width costs only the points that near a cell's unmarked neighbour. The hand-back
+    (:meth:`inner`) is the rescue region's own: it is asked of real states.
+
+    Parameters
+    ----------
+    region : GridRegion
+        The rescue region (its observation layout).
+    margins : dict
+        ``variable -> margin`` for every grid and guard variable.
+
+    Raises
+    ------
+    CoachingError
+        A guard range or a grid axis is no wider than twice its margin (no box fits).
+    """
+
+    def __init__(self, region: GridRegion, margins: dict[str, float]) -> None:
+        grid = region.grid
+        super().__init__(grid, region.observation_names)
+        self.margins = {v: float(margins[v]) for v in (*grid.variables, *grid.guard)}
+        names = region.observation_names
+        self._boxes = []
+        for k, v in enumerate(grid.variables):
+            lo, hi, m = grid.lower[k], grid.upper[k], self.margins[v]
+            _check_room(v, m, lo, hi)
+            self._boxes.append((names.index(v), lo, hi, float(grid.widths[k]), grid.cells[k], m))
+        self._guard = []
+        for v, (lo, hi) in grid.guard.items():
+            m = self.margins[v]
+            _check_room(v, m, lo, hi)
+            self._guard.append((names.index(v), lo + m, hi - m))
+        self._table = np.asarray(grid.table, dtype=bool)
+
+    def _contains(self, obs: np.ndarray) -> bool:
+        if not self._in_guard(obs):
+            return False
+        cells = []
+        for i, lo, hi, width, n, m in self._boxes:
+            a, b = float(obs[i]) - m, float(obs[i]) + m
+            if not (lo <= a and b <= hi):  # also False for NaN
+                return False
+            cells.append(slice(min(int((a - lo) / width), n - 1), min(int((b - lo) / width), n - 1) + 1))
+        return bool(self._table[tuple(cells)].all())
+
+
+def _check_room(name: str, margin: float, lo: float, hi: float) -> None:
+    if 2.0 * margin >= hi - lo:
+        raise CoachingError(
+            f"the forecast's error on {name} ({margin:.4g}) is at least half the rescue region's range "
+            f"[{lo:.4g}, {hi:.4g}]: nothing is left of the region; use predictor = 'exact'"
+        )
+
+
+def kept_share(region: GridRegion, margins: dict[str, float], samples: int = 20000, seed: int = 0) -> float:
+    """The share of the rescue region whose margin box fits in it (a Monte Carlo estimate).
+
+    ``samples`` points drawn uniformly in the region (a marked cell, then a point in it, and the
+    guard's ranges); 0 when no box fits at all.
+    """
+    try:
+        shrunk = MarginRegion(region, margins)
+    except CoachingError:
+        return 0.0
+    grid = region.grid
+    marked = np.argwhere(np.asarray(grid.table, dtype=bool))
+    if len(marked) == 0:
+        return 0.0
+    rng = np.random.default_rng(seed)
+    cells = marked[rng.integers(len(marked), size=samples)]
+    points = np.array(grid.lower) + (cells + rng.random(cells.shape)) * grid.widths
+    obs = np.zeros((samples, len(region.observation_names)))
+    names = region.observation_names
+    for k, v in enumerate(grid.variables):
+        obs[:, names.index(v)] = points[:, k]
+    for v, (lo, hi) in grid.guard.items():
+        obs[:, names.index(v)] = rng.uniform(lo, hi, size=samples)
+    return float(np.mean([shrunk.contains(o) for o in obs]))

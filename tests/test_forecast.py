@@ -1,0 +1,303 @@
+"""The model predictor: the linear forecast, its measured error, the shrunk region, and the shield it drives.
+
+What is checked is mechanics: the forecast is MuJoCo's own step to first order near the operating
+point, the erosion of a grid by hand-computed cases, the measurement's accounts and determinism,
+the spec's checks of a stale or incomplete measurement, and that the shield with the model
+predictor vetoes exactly the actions whose forecast leaves the shrunk region.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from pidlab.controller.spec import load_spec, save_spec
+from pidlab.errors import CoachingError, SpecError
+from pidlab.lookup import ForecastError, LookupGrid, parse_forecast, parse_lookup, region_digest
+from pidlab.plant.model import load_model
+from pidlab.plant.operating_point import resolve_operating_point
+from pidlab.region.forecast import MarginRegion, check_forecastable, forecastable, kept_share, spec_forecast
+from pidlab.region.takeover import GridRegion
+from pidlab.rl.calibrate import measure_forecast
+from pidlab.rl.coaching import CoachingWrapper
+from pidlab.rl.predict import ModelPredictor, forecast_of
+from tests.helpers import TUNING, cli_in_process
+
+IP = "InvertedPendulum-v5"
+RESCUE = TUNING / f"{IP}.pidlab-rescue.toml"
+
+
+@pytest.fixture(scope="module")
+def ip():
+    return load_model(IP)
+
+
+@pytest.fixture(scope="module")
+def measured(ip):
+    """The rescue spec of IP and a small forecast measurement of it."""
+    spec = load_spec(RESCUE)
+    return spec, measure_forecast(spec, ip, transitions=300, held_out=200, seed=3)
+
+
+def _with(spec, found: ForecastError):
+    return dataclasses.replace(spec, bounds={**spec.bounds, "forecast": found.to_table()})
+
+
+# ----------------------------------------------------------------------------- the forecast
+
+
+def test_the_forecast_at_the_operating_point_is_the_operating_point(ip) -> None:
+    f = forecast_of(ip)
+    op = resolve_operating_point(ip)
+    obs = f.observation(ip.model, op.qpos, op.qvel, np.zeros(ip.model.na), op.ctrl)
+    card = ip.require_card()
+    from pidlab.plant.observation import observe_at
+
+    assert np.allclose(obs, observe_at(card, ip.model, op.qpos, op.qvel), atol=1e-12)
+
+
+def test_the_forecast_is_mujocos_step_to_first_order(ip) -> None:
+    """Halving a perturbation quarters the forecast's error: it is exact to first order."""
+    f = forecast_of(ip)
+    env = gym.make(IP)
+    env.reset(seed=0)
+    u = env.unwrapped
+    op = resolve_operating_point(ip)
+    direction = np.array([0.01, 0.02, -0.05, 0.1])  # slider, hinge, their velocities
+    action = np.array([0.3])
+    errors = []
+    for scale in (1.0, 0.5):
+        qpos = op.qpos + scale * direction[:2]
+        qvel = op.qvel + scale * direction[2:]
+        u.set_state(qpos, qvel)
+        guess = f.observation(ip.model, qpos, qvel, u.data.act, scale * action)
+        obs, *_ = env.step(scale * action)
+        errors.append(np.abs(obs - guess).max())
+    env.close()
+    assert errors[0] < 1e-3
+    assert errors[1] < errors[0] / 3  # quadratic in the perturbation (a 4x drop, with slack)
+
+
+def test_the_forecast_clamps_the_action_as_mujoco_does(ip) -> None:
+    f = forecast_of(ip)
+    op = resolve_operating_point(ip)
+    act = np.zeros(ip.model.na)
+    high = ip.model.actuator_ctrlrange[0, 1]
+    at_limit = f.observation(ip.model, op.qpos, op.qvel, act, np.array([high]))
+    beyond = f.observation(ip.model, op.qpos, op.qvel, act, np.array([10 * high]))
+    assert np.array_equal(at_limit, beyond)
+
+
+def test_columns_no_joint_state_gives_are_nan() -> None:
+    idp = load_model("InvertedDoublePendulum-v5")
+    card = idp.require_card()
+    f = forecast_of(idp)
+    op = resolve_operating_point(idp)
+    obs = f.observation(idp.model, op.qpos, op.qvel, np.zeros(idp.model.na), op.ctrl)
+    names = card.observation_names
+    assert [names[i] for i in np.flatnonzero(np.isnan(obs))] == ["slider_constraint"]
+    assert "slider_constraint" not in forecastable(card)
+    with pytest.raises(CoachingError, match="slider_constraint.*qfrc_constraint.*predictor = 'exact'"):
+        check_forecastable(card, ["hinge_sin", "slider_constraint"], "here")
+
+
+# ----------------------------------------------------------------------------- the shrunk region
+
+
+NAMES = ("slider_pos", "hinge_pos", "slider_vel", "hinge_vel")
+
+
+def _region(table: list[list[int]], guard: dict[str, tuple[float, float]] | None = None) -> GridRegion:
+    """hinge_pos over [-0.2, 0.2] rad, hinge_vel over [-2, 2] rad/s."""
+    t = np.array(table, dtype=bool)
+    grid = LookupGrid(("hinge_pos", "hinge_vel"), (-0.2, -2.0), (0.2, 2.0), t.shape, t, guard or {})
+    return GridRegion(grid, NAMES)
+
+
+def _obs(hinge_pos: float, hinge_vel: float, slider_pos: float = 0.0) -> np.ndarray:
+    return np.array([slider_pos, hinge_pos, 0.0, hinge_vel])
+
+
+def test_the_margin_box_must_touch_only_marked_cells() -> None:
+    # 4 x 4 cells of 0.1 rad by 1 rad/s; the cell at hinge_pos [0.1, 0.2], hinge_vel [1, 2] unmarked
+    base = _region([[1, 1, 1, 1]] * 3 + [[1, 1, 1, 0]])
+    r = MarginRegion(base, {"hinge_pos": 0.02, "hinge_vel": 0.1})
+    assert base.contains(_obs(0.09, 1.5)) and r.contains(_obs(0.07, 1.5))
+    assert not r.contains(_obs(0.09, 1.5))  # its box reaches 0.11 rad, into the unmarked cell
+    assert r.contains(_obs(0.15, 0.85))  # up to 0.95 rad/s: the marked cell below
+    assert not r.contains(_obs(0.15, 0.95))
+    assert not r.contains(_obs(-0.19, 0.0))  # the box leaves the grid at -0.21 rad
+    assert not r.contains(_obs(np.nan, 0.0))
+    assert r.inner(0.5).grid is r.grid  # the hand-back asks the rescue region itself of a real state
+
+
+def test_the_guard_narrows_by_its_margin() -> None:
+    region = _region([[1, 1]] * 2, {"slider_pos": (-0.1, 0.1)})
+    r = MarginRegion(region, {"hinge_pos": 0.0, "hinge_vel": 0.0, "slider_pos": 0.03})
+    assert r.contains(_obs(0.0, 0.0, 0.07)) and not r.contains(_obs(0.0, 0.0, 0.0701))
+    with pytest.raises(CoachingError, match="slider_pos.*at least half.*predictor = 'exact'"):
+        MarginRegion(region, {"hinge_pos": 0.0, "hinge_vel": 0.0, "slider_pos": 0.1})
+    with pytest.raises(CoachingError, match="hinge_vel"):
+        MarginRegion(region, {"hinge_pos": 0.0, "hinge_vel": 2.0, "slider_pos": 0.0})
+
+
+def test_the_kept_share_of_a_full_grid_is_the_shrunk_volume() -> None:
+    region = _region([[1] * 4] * 4, {"slider_pos": (-0.1, 0.1)})
+    margins = {"hinge_pos": 0.04, "hinge_vel": 0.5, "slider_pos": 0.05}
+    expected = (0.32 / 0.4) * (3.0 / 4.0) * (0.1 / 0.2)  # each range less twice its margin
+    assert kept_share(region, margins, samples=40000) == pytest.approx(expected, abs=0.01)
+    assert kept_share(region, {**margins, "slider_pos": 0.1}) == 0.0
+
+
+# ----------------------------------------------------------------------------- the measurement
+
+
+def test_the_measurement_accounts_for_every_action_and_repeats(ip, measured) -> None:
+    spec, found = measured
+    rescue = spec.bounds["rescue"]
+    grid = parse_lookup(rescue)
+    assert found.variables == (*grid.variables, *grid.guard)
+    assert found.region == region_digest(rescue)
+    assert sum(found.agreement.values()) == found.held_out == 200
+    assert 0 <= found.escapes <= 200
+    assert all(m >= p >= d >= 0 for m, p, d in zip(found.margins, found.p99, found.median, strict=True))
+    assert max(found.margins) > 0
+    assert measure_forecast(spec, ip, transitions=300, held_out=200, seed=3) == found
+    assert parse_forecast(found.to_table()) == found
+
+
+def test_a_spec_keeps_its_forecast_through_a_file(tmp_path, measured) -> None:
+    spec, found = measured
+    path = save_spec(_with(spec, found), tmp_path / f"{IP}.x.toml")
+    back = load_spec(path)
+    assert spec_forecast(back.bounds, back.name) == found
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"model": "quadratic"}, r"model: 'quadratic'; expected one of linear"),
+        ({"region": ""}, r"region: expected the digest"),
+        ({"transitions": 0}, r"transitions: 0; expected an integer >= 1"),
+        ({"escapes": 10**6}, r"escapes: 1000000 of 200 held-out"),
+        ({"margins": {"hinge_pos": -1.0}}, r"margins: expected a table"),
+        ({"median": {"hinge_pos": 0.0}}, r"median: expected a table of the variables"),
+        (
+            {"agreement": {"both": 1, "exact_only": 0, "model_only": 0, "neither": 0}},
+            r"add up to 1, not to the 200",
+        ),
+        ({"extra": 1}, r"unknown field\(s\) \['extra'\]"),
+    ],
+)
+def test_a_bad_forecast_table_is_refused_by_name(measured, change, message) -> None:
+    table = {**measured[1].to_table(), **change}
+    with pytest.raises(SpecError, match=message):
+        parse_forecast(table)
+
+
+def test_the_model_predictor_needs_a_current_complete_measurement(measured) -> None:
+    spec, found = measured
+    with pytest.raises(CoachingError, match="no \\[bounds.forecast\\].*pidlab forecast SPEC --write"):
+        spec_forecast(spec.bounds, spec.name)
+    stale = dataclasses.replace(found, region="0" * 16)
+    with pytest.raises(CoachingError, match="another rescue region"):
+        spec_forecast(_with(spec, stale).bounds, spec.name)
+    partial = dataclasses.replace(found, variables=found.variables[:1], margins=found.margins[:1],
+                                  median=found.median[:1], p99=found.p99[:1])  # fmt: skip
+    with pytest.raises(CoachingError, match="no margin for"):
+        spec_forecast(_with(spec, partial).bounds, spec.name)
+
+
+# ----------------------------------------------------------------------------- the shield
+
+
+def _shield(spec, ip, **kwargs):
+    return CoachingWrapper(gym.make(IP), spec, mode="takeover", region="rescue", trigger="predictive",
+                           handback=0.5, view="terminal", loaded=ip, seed=0, **kwargs)  # fmt: skip
+
+
+def test_the_model_shield_vetoes_exactly_the_forecasts_whose_box_leaves_the_region(ip, measured) -> None:
+    spec, found = measured
+    env = _shield(_with(spec, found), ip, predictor="model")
+    assert isinstance(env.lookahead, ModelPredictor)
+    assert isinstance(env.region, MarginRegion) and env.region.margins == found.margin
+    rng = np.random.default_rng(0)
+    env.reset(seed=0)
+    vetoes = 0
+    for _ in range(400):
+        action = rng.uniform(-3, 3, size=1).astype(np.float32)
+        outside = not env.region.contains(env.lookahead.predict(action))
+        _, _, terminated, truncated, info = env.step(action)
+        assert info["vetoed"] == outside
+        vetoes += int(outside)
+        if terminated or truncated:
+            env.reset()
+    assert vetoes > 0 and env.total_falls == 0
+    env.close()
+
+
+def test_the_model_predictor_is_refused_where_it_cannot_serve(ip, measured) -> None:
+    spec, found = measured
+    with pytest.raises(CoachingError, match="no \\[bounds.forecast\\]"):
+        _shield(spec, ip, predictor="model")
+    with pytest.raises(CoachingError, match="use trigger = 'predictive'"):
+        CoachingWrapper(gym.make(IP), spec, mode="takeover", region="rescue", predictor="model", loaded=ip)
+    with pytest.raises(CoachingError, match="predictor 'oracle': expected one of exact, model"):
+        _shield(spec, ip, predictor="oracle")
+    coarse = dataclasses.replace(found, margins=tuple(10.0 for _ in found.margins))
+    with pytest.raises(CoachingError, match="nothing is left"):
+        _shield(_with(spec, coarse), ip, predictor="model")
+
+
+# ----------------------------------------------------------------------------- the command
+
+
+def test_forecast_writes_a_named_copy_of_the_spec(tmp_path) -> None:
+    out = tmp_path / f"{IP}.my-model.toml"
+    code, text = cli_in_process(
+        "forecast", str(RESCUE), "--transitions", "100", "--held-out", "50", "-o", str(out)
+    )
+    assert code == 0, text
+    spec = load_spec(out)
+    assert spec.name == "my-model"
+    assert spec_forecast(spec.bounds, spec.name).transitions == 100
+    assert load_spec(RESCUE).bounds.get("forecast") is None  # the source spec is untouched
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--write", "-o", "x.toml"], "--write and --output: choose one"),
+        (["--transitions", "0"], "--transitions 0: expected an integer >= 1"),
+        (["--held-out", "-1"], "--held-out -1: expected an integer >= 0"),
+    ],
+)
+def test_forecast_refuses_bad_options_in_one_line(args, message) -> None:
+    code, text = cli_in_process("forecast", str(RESCUE), *args)
+    assert code == 2
+    assert message in text
+    assert "Traceback" not in text
+
+
+def test_forecast_refuses_a_spec_without_a_rescue_region() -> None:
+    code, text = cli_in_process("forecast", str(TUNING / f"{IP}.paper.toml"))
+    assert code == 2
+    assert "no rescue region; run `pidlab rescue SPEC --write` first" in text
+
+
+def test_the_published_forecast_tables_are_the_files_own() -> None:
+    """docs/rescue.md's forecast tables are what benchmarks/forecast_table.py makes of the shipped files."""
+    import subprocess
+    import sys
+
+    from tests.helpers import ROOT
+
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "forecast_table.py"), "--check"],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
