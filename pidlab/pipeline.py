@@ -680,7 +680,7 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
             size = len(conds) if kind == "confirmatory" else 0
             if kind not in found or size <= found[kind][0]:
                 found[kind] = (size, Evidence(f"docs/results/{path.parent.name}", kept))
-    best = found.get("confirmatory", found.get("pilot"))
+    best = found.get("confirmatory", found.get("pilot", found.get("exploratory")))
     return None if best is None else best[1]
 
 

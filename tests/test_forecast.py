@@ -271,8 +271,10 @@ def test_forecast_writes_a_named_copy_of_the_spec(tmp_path) -> None:
     ("args", "message"),
     [
         (["--write", "-o", "x.toml"], "--write and --output: choose one"),
-        (["--transitions", "0"], "--transitions 0: expected an integer >= 1"),
-        (["--held-out", "-1"], "--held-out -1: expected an integer >= 0"),
+        (["--transitions", "0"], "--transitions 0: expected an integer in [1, 1000000]"),
+        (["--transitions", "9" * 20], "expected an integer in [1, 1000000]"),  # not hours of recording
+        (["--held-out", "-1"], "--held-out -1: expected an integer in [0, 1000000]"),
+        (["--seed", "-1"], "--seed -1: expected an integer in [0, 4294967295]"),
     ],
 )
 def test_forecast_refuses_bad_options_in_one_line(args, message) -> None:

@@ -65,6 +65,16 @@ def test_the_confirmatory_sweeps_are_the_plans():
     assert "Seeds**: 100-109" in DOC.read_text()
 
 
+def test_a_condition_no_part_of_the_plan_governs_makes_a_sweep_exploratory():
+    conditions = ["none", "rescue-terminal", "rescue-terminal-model"]
+    assert plan.ungoverned(conditions) == ("rescue-terminal-model",)
+    assert plan.role(range(100, 110), conditions) == "exploratory"
+    cited = plan.citation(range(100, 110), conditions)
+    assert "**Exploratory sweep**: neither the plan nor an amendment governs rescue-terminal-model" in cited
+    assert "Confirmatory" not in cited
+    assert plan.role(range(100, 110), ["none", "rescue-terminal", "warm-start"]) == "confirmatory"
+
+
 def test_roles_and_citation():
     assert plan.role(range(100, 110)) == "confirmatory"
     assert plan.role(range(10)) == "pilot" and plan.role(range(100, 105)) == "pilot"

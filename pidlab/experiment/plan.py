@@ -63,8 +63,19 @@ def confirmatory_seeds(conditions: Sequence[str] = ()) -> tuple[int, ...]:
     return own.pop() if len(own) == 1 else CONFIRMATORY_SEEDS
 
 
+def ungoverned(conditions: Sequence[str]) -> tuple[str, ...]:
+    """The conditions that neither the plan nor an amendment governs (their comparisons were not planned)."""
+    return tuple(c for c in conditions if c not in CONFIRMATORY_CONDITIONS and c not in AMENDMENTS)
+
+
 def role(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
-    """``confirmatory`` for a sweep on exactly its fresh seeds (:func:`confirmatory_seeds`), else pilot."""
+    """The sweep's standing under the plan.
+
+    ``exploratory`` when it holds a condition the plan does not govern (:func:`ungoverned`),
+    else ``confirmatory`` on exactly its fresh seeds (:func:`confirmatory_seeds`), else ``pilot``.
+    """
+    if ungoverned(conditions):
+        return "exploratory"
     return "confirmatory" if tuple(sorted(seeds)) == confirmatory_seeds(conditions) else "pilot"
 
 
@@ -103,8 +114,15 @@ def citation(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
         text += f" Its couplings are governed by the plan's {names}, each added before the runs it governs."
     fresh = confirmatory_seeds(conditions)
     span = f"{fresh[0]}-{fresh[-1]}"
-    if role(seeds, conditions) == "confirmatory":
+    kind = role(seeds, conditions)
+    if kind == "confirmatory":
         return text + f" **Confirmatory sweep**: the plan's fresh seeds {span}; its verdicts are the plan's."
+    if kind == "exploratory":
+        names = ", ".join(ungoverned(conditions))
+        return text + (
+            f" **Exploratory sweep**: neither the plan nor an amendment governs {names}, so its tests "
+            "were not planned; its verdicts describe these runs and confirm nothing, whatever its seeds."
+        )
     return text + (
         f" **Pilot (exploratory) sweep**: these seeds are not the plan's confirmatory seeds {span}, so its "
         "verdicts describe these runs and confirm nothing."

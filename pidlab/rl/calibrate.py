@@ -19,6 +19,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from pidlab.checks import integer
+from pidlab.checks import seed as checked_seed
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
 from pidlab.lookup import AGREEMENT, ForecastError, parse_lookup, region_digest
@@ -27,6 +29,9 @@ from pidlab.region.forecast import MarginRegion, check_forecastable
 from pidlab.region.takeover import GridRegion, observation_indices
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.predict import Predictor, forecast_of
+
+MAX_TRANSITIONS = 1_000_000
+"""The most actions :func:`measure_forecast` records per part (about an hour of Walker2d)."""
 
 
 def _record(
@@ -92,12 +97,12 @@ def measure_forecast(
     Raises
     ------
     CoachingError
-        Counts below 1 (``held_out`` below 0), no rescue region, or a region over a variable no
-        joint-state forecast gives.
+        Counts below 1 (``held_out`` below 0) or above :data:`MAX_TRANSITIONS`, no rescue region,
+        or a region over a variable no joint-state forecast gives.
     """
-    for name, value, low in (("transitions", transitions, 1), ("held_out", held_out, 0), ("seed", seed, 0)):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
-            raise CoachingError(f"{name}={value!r}: expected an integer >= {low}", param=name)
+    integer(transitions, "transitions", CoachingError, low=1, high=MAX_TRANSITIONS, param="transitions")
+    integer(held_out, "held_out", CoachingError, low=0, high=MAX_TRANSITIONS, param="held_out")
+    checked_seed(seed, "seed", CoachingError, param="seed")
     loaded = loaded if loaded is not None else load_model(spec.env_id)
     card = loaded.require_card()
     rescue = (spec.bounds or {}).get("rescue")
