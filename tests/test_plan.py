@@ -73,6 +73,7 @@ def test_a_condition_no_part_of_the_plan_governs_makes_a_sweep_exploratory():
     assert "**Exploratory sweep**: neither the plan nor an amendment governs rescue-terminal-model" in cited
     assert "Confirmatory" not in cited
     assert plan.role(range(100, 110), ["none", "rescue-terminal", "warm-start"]) == "confirmatory"
+    assert plan.role(range(10), conditions) == "pilot"  # a pilot stays a pilot
 
 
 def test_roles_and_citation():

@@ -71,12 +71,13 @@ def ungoverned(conditions: Sequence[str]) -> tuple[str, ...]:
 def role(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
     """The sweep's standing under the plan.
 
-    ``exploratory`` when it holds a condition the plan does not govern (:func:`ungoverned`),
-    else ``confirmatory`` on exactly its fresh seeds (:func:`confirmatory_seeds`), else ``pilot``.
+    On exactly its fresh seeds (:func:`confirmatory_seeds`): ``confirmatory``, or ``exploratory``
+    when it holds a condition the plan does not govern (:func:`ungoverned`). On other seeds:
+    ``pilot``.
     """
-    if ungoverned(conditions):
-        return "exploratory"
-    return "confirmatory" if tuple(sorted(seeds)) == confirmatory_seeds(conditions) else "pilot"
+    if tuple(sorted(seeds)) != confirmatory_seeds(conditions):
+        return "pilot"
+    return "exploratory" if ungoverned(conditions) else "confirmatory"
 
 
 AMENDMENTS: dict[str, int] = {
@@ -121,7 +122,8 @@ def citation(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
         names = ", ".join(ungoverned(conditions))
         return text + (
             f" **Exploratory sweep**: neither the plan nor an amendment governs {names}, so its tests "
-            "were not planned; its verdicts describe these runs and confirm nothing, whatever its seeds."
+            f"were not planned; on the plan's seeds {span} too, its verdicts describe these runs and "
+            "confirm nothing."
         )
     return text + (
         f" **Pilot (exploratory) sweep**: these seeds are not the plan's confirmatory seeds {span}, so its "
