@@ -676,12 +676,23 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
             record = read_json(exp) if exp.exists() else {}
             identity = record.get("identity", {}) if isinstance(record, dict) else {}
             seeds, conds = identity.get("seeds", []), identity.get("conditions", [])
-            kind = role(seeds, conds)
+            kind = role(seeds, conds, _algorithms(path.parent, identity))
             size = len(conds) if kind == "confirmatory" else 0
             if kind not in found or size <= found[kind][0]:
                 found[kind] = (size, Evidence(f"docs/results/{path.parent.name}", kept))
     best = found.get("confirmatory", found.get("pilot", found.get("exploratory")))
     return None if best is None else best[1]
+
+
+def _algorithms(folder: Path, identity: dict[str, Any]) -> tuple[str, ...]:
+    """The algorithms a published experiment's runs trained (as their configs record them)."""
+    from pidlab.errors import PidlabError
+    from pidlab.experiment.analysis import recipes_of_runs
+
+    try:
+        return tuple(sorted({r.algo for r in recipes_of_runs(folder, identity).values()}))
+    except (PidlabError, KeyError, TypeError):  # an unreadable record: no evidence of another agent
+        return ("ppo",)
 
 
 def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple[Path, Path]:

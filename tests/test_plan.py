@@ -76,6 +76,13 @@ def test_a_condition_no_part_of_the_plan_governs_makes_a_sweep_exploratory():
     assert plan.role(range(10), conditions) == "pilot"  # a pilot stays a pilot
 
 
+def test_a_sweep_of_another_agent_than_the_plans_is_exploratory():
+    assert plan.role(range(100, 110), ["none", "paper"], ["sac"]) == "exploratory"
+    assert plan.role(range(100, 110), ["none", "paper"], ["ppo"]) == "confirmatory"
+    cited = plan.citation(range(100, 110), ["none"], ["sac"])
+    assert "governs the agent SAC (it governs PPO)" in cited and "Confirmatory" not in cited
+
+
 def test_roles_and_citation():
     assert plan.role(range(100, 110)) == "confirmatory"
     assert plan.role(range(10)) == "pilot" and plan.role(range(100, 105)) == "pilot"

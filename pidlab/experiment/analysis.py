@@ -117,6 +117,8 @@ class Analysis:
     budgets: dict[str, int]
     missing: tuple[str, ...]
     comparisons: dict[tuple[str, str], dict[str, Comparison]]
+    algorithms: tuple[str, ...] = ("ppo",)
+    """The algorithms the recipes trained (the analysis plan governs PPO)."""
 
     def improvement(self, env: str, condition: str, measure: str) -> Estimate | None:
         """P(improvement over no coach) of one measure, or None (no such comparison)."""
@@ -535,6 +537,7 @@ def analyze(experiment: dict[str, Any], root: Path, recipes: dict[str, Any], rep
         budgets={e: recipes[e].steps for e in envs},
         missing=tuple(missing),
         comparisons=comparisons,
+        algorithms=tuple(sorted({recipes[e].algo for e in envs})),
     )
 
 

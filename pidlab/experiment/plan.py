@@ -68,16 +68,26 @@ def ungoverned(conditions: Sequence[str]) -> tuple[str, ...]:
     return tuple(c for c in conditions if c not in CONFIRMATORY_CONDITIONS and c not in AMENDMENTS)
 
 
-def role(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
+PLAN_ALGORITHMS = ("ppo",)
+"""The agents the plan and its amendments govern (section 2: PPO with each env's recipe)."""
+
+
+def unplanned_algorithms(algorithms: Sequence[str]) -> tuple[str, ...]:
+    """The algorithms of a sweep that the plan does not govern."""
+    return tuple(a for a in algorithms if a not in PLAN_ALGORITHMS)
+
+
+def role(seeds: Sequence[int], conditions: Sequence[str] = (), algorithms: Sequence[str] = ("ppo",)) -> str:
     """The sweep's standing under the plan.
 
     On exactly its fresh seeds (:func:`confirmatory_seeds`): ``confirmatory``, or ``exploratory``
-    when it holds a condition the plan does not govern (:func:`ungoverned`). On other seeds:
-    ``pilot``.
+    when it holds a condition the plan does not govern (:func:`ungoverned`) or trains another agent
+    than the plan's (:data:`PLAN_ALGORITHMS`). On other seeds: ``pilot``.
     """
     if tuple(sorted(seeds)) != confirmatory_seeds(conditions):
         return "pilot"
-    return "exploratory" if ungoverned(conditions) else "confirmatory"
+    planned = not ungoverned(conditions) and not unplanned_algorithms(algorithms)
+    return "confirmatory" if planned else "exploratory"
 
 
 AMENDMENTS: dict[str, int] = {
@@ -103,7 +113,9 @@ def amendments_of(conditions: Sequence[str]) -> tuple[int, ...]:
     return tuple(sorted({AMENDMENTS[c] for c in conditions if c in AMENDMENTS}))
 
 
-def citation(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
+def citation(
+    seeds: Sequence[int], conditions: Sequence[str] = (), algorithms: Sequence[str] = ("ppo",)
+) -> str:
     """The sentence a report opens its analysis with (naming the amendments that govern ``conditions``)."""
     text = (
         f"Analysed under the pre-registered analysis plan ({PLAN_FILE}, committed in {PLAN_COMMIT[:7]} "
@@ -115,13 +127,15 @@ def citation(seeds: Sequence[int], conditions: Sequence[str] = ()) -> str:
         text += f" Its couplings are governed by the plan's {names}, each added before the runs it governs."
     fresh = confirmatory_seeds(conditions)
     span = f"{fresh[0]}-{fresh[-1]}"
-    kind = role(seeds, conditions)
+    kind = role(seeds, conditions, algorithms)
     if kind == "confirmatory":
         return text + f" **Confirmatory sweep**: the plan's fresh seeds {span}; its verdicts are the plan's."
     if kind == "exploratory":
-        names = ", ".join(ungoverned(conditions))
+        other = unplanned_algorithms(algorithms)
+        what = (f"the agent {', '.join(a.upper() for a in other)} (it governs PPO)" if other
+                else ", ".join(ungoverned(conditions)))  # fmt: skip
         return text + (
-            f" **Exploratory sweep**: neither the plan nor an amendment governs {names}, so its tests "
+            f" **Exploratory sweep**: neither the plan nor an amendment governs {what}, so its tests "
             f"were not planned; on the plan's seeds {span} too, its verdicts describe these runs and "
             "confirm nothing."
         )
