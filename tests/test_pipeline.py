@@ -293,6 +293,10 @@ def test_the_report_says_why_with_the_published_numbers():
     assert f"`{ev.folder}`" in text and "| rescue-terminal |" in text and "| none |" in text
     iqm = float(falls["iqm"])
     assert f"| rescue-terminal | {iqm:,.1f} [" in text
+    # an exploratory sweep on the same seeds (a condition the plan does not govern) is not preferred
+    # for the plan's conditions, and is the evidence for its own
+    model = published_evidence("InvertedPendulum-v5", "rescue-terminal-model")
+    assert model is not None and model.folder == "docs/results/InvertedPendulum-v5-model"
     # a condition no published experiment compares with none: said plainly
     assert published_evidence("InvertedPendulum-v5", "no-such-condition") is None
     facts.evidence = None
