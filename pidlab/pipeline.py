@@ -227,6 +227,12 @@ def coaching_of(env_id: str, settings: PipelineSettings) -> tuple[dict[str, Any]
         raise PipelineError(
             f"condition={name!r}: trains no coach; expected a coached condition", param="condition"
         )
+    if c.for_env(env_id).algo is not None:
+        raise PipelineError(
+            f"condition={name!r}: names its own algorithm ({c.for_env(env_id).algo}); the main job trains "
+            "the recipe's with and without the coach: expected a condition without algo",
+            param="condition",
+        )
     return dict(c.for_env(env_id).coaching), c.description
 
 

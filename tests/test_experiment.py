@@ -9,11 +9,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -58,8 +60,51 @@ def tree_digest(folder: Path) -> dict[str, str]:
 # ---------------------------------------------------------------- conditions
 
 
-SAC_ONLY = ("rescue-replay", "rescue-value", "rescue-propose")  # the coach's transitions feed an off-policy agent's replay
+SAC_ONLY = (
+    "rescue-replay",
+    "rescue-value",
+    "rescue-propose",
+)  # the coach's transitions feed an off-policy agent's replay
 IP_ONLY = ("rescue-terminal-model",)  # the model predictor: on the other envs its error leaves no region
+
+
+def test_a_condition_names_its_algorithm_for_every_env_or_one():
+    data = {
+        "schema": "pidlab.conditions/1",
+        "condition": {
+            "mixed": {"description": "d", "coach": "none", "algo": "sac", "env": {IP: {"algo": "ppo"}}},
+        },
+    }
+    c = parse_conditions(data)["mixed"]
+    assert c.for_env("Hopper-v5").algo == "sac" and c.for_env(IP).algo == "ppo"
+    ip = load_recipe(ROOT / "coach" / f"{IP}.toml")
+    assert resolve(c, ip)[0].algo == "ppo"
+    assert resolve(c, with_overrides(ip, algo="sac"))[0].algo == "ppo"  # the condition's, over --algo
+
+
+@pytest.mark.parametrize(
+    ("algo", "message"),
+    [
+        ("td3", "condition.bad.algo = 'td3': expected one of ppo, sac"),
+        (1, "condition.bad.algo = 1: expected"),
+    ],
+)
+def test_a_condition_with_an_unknown_algorithm_is_refused_in_one_line(algo, message):
+    data = {
+        "schema": "pidlab.conditions/1",
+        "condition": {"bad": {"description": "d", "coach": "none", "algo": algo}},
+    }
+    with pytest.raises(ConditionError, match=re.escape(message)):
+        parse_conditions(data)
+
+
+def test_a_condition_whose_algorithm_the_recipe_has_no_table_for_is_refused():
+    ip = load_recipe(ROOT / "coach" / f"{IP}.toml")
+    ppo_only = replace(ip, algorithms={"ppo": ip.algorithms["ppo"]})
+    c = parse_conditions({"schema": "pidlab.conditions/1",
+                          "condition": {"s": {"description": "d", "coach": "none", "algo": "sac"}}})["s"]  # fmt: skip
+    with pytest.raises(ConditionError, match="condition s on InvertedPendulum-v5: .*has no \\[sac\\] table"):
+        resolve(c, ppo_only)
 
 
 def test_shipped_conditions_resolve_on_all_four_envs():
@@ -72,14 +117,15 @@ def test_shipped_conditions_resolve_on_all_four_envs():
                 continue
             given = with_overrides(recipe, algo="sac") if name in SAC_ONLY else recipe
             r, spec, _source = resolve(cond, given)
-            assert (spec is None) == (name == "none")
+            assert (spec is None) == (name in ("none", "none-sac"))
             assert r.steps == recipe.steps and r.algorithms == recipe.algorithms  # same agent everywhere
         for name in IP_ONLY if env != IP else ():  # the linear forecast's error leaves no region
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: .*use predictor = 'exact'"):
                 resolve(conditions[name], recipe)
-        for name in SAC_ONLY:  # and refused with PPO, the recipes' algorithm
-            with pytest.raises(ConditionError, match=f"condition {name} on {env}: .*use algo = 'sac'"):
-                resolve(conditions[name], recipe)
+        for name in (*SAC_ONLY, "none-sac"):  # they name SAC themselves, whatever the recipe's algorithm
+            r, _spec, _ = resolve(conditions[name], recipe)
+            assert r.algo == "sac" and r.algorithms == recipe.algorithms
+        assert resolve(conditions["none"], recipe)[0].algo == recipe.algo
     ip = load_recipe(ROOT / "coach" / f"{IP}.toml")
     r, spec, _ = resolve(conditions["paper"], ip)
     assert r.coaching.mode == "nudge" and r.coaching.trigger is not None

@@ -161,9 +161,16 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
         ),
         (["InvertedPendulum-v5", "--condition", "nope"], "--condition 'nope': not a condition of"),
         (["InvertedPendulum-v5", "--condition", "none"], "--condition 'none': trains no coach"),
+        (
+            ["InvertedPendulum-v5", "--condition", "rescue-replay"],
+            "--condition 'rescue-replay': names its own algorithm (sac)",
+        ),
         (["InvertedPendulum-v5", "--workers", "0"], "--workers 0"),
         # the recipe's condition demonstrates for 2,500 env steps: refused before any stage runs
-        (["InvertedPendulum-v5", "--steps", "2000"], "--steps 2000: the condition 'warm-start-keep-shield-short'"),
+        (
+            ["InvertedPendulum-v5", "--steps", "2000"],
+            "--steps 2000: the condition 'warm-start-keep-shield-short'",
+        ),
         (["InvertedPendulum-v5", "--samples", "0"], "--samples 0"),
         # checked before anything is written (it had written linearization.json and pipeline.json first)
         (

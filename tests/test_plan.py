@@ -131,3 +131,18 @@ def test_every_condition_an_amendment_governs_is_named_in_its_amendment():
     short = ["none", "warm-start-keep-shield-short"]
     assert plan.role(range(110, 120), short) == "confirmatory" and plan.role(range(100, 110), short) == "pilot"
     assert "seeds 110-119" in plan.citation(range(110, 120), short)
+
+
+def test_the_runs_say_which_agents_a_sweep_trained(tmp_path):
+    from pidlab.experiment.analysis import run_algorithms
+
+    env = "InvertedPendulum-v5"
+    for condition, text in (("none", 'algo = "ppo"'), ("none-sac", 'algo = "sac"'), ("broken", "algo = ")):
+        run = tmp_path / "runs" / env / condition / "seed-100"
+        run.mkdir(parents=True)
+        (run / "config.toml").write_text(f"[recipe]\n{text}\n")
+    assert run_algorithms(tmp_path, [env], ["none", "none-sac", "broken"]) == ("ppo", "sac")
+    assert run_algorithms(tmp_path, [env], ["none"]) == ("ppo",)
+    assert run_algorithms(tmp_path, [env], ["missing"]) == ()
+    sweep = ["none", "none-sac"]
+    assert plan.role(range(100, 110), sweep, run_algorithms(tmp_path, [env], sweep)) == "exploratory"

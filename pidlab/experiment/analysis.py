@@ -537,8 +537,29 @@ def analyze(experiment: dict[str, Any], root: Path, recipes: dict[str, Any], rep
         budgets={e: recipes[e].steps for e in envs},
         missing=tuple(missing),
         comparisons=comparisons,
-        algorithms=tuple(sorted({recipes[e].algo for e in envs})),
+        algorithms=run_algorithms(root, envs, conditions) or tuple(sorted({recipes[e].algo for e in envs})),
     )
+
+
+def run_algorithms(root: Path, envs: Sequence[str], conditions: Sequence[str]) -> tuple[str, ...]:
+    """The algorithms the runs of an experiment folder recorded (``[recipe] algo`` of each config.toml).
+
+    A condition may name its own algorithm (``algo``), so the runs, not the env's recipe, say which
+    agents a sweep trained. Empty when no run records one.
+    """
+    import tomllib
+
+    found = set()
+    for env in envs:
+        for condition in conditions:
+            for path in sorted((root / "runs" / env / condition).glob("seed-*/config.toml")):
+                try:
+                    algo = tomllib.loads(path.read_text()).get("recipe", {}).get("algo")
+                except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+                    continue  # a damaged config is reported where the run is read
+                if isinstance(algo, str):
+                    found.add(algo)
+    return tuple(sorted(found))
 
 
 def recipes_of_runs(root: Path, experiment: dict[str, Any]) -> dict[str, Any]:

@@ -2,7 +2,8 @@
 
 A condition says how an agent is coached (or not) in an experiment: the coach spec (a name in
 ``tuning/``, a spec file, or ``none``), changes to the recipe's ``[coaching]`` table (mode,
-trigger, schedules, ...), and optionally the critical-state bounds to use instead of the spec's.
+trigger, schedules, ...), optionally the critical-state bounds to use instead of the spec's, and
+optionally the agent's algorithm (``algo``: a plain SAC learner beside PPO in one sweep).
 Any of these can differ per environment (``[condition.NAME.env."ENV"]``). The file
 ``coach/conditions.toml`` holds pidlab's conditions; users add their own in the same form::
 
@@ -47,7 +48,7 @@ from pidlab.controller.spec import CoachSpec, load_spec, parse_spec, spec_to_dic
 from pidlab.data import find_data_file, tuning_dir
 from pidlab.errors import ConditionError, ExperimentError, RecipeError, SpecError
 from pidlab.files import read_toml
-from pidlab.rl.recipe import Recipe, check_coaching, parse_recipe, recipe_to_dict
+from pidlab.rl.recipe import ALGOS, Recipe, check_coaching, parse_recipe, recipe_to_dict, with_overrides
 
 CONDITIONS_SCHEMA = "pidlab.conditions/1"
 
@@ -64,11 +65,15 @@ class EnvCondition:
         Fields replacing the recipe's ``[coaching]`` fields.
     bounds : dict or None
         ``variable = [low, high]`` box replacing the spec's ``[bounds]``.
+    algo : str or None
+        The agent's algorithm (``ppo`` or ``sac``) replacing the recipe's and ``--algo``; None:
+        the recipe's.
     """
 
     coach: str
     coaching: dict[str, Any]
     bounds: dict[str, list[float]] | None
+    algo: str | None = None
 
 
 @dataclass(frozen=True)
@@ -90,7 +95,7 @@ def conditions_path() -> Path:
     return find_data_file("coach", "conditions.toml")
 
 
-_FIELDS = {"description", "coach", "coaching", "bounds", "env"}
+_FIELDS = {"description", "coach", "coaching", "bounds", "algo", "env"}
 
 
 def _box(bounds: Any, where: str) -> dict[str, list[float]]:
@@ -122,7 +127,7 @@ def _coach(value: Any, where: str) -> str:
 def _env_condition(table: dict[str, Any], base: EnvCondition | None, where: str) -> EnvCondition:
     unknown = set(table) - (_FIELDS - {"description", "env"} if base else _FIELDS)
     if unknown:
-        allowed = "coach, coaching, bounds" if base else "description, coach, coaching, bounds, env"
+        allowed = ", ".join(sorted(_FIELDS - {"description", "env"} if base else _FIELDS))
         raise ConditionError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {allowed}")
     coach = _coach(table.get("coach", base.coach if base else None), f"{where}.coach")
     coaching = as_table(table.get("coaching", {}), f"{where}.coaching", ConditionError,
@@ -134,7 +139,10 @@ def _env_condition(table: dict[str, Any], base: EnvCondition | None, where: str)
         raise ConditionError(str(exc)) from None
     bounds = table.get("bounds")
     box = _box(bounds, f"{where}.bounds") if bounds is not None else base.bounds if base else None
-    return EnvCondition(coach=coach, coaching=merged, bounds=box)
+    algo = table.get("algo", base.algo if base else None)
+    if algo is not None and algo not in ALGOS:
+        raise ConditionError(f"{where}.algo = {shown(algo)}: expected one of {', '.join(ALGOS)}")
+    return EnvCondition(coach=coach, coaching=merged, bounds=box, algo=algo)
 
 
 def parse_conditions(data: dict[str, Any], where: str = "conditions") -> dict[str, Condition]:
@@ -272,11 +280,16 @@ def resolve(condition: Condition, recipe: Recipe) -> tuple[Recipe, CoachSpec | N
     ------
     ConditionError
         A spec that does not exist or is for another env, coaching fields a recipe rejects,
-        bounds on variables the env does not observe.
+        bounds on variables the env does not observe, an algorithm the recipe has no table for.
     """
     env_id = recipe.env_id
     c = condition.for_env(env_id)
     where = f"condition {condition.name} on {env_id}"
+    if c.algo is not None:
+        try:
+            recipe = with_overrides(recipe, algo=c.algo)
+        except RecipeError as exc:
+            raise ConditionError(f"{where}: {exc}") from None
     resolved = with_coaching(recipe, c.coaching, where)
     if c.coach == "none":
         _check_couplings(resolved, None, where)
