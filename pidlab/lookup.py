@@ -212,7 +212,8 @@ class ForecastError:
     variables : tuple of str
         The rescue region's variables (grid and guard).
     margins : tuple of float
-        Per variable, the largest error over the transitions: the amount the region is shrunk by.
+        Per variable, the largest error over the transitions: the half-width of the box about a
+        forecast that must lie in the region.
     median, p99 : tuple of float
         Per variable, the median and 99th percentile of the error.
     transitions : int
@@ -224,7 +225,7 @@ class ForecastError:
     seed : int
         The recording's seed.
     agreement : dict
-        Of the held-out actions put to both predictors (the model's against the shrunk region):
+        Of the held-out actions put to both predictors (the model's: its margin box in the region):
         ``both`` vetoed, ``exact_only``, ``model_only``, ``neither``.
     region : str
         Digest of the ``[bounds.rescue]`` table measured on.

@@ -691,14 +691,13 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
 
 
 def _algorithms(folder: Path, identity: dict[str, Any]) -> tuple[str, ...]:
-    """The algorithms a published experiment's runs trained (as their configs record them)."""
-    from pidlab.errors import PidlabError
-    from pidlab.experiment.analysis import recipes_of_runs
+    """The algorithms a published experiment's runs trained (every run's config, each condition's own)."""
+    from pidlab.experiment.analysis import run_algorithms
 
-    try:
-        return tuple(sorted({r.algo for r in recipes_of_runs(folder, identity).values()}))
-    except (PidlabError, KeyError, TypeError):  # an unreadable record: no evidence of another agent
-        return ("ppo",)
+    envs, conditions = identity.get("envs", []), identity.get("conditions", [])
+    if not isinstance(envs, list) or not isinstance(conditions, list):
+        return ("ppo",)  # an unreadable record: no evidence of another agent
+    return run_algorithms(folder, [str(e) for e in envs], [str(c) for c in conditions]) or ("ppo",)
 
 
 def _report(s: _Session, record: Record, made: _Made, sweep_plan: Plan) -> tuple[Path, Path]:

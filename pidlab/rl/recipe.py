@@ -43,8 +43,8 @@ Schema ``pidlab.recipe/1``::
                                  # the rescue region; takeover only) | a growth-trigger table:
     # trigger = { variable = "hinge_vel", low = 0.0, high = 0.3, steps = 2 }   # nudge only
     predictor = "exact"          # the predictive trigger's look-ahead: exact (a copy of the MuJoCo
-                                 # data) | model (the linear model, against the rescue region
-                                 # shrunk by the spec's [bounds.forecast]: `pidlab forecast`)
+                                 # data) | model (the linear model; the box of the spec's measured
+                                 # error, [bounds.forecast] from `pidlab forecast`, must lie in the region)
     handback = 1.0               # the coach hands back inside region.inner(handback), in (0, 1]
     view = "hidden"              # what the agent sees of a takeover: hidden | penalty | terminal
     cost = 10.0                  # penalty view: a takeover's cost (>= 0; default 10 alive rewards)
