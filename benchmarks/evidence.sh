@@ -18,6 +18,8 @@
 #                                                     # (a teaching sweep copies the runs that the
 #                                                     # env's confirmatory and earlier teaching sweeps
 #                                                     # hold with the same settings: pidlab experiment --reuse)
+#   bash benchmarks/evidence.sh --sac InvertedPendulum-v5    # Amendment 8: plain SAC beside plain PPO
+#                                                     # (the pendulums; `none` reused from the confirmation)
 #   bash benchmarks/evidence.sh --model InvertedPendulum-v5  # the model predictor in training
 #                                                     # (exploratory; none and rescue-terminal reused
 #                                                     # from the confirmatory sweep)
@@ -43,6 +45,7 @@ case "${1:-}" in
     --teach5) mode=teach5; shift ;;
     --teach6) mode=teach6; shift ;;
     --model) mode=model; shift ;;
+    --sac) mode=sac; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -56,6 +59,7 @@ design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
         confirm) confirm_design "$1"; return ;;
         teach|teach2|teach3|teach4|teach5|teach6) teach_design "$1"; return ;;
         model) model_design "$1"; return ;;
+        sac) sac_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -96,6 +100,15 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
     esac
 }
 
+sac_design() {  # Amendment 8: the plain SAC baseline beside plain PPO, on the pendulums
+    case $1 in
+        InvertedPendulum-v5) echo "$1-sac none,none-sac 50000 100-109" ;;
+        InvertedDoublePendulum-v5) echo "$1-sac none,none-sac 200000 100-109" ;;
+        *) echo "evidence.sh: --sac is for InvertedPendulum-v5 and InvertedDoublePendulum-v5" \
+               "(docs/analysis-plan.md, Amendment 8)" >&2; exit 2 ;;
+    esac
+}
+
 model_design() {  # the model predictor in training (issue 38): exploratory, on the confirmatory seeds
     case $1 in
         InvertedPendulum-v5) echo "$1-model none,rescue-terminal,rescue-terminal-model 50000 100-109" ;;
@@ -116,7 +129,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 model; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 model sac; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

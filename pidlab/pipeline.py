@@ -682,7 +682,10 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
             record = read_json(exp) if exp.exists() else {}
             identity = record.get("identity", {}) if isinstance(record, dict) else {}
             seeds, conds = identity.get("seeds", []), identity.get("conditions", [])
-            kind = role(seeds, conds, _algorithms(path.parent, identity))
+            envs = identity.get("envs", [env_id])
+            kind = role(
+                seeds, conds, _algorithms(path.parent, identity), envs if isinstance(envs, list) else [env_id]
+            )
             size = len(conds) if kind == "confirmatory" else 0
             if kind not in found or size <= found[kind][0]:
                 found[kind] = (size, Evidence(f"docs/results/{path.parent.name}", kept))

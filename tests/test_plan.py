@@ -80,7 +80,39 @@ def test_a_sweep_of_another_agent_than_the_plans_is_exploratory():
     assert plan.role(range(100, 110), ["none", "paper"], ["sac"]) == "exploratory"
     assert plan.role(range(100, 110), ["none", "paper"], ["ppo"]) == "confirmatory"
     cited = plan.citation(range(100, 110), ["none"], ["sac"])
-    assert "governs the agent SAC (it governs PPO)" in cited and "Confirmatory" not in cited
+    assert "governs the agent SAC in this sweep" in cited and "Confirmatory" not in cited
+
+
+def test_amendment_8_governs_plain_sac_on_the_pendulums_only():
+    sweep, algos = ["none", "none-sac"], ["ppo", "sac"]
+    for env in ("InvertedPendulum-v5", "InvertedDoublePendulum-v5"):
+        assert plan.role(range(100, 110), sweep, algos, [env]) == "confirmatory"
+        assert "Amendment 8" in plan.citation(range(100, 110), sweep, algos, [env])
+    for env in ("Hopper-v5", "Walker2d-v5"):
+        assert plan.role(range(100, 110), sweep, algos, [env]) == "exploratory"
+        assert plan.ungoverned(sweep, [env]) == ("none-sac",)
+    # SAC is governed only with the condition that names it
+    assert plan.unplanned_algorithms(["ppo", "sac"], ["none", "paper"]) == ("sac",)
+    assert plan.unplanned_algorithms(["ppo", "sac"], sweep, ["InvertedPendulum-v5"]) == ()
+    assert plan.role(range(10), sweep, algos, ["InvertedPendulum-v5"]) == "pilot"
+
+
+def test_an_amendment_governs_only_its_envs_and_seeds():
+    short, hopper, ip = ["none", "warm-start-keep-shield-short"], ["Hopper-v5"], ["InvertedPendulum-v5"]
+    # Amendment 7: Hopper and Walker2d on the plan's seeds; Amendment 4: every env on 110-119
+    assert plan.role(range(100, 110), short, envs=hopper) == "confirmatory"
+    assert plan.amendments_of(short, hopper, range(100, 110)) == (7,)
+    assert "Amendment 7" in plan.citation(range(100, 110), short, envs=hopper)
+    assert "Amendment 4" not in plan.citation(range(100, 110), short, envs=hopper)
+    assert plan.role(range(110, 120), short, envs=hopper) == "confirmatory"
+    assert plan.amendments_of(short, hopper, range(110, 120)) == (4,)
+    assert plan.role(range(100, 110), short, envs=ip) == "exploratory"
+    assert plan.ungoverned(short, ip) == ("warm-start-keep-shield-short",)
+    assert plan.role(range(110, 120), short, envs=ip) == "confirmatory"
+    # a sweep over both kinds of env is confirmatory only where every env is governed
+    assert plan.role(range(100, 110), short, envs=[*hopper, *ip]) == "exploratory"
+    assert plan.fresh_seed_sets(short, hopper) == (tuple(range(100, 110)), tuple(range(110, 120)))
+    assert "100-109 or 110-119" in plan.citation(range(5), short, envs=hopper)
 
 
 def test_roles_and_citation():
@@ -119,17 +151,27 @@ def test_the_plan_was_committed_before_and_only_amended_since():
 def test_every_condition_an_amendment_governs_is_named_in_its_amendment():
     text = (ROOT / plan.PLAN_FILE).read_text()
     amendments = text[text.index("## Amendments") :]
-    for condition, k in plan.AMENDMENTS.items():
+    for amendment in plan.AMENDMENT_LIST:
+        k = amendment.number
         section = amendments[amendments.index(f"### Amendment {k} ") :]
         following = section.find("### Amendment", 5)
         section = section if following < 0 else section[:following]
-        assert f"`{condition}`" in section, (condition, k)
+        for condition in amendment.conditions:
+            assert f"`{condition}`" in section, (condition, k)
+        for env in amendment.envs if amendment.envs != plan.PAPER_ENVS else ():
+            assert env.split("-")[0] in section, (env, k)
+        for algo in amendment.algorithms:
+            assert algo == "ppo" or algo.upper() in section, (algo, k)
+        if amendment.seeds != plan.CONFIRMATORY_SEEDS:
+            assert f"{amendment.seeds[0]}-{amendment.seeds[-1]}" in section, k
     cited = plan.citation(range(100, 110), ["none", "rescue-terminal", "rollin", "warm-start"])
     assert "Amendment 1 and Amendment 2" in cited and "Confirmatory" in cited
     assert "Amendment" not in plan.citation(range(100, 110), ["none", "paper", "rescue-terminal"])
     # Amendment 4 confirms on its own fresh seeds
     short = ["none", "warm-start-keep-shield-short"]
-    assert plan.role(range(110, 120), short) == "confirmatory" and plan.role(range(100, 110), short) == "pilot"
+    assert plan.role(range(110, 120), short) == "confirmatory"
+    assert plan.role(range(100, 110), short, envs=["InvertedPendulum-v5"]) == "exploratory"
+    assert plan.role(range(120, 130), short) == "pilot"
     assert "seeds 110-119" in plan.citation(range(110, 120), short)
 
 

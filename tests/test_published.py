@@ -27,7 +27,9 @@ def test_every_published_experiment_ships_its_runs():
     assert with_record and sorted(with_record) == sorted(FOLDERS)
 
 
-@pytest.mark.parametrize("folder", FOLDERS, ids=[str(f.relative_to(ROOT / "docs" / "results")) for f in FOLDERS])
+@pytest.mark.parametrize(
+    "folder", FOLDERS, ids=[str(f.relative_to(ROOT / "docs" / "results")) for f in FOLDERS]
+)
 def test_a_published_report_is_recomputed_from_its_runs_logs(folder):
     a, texts = recompute.recompute(folder)
     for name in ("metrics.csv", "summary.csv", "report.md"):
@@ -137,4 +139,18 @@ def test_the_teaching_sweeps_refuse_an_env_without_a_design(mode):
     assert done.returncode == 2
     assert done.stderr.strip().splitlines() == [
         "evidence.sh: CartPole-v1: no teaching design (expected one of the paper's four v5 envs)"
+    ]
+
+
+@pytest.mark.parametrize("env", ["Hopper-v5", "CartPole-v1"])
+def test_the_sac_sweep_is_for_the_pendulums_only(env):
+    """Amendment 8 governs plain SAC on the two pendulums; other envs are refused before any work."""
+    import subprocess
+
+    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), "--sac", env],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.strip().splitlines() == [
+        "evidence.sh: --sac is for InvertedPendulum-v5 and InvertedDoublePendulum-v5 "
+        "(docs/analysis-plan.md, Amendment 8)"
     ]

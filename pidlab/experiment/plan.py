@@ -9,6 +9,7 @@ checks that the document says the same.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 PLAN_FILE = "docs/analysis-plan.md"
 PLAN_COMMIT = "f00fabfb1e3c5a3c571ad8f09bca77b761ebdc91"
@@ -57,89 +58,162 @@ def secondary_measures(env_id: str, win_target: float) -> tuple[str, ...]:
     return SECONDARY + extra
 
 
-def confirmatory_seeds(conditions: Sequence[str] = ()) -> tuple[int, ...]:
-    """The fresh seeds that confirm a sweep of ``conditions`` (an amendment's own, else the plan's)."""
-    own = {AMENDMENT_SEEDS[k] for k in amendments_of(conditions) if k in AMENDMENT_SEEDS}
-    return own.pop() if len(own) == 1 else CONFIRMATORY_SEEDS
+PAPER_ENVS = tuple(BUDGETS)
+"""The paper's four envs, which the plan governs."""
 
 
-def ungoverned(conditions: Sequence[str]) -> tuple[str, ...]:
-    """The conditions that neither the plan nor an amendment governs (their comparisons were not planned)."""
-    return tuple(c for c in conditions if c not in CONFIRMATORY_CONDITIONS and c not in AMENDMENTS)
+@dataclass(frozen=True)
+class Amendment:
+    """An amendment of the plan: the conditions it governs, where, on which seeds, with which agent.
 
+    Attributes
+    ----------
+    number : int
+        Its number in docs/analysis-plan.md ("### Amendment N").
+    conditions : tuple of str
+        The conditions (coach/conditions.toml) it governs.
+    envs : tuple of str
+        The envs it governs them on.
+    seeds : tuple of int
+        Its fresh confirmatory seeds.
+    algorithms : tuple of str
+        The agents it governs (besides the plan's PPO).
+    """
+
+    number: int
+    conditions: tuple[str, ...]
+    envs: tuple[str, ...] = PAPER_ENVS
+    seeds: tuple[int, ...] = CONFIRMATORY_SEEDS
+    algorithms: tuple[str, ...] = ("ppo",)
+
+
+AMENDMENT_LIST: tuple[Amendment, ...] = (
+    Amendment(1, ("warm-start", "warm-start-shield")),
+    Amendment(2, ("blend", "rollin", "rescue-veto", "warm-start-veto")),
+    Amendment(3, ("warm-start-keep", "warm-start-keep-shield")),
+    Amendment(4, ("warm-start-keep-shield-short",), seeds=tuple(range(110, 120))),
+    Amendment(5, ("residual",)),
+    Amendment(7, ("warm-start-keep-shield-short",), envs=("Hopper-v5", "Walker2d-v5")),
+    Amendment(
+        8, ("none-sac",), envs=("InvertedPendulum-v5", "InvertedDoublePendulum-v5"), algorithms=("sac",)
+    ),
+)
+"""Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 
 PLAN_ALGORITHMS = ("ppo",)
-"""The agents the plan and its amendments govern (section 2: PPO with each env's recipe)."""
+"""The agent the plan governs (section 2: PPO with each env's recipe); amendments may add others."""
 
 
-def unplanned_algorithms(algorithms: Sequence[str]) -> tuple[str, ...]:
-    """The algorithms of a sweep that the plan does not govern."""
-    return tuple(a for a in algorithms if a not in PLAN_ALGORITHMS)
+def governing(condition: str, env: str) -> tuple[Amendment, ...]:
+    """The amendments that govern ``condition`` on ``env`` (none for the plan's own conditions)."""
+    return tuple(a for a in AMENDMENT_LIST if condition in a.conditions and env in a.envs)
 
 
-def role(seeds: Sequence[int], conditions: Sequence[str] = (), algorithms: Sequence[str] = ("ppo",)) -> str:
+def _amendments(conditions: Sequence[str], envs: Sequence[str]) -> tuple[Amendment, ...]:
+    return tuple(a for a in AMENDMENT_LIST if any(a in governing(c, e) for c in conditions for e in envs))
+
+
+def fresh_seed_sets(
+    conditions: Sequence[str] = (), envs: Sequence[str] = PAPER_ENVS
+) -> tuple[tuple[int, ...], ...]:
+    """The seed sets that may confirm a sweep of ``conditions`` on ``envs`` (the plan's, its amendments')."""
+    sets = [CONFIRMATORY_SEEDS, *(a.seeds for a in _amendments(conditions, envs))]
+    return tuple(dict.fromkeys(sets))
+
+
+def _on_seeds(seeds: Sequence[int], conditions: Sequence[str], envs: Sequence[str]) -> tuple[Amendment, ...]:
+    fresh = tuple(sorted(seeds))
+    return tuple(a for a in _amendments(conditions, envs) if a.seeds == fresh)
+
+
+def amendments_of(
+    conditions: Sequence[str], envs: Sequence[str] = PAPER_ENVS, seeds: Sequence[int] | None = None
+) -> tuple[int, ...]:
+    """The numbers of the amendments that govern ``conditions`` on ``envs`` (on ``seeds`` when given)."""
+    found = _amendments(conditions, envs) if seeds is None else _on_seeds(seeds, conditions, envs)
+    return tuple(sorted({a.number for a in found}))
+
+
+def ungoverned(
+    conditions: Sequence[str], envs: Sequence[str] = PAPER_ENVS, seeds: Sequence[int] = CONFIRMATORY_SEEDS
+) -> tuple[str, ...]:
+    """The conditions that neither the plan nor an amendment governs on all ``envs`` with ``seeds``."""
+    fresh = tuple(sorted(seeds))
+
+    def planned(c: str, e: str) -> bool:
+        if c in CONFIRMATORY_CONDITIONS:
+            return True
+        return any(a.seeds == fresh for a in governing(c, e))
+
+    return tuple(c for c in conditions if not all(planned(c, e) for e in envs))
+
+
+def unplanned_algorithms(
+    algorithms: Sequence[str],
+    conditions: Sequence[str] = (),
+    envs: Sequence[str] = PAPER_ENVS,
+    seeds: Sequence[int] = CONFIRMATORY_SEEDS,
+) -> tuple[str, ...]:
+    """The algorithms of a sweep that neither the plan nor an amendment of its conditions governs."""
+    allowed = set(PLAN_ALGORITHMS).union(*(a.algorithms for a in _on_seeds(seeds, conditions, envs)))
+    return tuple(a for a in algorithms if a not in allowed)
+
+
+def role(
+    seeds: Sequence[int],
+    conditions: Sequence[str] = (),
+    algorithms: Sequence[str] = ("ppo",),
+    envs: Sequence[str] = PAPER_ENVS,
+) -> str:
     """The sweep's standing under the plan.
 
-    On exactly its fresh seeds (:func:`confirmatory_seeds`): ``confirmatory``, or ``exploratory``
-    when it holds a condition the plan does not govern (:func:`ungoverned`) or trains another agent
-    than the plan's (:data:`PLAN_ALGORITHMS`). On other seeds: ``pilot``.
+    On exactly a set of fresh seeds (:func:`fresh_seed_sets`): ``confirmatory`` when the plan or
+    its amendments govern every condition on every env on those seeds, with the agents they name;
+    else ``exploratory`` (a condition not governed there, :func:`ungoverned`, or an agent not
+    governed, :func:`unplanned_algorithms`). On other seeds: ``pilot``.
     """
-    if tuple(sorted(seeds)) != confirmatory_seeds(conditions):
+    if tuple(sorted(seeds)) not in fresh_seed_sets(conditions, envs):
         return "pilot"
-    planned = not ungoverned(conditions) and not unplanned_algorithms(algorithms)
+    planned = not ungoverned(conditions, envs, seeds) and not unplanned_algorithms(
+        algorithms, conditions, envs, seeds
+    )
     return "confirmatory" if planned else "exploratory"
 
 
-AMENDMENTS: dict[str, int] = {
-    "warm-start": 1,
-    "warm-start-shield": 1,
-    "blend": 2,
-    "rollin": 2,
-    "rescue-veto": 2,
-    "warm-start-veto": 2,
-    "warm-start-keep": 3,
-    "warm-start-keep-shield": 3,
-    "warm-start-keep-shield-short": 4,
-    "residual": 5,
-}
-"""Condition -> the amendment of the plan that governs it (added before its runs)."""
-
-AMENDMENT_SEEDS: dict[int, tuple[int, ...]] = {4: tuple(range(110, 120))}
-"""Amendment -> its own fresh confirmatory seeds (the others confirm on :data:`CONFIRMATORY_SEEDS`)."""
-
-
-def amendments_of(conditions: Sequence[str]) -> tuple[int, ...]:
-    """The amendments that govern ``conditions`` (in order; none for the plan's own conditions)."""
-    return tuple(sorted({AMENDMENTS[c] for c in conditions if c in AMENDMENTS}))
+def _span(seeds: Sequence[int]) -> str:
+    return f"{seeds[0]}-{seeds[-1]}"
 
 
 def citation(
-    seeds: Sequence[int], conditions: Sequence[str] = (), algorithms: Sequence[str] = ("ppo",)
+    seeds: Sequence[int],
+    conditions: Sequence[str] = (),
+    algorithms: Sequence[str] = ("ppo",),
+    envs: Sequence[str] = PAPER_ENVS,
 ) -> str:
     """The sentence a report opens its analysis with (naming the amendments that govern ``conditions``)."""
     text = (
         f"Analysed under the pre-registered analysis plan ({PLAN_FILE}, committed in {PLAN_COMMIT[:7]} "
         "before the confirmatory runs)."
     )
-    amended = amendments_of(conditions)
+    kind = role(seeds, conditions, algorithms, envs)
+    amended = amendments_of(conditions, envs, None if kind == "pilot" else seeds)
     if amended:
         names = " and ".join(f"Amendment {k}" for k in amended)
         text += f" Its couplings are governed by the plan's {names}, each added before the runs it governs."
-    fresh = confirmatory_seeds(conditions)
-    span = f"{fresh[0]}-{fresh[-1]}"
-    kind = role(seeds, conditions, algorithms)
     if kind == "confirmatory":
+        span = _span(sorted(seeds))
         return text + f" **Confirmatory sweep**: the plan's fresh seeds {span}; its verdicts are the plan's."
     if kind == "exploratory":
-        other = unplanned_algorithms(algorithms)
-        what = (f"the agent {', '.join(a.upper() for a in other)} (it governs PPO)" if other
-                else ", ".join(ungoverned(conditions)))  # fmt: skip
+        other = unplanned_algorithms(algorithms, conditions, envs, seeds)
+        names = ", ".join(ungoverned(conditions, envs, seeds))
+        what = f"the agent {', '.join(a.upper() for a in other)} in this sweep" if other else names
         return text + (
-            f" **Exploratory sweep**: neither the plan nor an amendment governs {what}, so its tests "
-            f"were not planned; on the plan's seeds {span} too, its verdicts describe these runs and "
-            "confirm nothing."
+            f" **Exploratory sweep**: neither the plan nor an amendment governs {what} on these envs and "
+            f"seeds ({_span(sorted(seeds))}), so its tests were not planned; its verdicts describe these "
+            "runs and confirm nothing."
         )
+    fresh = " or ".join(_span(s) for s in fresh_seed_sets(conditions, envs))
     return text + (
-        f" **Pilot (exploratory) sweep**: these seeds are not the plan's confirmatory seeds {span}, so its "
+        f" **Pilot (exploratory) sweep**: these seeds are not the plan's confirmatory seeds {fresh}, so its "
         "verdicts describe these runs and confirm nothing."
     )

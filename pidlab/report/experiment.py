@@ -385,7 +385,7 @@ def _front_matter(a: Analysis, record: Mapping[str, Any]) -> list[str]:
     seeds = record["identity"]["seeds"]
     scope = f"Seeds {seeds[0]}..{seeds[-1]} ({len(seeds)}); conditions {', '.join(a.conditions)}"
     lines = report_header(f"Coaching experiment: {', '.join(a.envs)}", record, scope=scope,
-                          notes=[plan.citation(seeds, a.conditions, a.algorithms)])  # fmt: skip
+                          notes=[plan.citation(seeds, a.conditions, a.algorithms, a.envs)])  # fmt: skip
     total = sum(len(c.runs) for c in a.cells.values())
     finished = f"Finished runs: {total} of {total + len(a.missing)}."
     lines.append(f"{finished}{_wall_time(a)}{reuse_sentence(record)}")
