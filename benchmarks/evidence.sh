@@ -20,6 +20,8 @@
 #                                                     # hold with the same settings: pidlab experiment --reuse)
 #   bash benchmarks/evidence.sh --sac InvertedPendulum-v5    # Amendment 8: plain SAC beside plain PPO
 #                                                     # (the pendulums; `none` reused from the confirmation)
+#   bash benchmarks/evidence.sh --full InvertedDoublePendulum-v5  # Amendment 9: the classifier region
+#                                                     # over the full state (rescue-terminal-full)
 #   bash benchmarks/evidence.sh --model InvertedPendulum-v5  # the model predictor in training
 #                                                     # (exploratory; none and rescue-terminal reused
 #                                                     # from the confirmatory sweep)
@@ -46,6 +48,7 @@ case "${1:-}" in
     --teach6) mode=teach6; shift ;;
     --model) mode=model; shift ;;
     --sac) mode=sac; shift ;;
+    --full) mode=full; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -60,6 +63,7 @@ design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
         teach|teach2|teach3|teach4|teach5|teach6) teach_design "$1"; return ;;
         model) model_design "$1"; return ;;
         sac) sac_design "$1"; return ;;
+        full) full_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -109,6 +113,13 @@ sac_design() {  # Amendment 8: the plain SAC baseline beside plain PPO, on the p
     esac
 }
 
+full_design() {  # Amendment 9: the rescue region over the full state (a classifier)
+    case $1 in
+        InvertedDoublePendulum-v5) echo "$1-full none,rescue-terminal,rescue-terminal-full 200000 100-109" ;;
+        *) echo "evidence.sh: --full is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 9)" >&2; exit 2 ;;
+    esac
+}
+
 model_design() {  # the model predictor in training (issue 38): exploratory, on the confirmatory seeds
     case $1 in
         InvertedPendulum-v5) echo "$1-model none,rescue-terminal,rescue-terminal-model 50000 100-109" ;;
@@ -129,7 +140,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 model sac; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 model sac full; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

@@ -332,3 +332,162 @@ def _per_variable(value: Any, where: str, names: tuple[str, ...] | None) -> dict
         expected = f"the variables {', '.join(names)}" if names else "observation variables"
         raise SpecError(f"{where}: expected a table of {expected} = finite numbers >= 0")
     return {k: float(v) for k, v in value.items()}
+
+
+# ----------------------------------------------------------------------------- a learned rescue region
+
+CLASSIFIER_FIELDS = ("shape", "trigger", "action_fraction", "variables", "lower", "upper", "layers",
+                     "threshold", "coach", "provenance")  # fmt: skip
+"""The fields of a ``[bounds.rescue]`` table whose region is a classifier (``shape = "classifier"``)."""
+
+MAX_CLASSIFIER_VARIABLES = 12
+"""The most state variables a classifier region may test."""
+
+MAX_WIDTH = 512
+"""The widest hidden layer a classifier region may hold."""
+
+
+@dataclass(frozen=True)
+class RescueClassifier:
+    """A rescue region's data as a classifier: a small network scores a state, a threshold decides.
+
+    A state is in the region when every variable lies in the domain box and the score
+    :meth:`scores` gives it is at least ``threshold``. The network takes the variables scaled to
+    [-1, 1] over the domain box, has ``tanh`` hidden layers and one linear output.
+
+    Attributes
+    ----------
+    variables : tuple of str
+        The observation variables it tests (every one that decides a rescue).
+    lower, upper : tuple of float
+        The domain box it was fitted on; states outside it are outside the region.
+    layers : tuple of (ndarray, ndarray)
+        ``(weights, bias)`` per layer; weights of shape ``(inputs, outputs)``.
+    threshold : float
+        The validated score threshold.
+    coach : str
+        Digest of the coach it was fitted for (:func:`coach_digest`): a table copied from another
+        spec is refused.
+    trigger : {"predictive"}
+        What the region was derived for (the state is tested before the agent's step runs).
+    action_fraction : float
+        0 (no agent step is allowed for).
+    """
+
+    variables: tuple[str, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    layers: tuple[tuple[np.ndarray, np.ndarray], ...] = field(compare=False, hash=False)
+    threshold: float = 0.0
+    coach: str = ""
+    trigger: str = "predictive"
+    action_fraction: float = 0.0
+
+    def scaled(self, points: np.ndarray) -> np.ndarray:
+        """``points`` (shape ``(n, k)``) scaled to [-1, 1] over the domain box."""
+        lo, hi = np.array(self.lower), np.array(self.upper)
+        return 2.0 * (np.atleast_2d(np.asarray(points, dtype=float)) - lo) / (hi - lo) - 1.0
+
+    def scores(self, points: np.ndarray) -> np.ndarray:
+        """The network's score of each row of ``points`` (shape ``(n, k)``), shape ``(n,)``."""
+        h = self.scaled(points)
+        for i, (w, b) in enumerate(self.layers):
+            h = h @ w + b
+            if i < len(self.layers) - 1:
+                h = np.tanh(h)
+        return h[:, 0]
+
+    def inside(self, points: np.ndarray, threshold: float | None = None) -> np.ndarray:
+        """Whether each row of ``points`` is in the domain box with a score of at least the threshold."""
+        p = np.atleast_2d(np.asarray(points, dtype=float))
+        boxed = np.all((p >= np.array(self.lower)) & (p <= np.array(self.upper)), axis=1)
+        t = self.threshold if threshold is None else float(threshold)
+        return boxed & (self.scores(p) >= t)
+
+    def to_table(self) -> dict[str, Any]:
+        """The ``[bounds.rescue]`` TOML table."""
+        return {
+            "shape": "classifier",
+            "trigger": self.trigger,
+            "action_fraction": float(self.action_fraction),
+            "variables": list(self.variables),
+            "lower": [float(v) for v in self.lower],
+            "upper": [float(v) for v in self.upper],
+            "layers": [{"weights": w.tolist(), "bias": b.tolist()} for w, b in self.layers],
+            "threshold": float(self.threshold),
+            "coach": self.coach,
+        }
+
+
+def coach_digest(env_id: str, loops: Any, offset: Any) -> str:
+    """The digest of a coach's law (env, loops and offset; not its name): what a region is fitted for."""
+    return digest({"env_id": env_id, "loops": loops, "offset": offset}, 16)
+
+
+def is_classifier(t: Any) -> bool:
+    """Whether a ``[bounds.rescue]`` table holds a classifier region (else a lookup grid)."""
+    return isinstance(t, dict) and "shape" in t
+
+
+def _check_layers(value: Any, k: int, where: str) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    if not isinstance(value, list) or not 2 <= len(value) <= 4:
+        raise SpecError(f"{where}: expected 2 to 4 layers, each a table of weights and bias")
+    out, inputs = [], k
+    for i, layer in enumerate(value):
+        here = f"{where}[{i}]"
+        _check_fields(layer, here, ("weights", "bias"))
+        rows = layer.get("weights")
+        if not isinstance(rows, list) or len(rows) != inputs:
+            raise SpecError(f"{here}.weights: expected {inputs} rows (one per input)")
+        bias = _finite_list(layer.get("bias"), None, f"{here}.bias")
+        width = len(bias)
+        last = i == len(value) - 1
+        if (last and width != 1) or not 1 <= width <= MAX_WIDTH:
+            want = "1 output" if last else f"1 to {MAX_WIDTH} units"
+            raise SpecError(f"{here}.bias: {width} entries; expected {want}")
+        w = np.array([_finite_list(r, width, f"{here}.weights[{j}]") for j, r in enumerate(rows)])
+        out.append((w, np.array(bias)))
+        inputs = width
+    return tuple(out)
+
+
+def parse_classifier(t: Any, where: str = "bounds.rescue") -> RescueClassifier:
+    """Read and check a ``[bounds.rescue]`` table of ``shape = "classifier"``.
+
+    Raises
+    ------
+    SpecError
+        A field missing, of the wrong type or out of range; the message names it.
+    """
+    _check_fields(t, where, CLASSIFIER_FIELDS)
+    if t.get("shape") != "classifier":
+        raise SpecError(f"{where}.shape: {t.get('shape')!r}; expected 'classifier' (no shape: a lookup grid)")
+    if t.get("trigger") != "predictive":
+        raise SpecError(f"{where}.trigger: {t.get('trigger')!r}; a classifier region is for 'predictive'")
+    frac = t.get("action_fraction")
+    if isinstance(frac, bool) or not isinstance(frac, int | float) or frac != 0:
+        raise SpecError(f"{where}.action_fraction: {frac!r}; expected 0 (predictive)")
+    raw = t.get("variables")
+    names: list[str] = list(raw) if isinstance(raw, list) else []
+    most = MAX_CLASSIFIER_VARIABLES
+    if not all(isinstance(v, str) and v for v in names) or not 1 <= len(names) <= most:
+        raise SpecError(f"{where}.variables: expected 1 to {most} observation variable names")
+    if len(set(names)) != len(names):
+        raise SpecError(f"{where}.variables: a variable is named twice")
+    k = len(names)
+    lower = _finite_list(t.get("lower"), k, f"{where}.lower")
+    upper = _finite_list(t.get("upper"), k, f"{where}.upper")
+    if not all(lo < hi for lo, hi in zip(lower, upper, strict=True)):
+        raise SpecError(f"{where}: expected lower < upper for every variable")
+    layers = _check_layers(t.get("layers"), k, f"{where}.layers")
+    threshold = t.get("threshold")
+    if isinstance(threshold, bool) or not isinstance(threshold, int | float) or not np.isfinite(threshold):
+        raise SpecError(f"{where}.threshold: {threshold!r}; expected a finite number")
+    if not isinstance(t.get("coach"), str) or not t["coach"]:
+        raise SpecError(f"{where}.coach: expected the digest of the coach the classifier was fitted for")
+    return RescueClassifier(tuple(names), tuple(lower), tuple(upper), layers, float(threshold), t["coach"])
+
+
+def parse_rescue(t: Any, where: str = "bounds.rescue") -> LookupGrid | RescueClassifier:
+    """Read and check a ``[bounds.rescue]`` table: a classifier when it names a shape, else a lookup grid."""
+    return parse_classifier(t, where) if is_classifier(t) else parse_lookup(t, where)

@@ -990,6 +990,103 @@ def rescue(
             con.print(f"wrote the rescue region into {path} as its takeover region")
 
 
+@app.command("rescue-classifier")
+@friendly_errors
+def rescue_classifier(
+    spec_file: Annotated[
+        str, typer.Argument(metavar="SPEC", help="A coach spec (TOML) with its certified core.")
+    ],
+    domain: Annotated[
+        str,
+        typer.Option(
+            help="The domain box: VARIABLE=HALF-WIDTH about the operating point, comma-separated "
+            "(e.g. slider_pos=0.9,hinge_sin=0.6,hinge2_sin=0.9,slider_vel=1,hinge_vel=2,hinge2_vel=2)."
+        ),
+    ],
+    samples: Annotated[int, typer.Option(help="Labelled states the classifier is fitted on.")] = 160_000,
+    calibration: Annotated[
+        int, typer.Option(help="Further labelled states that set its threshold.")
+    ] = 25_000,
+    validation: Annotated[int, typer.Option(help="Fresh states per validation draw.")] = 2000,
+    coverage: Annotated[int, typer.Option(help="Fresh states over the domain for the coverage.")] = 20_000,
+    width: Annotated[int, typer.Option(help="Units per hidden layer (two hidden layers).")] = 64,
+    epochs: Annotated[int, typer.Option(help="Passes over the labelled states.")] = 100,
+    horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
+    seed: Annotated[int, typer.Option(help="Sampling and fitting seed.")] = 0,
+    write: Annotated[
+        bool, typer.Option("--write", help="Write the region into SPEC as its takeover region.")
+    ] = False,
+    output: Annotated[
+        str | None,
+        typer.Option(
+            "--output",
+            "-o",
+            help="Write a copy of SPEC with the region here (named NAME when the file is ENV.NAME.toml).",
+        ),
+    ] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace an existing --output file.")] = False,
+    workers: Annotated[
+        int | None, typer.Option(help="Worker processes for the simulations (default: the machine's cores).")
+    ] = None,
+) -> None:
+    """Fit, validate and score a rescue region over every listed variable: a learned classifier."""
+    from pathlib import Path
+
+    from rich.progress import Progress
+
+    from pidlab.controller.spec import editing_spec, save_spec, writing_spec
+    from pidlab.plant.model import load_model
+    from pidlab.region.classifier import ClassifierSettings, estimate_classifier, with_classifier
+    from pidlab.report.console import classifier_view, wide_console
+
+    if write and output:
+        _fail("--write and --output: choose one (into SPEC, or into a copy)")
+    box = _domain_box(domain)
+    settings = ClassifierSettings(
+        tuple(box), tuple(box.values()), samples=samples, calibration=calibration, validation=validation,
+        coverage=coverage, width=width, epochs=epochs, horizon_s=horizon, seed=seed,
+    )  # fmt: skip
+    copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
+    with editing_spec(spec_file, write) as spec, copy as write_copy:
+        loaded = load_model(spec.env_id)
+        with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
+            task = bar.add_task("classifier region", total=1.0)
+            found = estimate_classifier(
+                spec, loaded, settings, workers=workers,
+                progress=lambda stage, f: bar.update(task, description=stage, completed=f or 0.0),
+            )  # fmt: skip
+        units = {v.name: v.unit for v in loaded.require_card().observation}
+        con = wide_console()
+        con.print(classifier_view(found, spec.name, spec.env_id, units))
+        new = with_classifier(spec, found)
+        if write:
+            con.print(f"wrote the classifier region into {save_spec(new, spec_file)} as its takeover region")
+        elif output and write_copy is not None:
+            stem = Path(output).name.removesuffix(".toml")
+            name = stem.removeprefix(f"{spec.env_id}.") if stem.startswith(f"{spec.env_id}.") else spec.name
+            path = write_copy(dataclasses.replace(new, name=name))
+            con.print(f"wrote the spec with its classifier region to {path}")
+
+
+def _domain_box(text: str) -> dict[str, float]:
+    """``--domain``: ``VARIABLE=HALF-WIDTH`` pairs; a malformed one is refused in one line."""
+    import math
+
+    box: dict[str, float] = {}
+    for part in _names(text, "domain", what="VARIABLE=HALF-WIDTH pairs"):
+        name, sep, value = part.partition("=")
+        try:
+            half = float(value)
+        except ValueError:
+            half = math.nan
+        if not sep or not name.strip() or not math.isfinite(half) or half <= 0:
+            _fail(f"--domain {part!r}: expected VARIABLE=HALF-WIDTH with a half-width > 0")
+        if name.strip() in box:
+            _fail(f"--domain: {name.strip()!r} is given twice")
+        box[name.strip()] = half
+    return box
+
+
 @app.command()
 @friendly_errors
 def forecast(

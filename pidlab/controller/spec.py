@@ -51,7 +51,7 @@ import tomli_w
 from pidlab.checks import as_table, check_name, number, shown, text
 from pidlab.errors import SpecError
 from pidlab.files import parse_toml, read_toml
-from pidlab.lookup import parse_forecast, parse_lookup
+from pidlab.lookup import coach_digest, is_classifier, parse_forecast, parse_rescue
 
 SPEC_SCHEMA = "pidlab.coach-spec/1"
 ACTIONS = ("reverse", "direct")
@@ -340,7 +340,27 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> CoachSpec:
         bounds=bounds,
     )
     spec.order()  # raises on cascade cycles
+    _check_fitted_for(spec, f"{where}: bounds.rescue.coach")
     return spec
+
+
+def law_digest(spec: CoachSpec) -> str:
+    """The digest of the spec's control law (env, loops, offset; not its name or bounds)."""
+    plain = spec_to_dict(spec)
+    return coach_digest(spec.env_id, plain["loop"], plain.get("offset", {}))
+
+
+def _check_fitted_for(spec: CoachSpec, where: str) -> None:
+    """A classifier rescue region must have been fitted for this spec's coach (not copied from another)."""
+    rescue = (spec.bounds or {}).get("rescue")
+    if rescue is None or not is_classifier(rescue):
+        return
+    want = law_digest(spec)
+    if rescue["coach"] != want:
+        raise SpecError(
+            f"{where}: {rescue['coach']!r}: the classifier was fitted for another coach (this spec's law "
+            f"is {want!r}); estimate it for this one: pidlab rescue-classifier SPEC --domain ... --write"
+        )
 
 
 def _check_ellipsoid(e: Any, where: str) -> None:
@@ -397,7 +417,7 @@ def _check_bounds(b: Any, where: str) -> None:
         for name, lim in box.items():
             _limits(lim, f"{where}.box.{name}", finite=True)
     if "rescue" in b:
-        parse_lookup(b["rescue"], f"{where}.rescue")
+        parse_rescue(b["rescue"], f"{where}.rescue")
     if "forecast" in b:
         if "rescue" not in b:
             raise SpecError(f"{where}.forecast: the forecast's error is measured on a rescue region; "

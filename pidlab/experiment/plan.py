@@ -97,6 +97,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
     Amendment(
         8, ("none-sac",), envs=("InvertedPendulum-v5", "InvertedDoublePendulum-v5"), algorithms=("sac",)
     ),
+    Amendment(9, ("rescue-terminal-full",), envs=("InvertedDoublePendulum-v5",)),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 

@@ -219,8 +219,29 @@ class _Domain:
 
 def _domain(settings: RescueSettings, card: ModelCard, loaded: LoadedModel, y_op: np.ndarray) -> _Domain:
     """Check the variables and lay out the domain about the operating point's observation."""
+    grid = state_domain(settings.variables, settings.half_range, card, loaded, y_op)
+    guard = state_domain(tuple(settings.guard), tuple(settings.guard.values()), card, loaded, y_op)
+    return _Domain(
+        grid.grid_vars, guard.grid_vars, grid.lower, grid.upper, guard.lower, guard.upper,
+        grid.addr + guard.addr,
+    )  # fmt: skip
+
+
+def state_domain(
+    names: tuple[str, ...],
+    half_range: tuple[float, ...],
+    card: ModelCard,
+    loaded: LoadedModel,
+    y_op: np.ndarray,
+) -> _Domain:
+    """A box of ``names`` (no guard) about the operating point's observation, laid out for MuJoCo.
+
+    Raises
+    ------
+    RegionError
+        A variable that is not a joint's position, its sine or its velocity.
+    """
     m = loaded.model
-    names = (*settings.variables, *settings.guard)
     addr = []
     for name in names:
         var = card.variable(name)
@@ -232,14 +253,10 @@ def _domain(settings: RescueSettings, card: ModelCard, loaded: LoadedModel, y_op
         adr = int(m.jnt_qposadr[jid]) if var.source == "qpos" else int(m.jnt_dofadr[jid])
         addr.append((var.source, adr, int(m.jnt_dofadr[jid]), var.transform))
     col = card.observation_names
-    centre = np.array([y_op[col.index(n)] for n in settings.variables])
-    half = np.array(settings.half_range, dtype=float)
-    g_centre = np.array([y_op[col.index(n)] for n in settings.guard])
-    g_half = np.array(list(settings.guard.values()), dtype=float)
-    return _Domain(
-        tuple(settings.variables), tuple(settings.guard), centre - half, centre + half,
-        g_centre - g_half, g_centre + g_half, tuple(addr),
-    )  # fmt: skip
+    centre = np.array([y_op[col.index(n)] for n in names], dtype=float)
+    half = np.array(half_range, dtype=float)
+    empty = np.zeros(0)
+    return _Domain(tuple(names), (), centre - half, centre + half, empty, empty, tuple(addr))
 
 
 @dataclass(frozen=True)

@@ -8,10 +8,11 @@ A coach spec's ``[bounds]`` table may hold three sets, in observation variables:
 ``box``
     A box on a few variables (inside the core's projection, or the simulated recoverable box).
 ``rescue``
-    A **rescue region** (:mod:`pidlab.region.rescue`): a lookup grid on two or three variables,
+    A **rescue region** (:mod:`pidlab.region.rescue`): a lookup grid on two to four variables,
     cut by a guard box on others, whose cells hold the states from which the coach recovers in
     MuJoCo (after one agent step for the ``reactive`` trigger; from the state itself for the
-    ``predictive`` one).
+    ``predictive`` one); or (``shape = "classifier"``, :mod:`pidlab.region.classifier`) a learned
+    classifier over every variable that decides a rescue, validated the same way.
 
 ``[bounds] takeover = "rescue" | "box" | "ellipsoid"`` names the spec's takeover region (default:
 the rescue region when there is one, else the box). :func:`load_region` returns it as an object
@@ -29,7 +30,7 @@ import numpy as np
 
 from pidlab.checks import shown
 from pidlab.errors import CoachingError
-from pidlab.lookup import LookupGrid, parse_lookup
+from pidlab.lookup import LookupGrid, RescueClassifier, parse_rescue
 
 KINDS = ("box", "ellipsoid", "rescue")
 """The shapes a takeover region can have."""
@@ -234,6 +235,11 @@ class GridRegion:
         self.scale = 1.0
 
     @property
+    def trigger(self) -> str:
+        """What the region was derived for: ``"predictive"`` or ``"reactive"``."""
+        return self.grid.trigger
+
+    @property
     def max_depth(self) -> int:
         """The deepest cell's depth."""
         return int(self._depth.max(initial=0))
@@ -278,6 +284,75 @@ class GridRegion:
         f = _check_fraction(fraction, "hand-back")
         depth = min(int(np.floor((1.0 - f) * self.max_depth)), max(self.centre_depth - 1, 0))
         return GridRegion(self.grid, self.observation_names, max(depth, self.min_depth))
+
+
+class ClassifierRegion:
+    """Membership in a :class:`~pidlab.lookup.RescueClassifier`, bound to an env's observation layout.
+
+    Parameters
+    ----------
+    classifier : RescueClassifier
+    observation_names : tuple of str
+    fraction : float
+        ``inner(fraction)``: the threshold moved from the validated one towards the operating point's
+        score by ``1 - fraction`` (1: the validated region).
+    operating_score : float, optional
+        The score at the operating point (default: at the domain box's centre, which the estimate
+        puts at the operating point).
+    """
+
+    kind = "rescue"
+    trigger = "predictive"
+
+    def __init__(
+        self, classifier: RescueClassifier, observation_names: tuple[str, ...], fraction: float = 1.0,
+        operating_score: float | None = None,
+    ) -> None:  # fmt: skip
+        self.classifier = classifier
+        self.variables = classifier.variables
+        self.observation_names = observation_names
+        idx = observation_indices(classifier.variables, observation_names, "bounds.rescue.variables")
+        self._idx = np.array(idx)
+        self._size = len(observation_names)
+        self._lo, self._hi = np.array(classifier.lower), np.array(classifier.upper)
+        self._scale = 2.0 / (self._hi - self._lo)
+        self._layers = classifier.layers
+        if operating_score is None:
+            operating_score = float(classifier.scores(((self._lo + self._hi) / 2.0)[None, :])[0])
+        self.operating_score = operating_score
+        self.fraction = fraction
+        t = classifier.threshold
+        self.threshold = t + (1.0 - fraction) * max(operating_score - t, 0.0)
+
+    def _score(self, y: np.ndarray) -> float:
+        h = (y - self._lo) * self._scale - 1.0
+        last = len(self._layers) - 1
+        for i, (w, b) in enumerate(self._layers):
+            h = h @ w + b
+            if i < last:
+                h = np.tanh(h)
+        return float(h[0])
+
+    def _contains(self, obs: np.ndarray) -> bool:
+        y = np.asarray(obs, dtype=float)[self._idx]
+        if not (np.all(y >= self._lo) and np.all(y <= self._hi)):
+            return False
+        return self._score(y) >= self.threshold
+
+    def contains(self, obs: np.ndarray) -> bool:
+        """Whether ``obs`` lies in the domain box with a score of at least the threshold.
+
+        Raises
+        ------
+        CoachingError
+            ``obs`` is not an observation of the env (another length, not numbers).
+        """
+        return checked_observation(obs, self._size, self._contains)
+
+    def inner(self, fraction: float) -> ClassifierRegion:
+        """The region whose threshold lies ``1 - fraction`` of the way to the operating point's score."""
+        f = self.fraction * _check_fraction(fraction, "hand-back")
+        return ClassifierRegion(self.classifier, self.observation_names, f, self.operating_score)
 
 
 def takeover_kind(bounds: dict[str, Any] | None) -> str | None:
@@ -328,7 +403,10 @@ def region_from_bounds(
         return BoxRegion(b["box"], observation_names)
     if kind == "ellipsoid":
         return EllipsoidRegion(b["ellipsoid"], observation_names)
-    return GridRegion(parse_lookup(b["rescue"]), observation_names)
+    rescue = parse_rescue(b["rescue"])
+    if isinstance(rescue, RescueClassifier):
+        return ClassifierRegion(rescue, observation_names)
+    return GridRegion(rescue, observation_names)
 
 
 def load_region(spec: Any, kind: str | None = None) -> Region:

@@ -482,6 +482,39 @@ def rescue_view(r: Any, units: dict[str, str]) -> Group:
     return Group(head, t, cov)
 
 
+def classifier_view(r: Any, spec_name: str, env_id: str, units: dict[str, str]) -> Group:
+    """What ``pidlab rescue-classifier`` prints: the domain, the validation and the coverage."""
+    s, c = r.settings, r.classifier
+    head = Text()
+    head.append(f"classifier rescue region of {spec_name} on {env_id} (predictive trigger)\n", style="bold")
+    head.append(
+        f"network {len(c.variables)}-{s.width}-{s.width}-1 (tanh) fitted on {s.samples:,} labelled states, "
+        f"threshold {c.threshold:.4g} set on {s.calibration:,} more (accuracy {r.calibration_accuracy:.1%})\n"
+    )
+    head.append(
+        f"validation in MuJoCo: {s.validation:,} fresh states in the region, 0 not rescued "
+        f"(failure rate < {r.failure_bound_95:.2%} at 95 %); {r.validation_rounds} draw(s), "
+        f"{r.failures_removed} failure(s) found and excluded on the way\n"
+    )
+    t = Table(title="Domain: this box, states the env's termination rule ends dropped", title_justify="left")
+    for col in ("variable", "low", "high"):
+        t.add_column(col, justify="left" if col == "variable" else "right")
+    for v, lo, hi in zip(c.variables, c.lower, c.upper, strict=True):
+        t.add_row(f"{v} ({units.get(v, '')})", f"{lo:.4g}", f"{hi:.4g}")
+    rescuable = r.provenance.get("coverage_rescuable", 0)
+    cov = Table(
+        title=f"Coverage: {rescuable:,} of {s.coverage:,} fresh states over the domain are rescuable "
+        f"({r.rescued_fraction:.1%})",
+        title_justify="left",
+    )
+    for col in ("region", "coverage (of rescuable)"):
+        cov.add_column(col, justify="left" if col == "region" else "right")
+    cov.add_row("classifier", f"{r.coverage:.1%}")
+    if r.coverage_grid is not None:
+        cov.add_row("the spec's lookup grid", f"{r.coverage_grid:.1%}")
+    return Group(head, t, cov)
+
+
 def train_view(result: Any, win_target: float) -> Group:
     """What ``pidlab train`` prints at the end: step accounts and the agent-alone score."""
     t = Table(title=f"Training run {result.run_dir}", title_justify="left")

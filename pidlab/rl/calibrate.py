@@ -23,7 +23,7 @@ from pidlab.checks import integer
 from pidlab.checks import seed as checked_seed
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
-from pidlab.lookup import AGREEMENT, ForecastError, parse_lookup, region_digest
+from pidlab.lookup import AGREEMENT, ForecastError, is_classifier, parse_lookup, region_digest
 from pidlab.plant.model import LoadedModel, load_model
 from pidlab.region.forecast import MarginRegion, check_forecastable
 from pidlab.region.takeover import GridRegion, observation_indices
@@ -109,6 +109,11 @@ def measure_forecast(
     if rescue is None:
         raise CoachingError(
             f"{spec.name}: the spec has no rescue region; run `pidlab rescue SPEC --write` first"
+        )
+    if is_classifier(rescue):
+        raise CoachingError(
+            f"{spec.name}: pidlab forecast measures the error on a lookup-grid rescue region; "
+            "this spec's region is a classifier, which the model predictor cannot narrow"
         )
     region = GridRegion(parse_lookup(rescue), card.observation_names)
     names = (*region.grid.variables, *region.grid.guard)

@@ -130,7 +130,14 @@ from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
 from pidlab.plant.model import LoadedModel, load_model
 from pidlab.region.forecast import MarginRegion, check_forecastable, spec_forecast
-from pidlab.region.takeover import KINDS, GridRegion, Region, observation_indices, region_from_bounds
+from pidlab.region.takeover import (
+    KINDS,
+    ClassifierRegion,
+    GridRegion,
+    Region,
+    observation_indices,
+    region_from_bounds,
+)
 from pidlab.rl.predict import ModelPredictor, Predictor
 from pidlab.rl.rewards import alive_reward, failure_function
 
@@ -254,7 +261,10 @@ def model_region(spec: CoachSpec, loaded: LoadedModel, region: Region) -> Margin
 
     card = loaded.require_card()
     if not isinstance(region, GridRegion):
-        raise CoachingError(f"{spec.name}: predictor 'model' tests the rescue region (a lookup grid)")
+        raise CoachingError(
+            f"{spec.name}: predictor 'model' narrows a lookup-grid rescue region by the forecast's error; "
+            "this spec's region is a classifier: use predictor = 'exact'"
+        )
     grid = region.grid
     check_forecastable(card, (*grid.variables, *grid.guard), f"{spec.name}: predictor 'model'")
     forecast = spec_forecast(spec.bounds, spec.name)
@@ -302,8 +312,8 @@ def takeover_region(spec: CoachSpec, observation_names: tuple[str, ...], kind: s
             "run `pidlab rescue SPEC --write`"
         )
     region = region_from_bounds(bounds, observation_names, kind, spec.name)
-    if isinstance(region, GridRegion):
-        if region.grid.trigger == "predictive" and not predictive:
+    if isinstance(region, GridRegion | ClassifierRegion):
+        if region.trigger == "predictive" and not predictive:
             raise CoachingError(
                 f"{spec.name}: its rescue region was derived for the predictive trigger and leaves no room "
                 "for the agent's step; use trigger = 'predictive', or derive a reactive one "

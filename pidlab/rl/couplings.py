@@ -57,7 +57,6 @@ from typing import Any
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
 from pidlab.files import load_json, write_json
-from pidlab.lookup import parse_lookup
 from pidlab.rl.recipe import DemonstrationSettings, Proposer, Recipe, RollIn, ValueTrigger, WarmStart
 
 RECORD = "warm_start.json"
@@ -329,14 +328,15 @@ def _alive(env_id: str) -> float:
 def _check_model_predictor(spec: CoachSpec) -> None:
     """The model predictor's region, built as a run would build it (refused as a run would be)."""
     from pidlab.plant.model import load_model
-    from pidlab.region.takeover import GridRegion
+    from pidlab.region.takeover import region_from_bounds
     from pidlab.rl.coaching import model_region
 
     rescue = (spec.bounds or {}).get("rescue")
     if rescue is None:
         raise CoachingError(f"{spec.name}: predictor 'model' tests the spec's rescue region, and it has none")
     loaded = load_model(spec.env_id)
-    model_region(spec, loaded, GridRegion(parse_lookup(rescue), loaded.require_card().observation_names))
+    model_region(spec, loaded, region_from_bounds(spec.bounds, loaded.require_card().observation_names,
+                                                  "rescue", spec.name))  # fmt: skip
 
 
 def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:

@@ -1,0 +1,463 @@
+"""Rescue regions as a learned classifier: every variable that decides a rescue, where a grid gets too big.
+
+A lookup grid (:mod:`pidlab.region.rescue`) covers two to four variables and leaves the rest to a
+guard box; on InvertedDoublePendulum that box (upper pole 0.03 rad, cart 0.2 m) throws away most
+of the states the coach rescues. A **classifier region** covers all of them:
+
+1. **Domain.** A box about the operating point over the chosen observation variables (a joint's
+   position, its sine, or its velocity); a state the env's termination rule ends is dropped, so the
+   domain is the env's own termination domain cut by the box (the box bounds the velocities, which
+   no termination rule does).
+2. **Labels.** ``samples + calibration`` states drawn uniformly in the domain are simulated in
+   MuJoCo with the coach's real discrete law, exactly as a grid cell's probes are: a state is
+   *rescued* when the coach brings it into the spec's certified core (or, for a coach certified by
+   simulation only, survives the horizon) without a termination on the way. No agent step is
+   taken first: the region serves the ``predictive`` trigger.
+3. **Fit.** A small network (``tanh`` hidden layers, one linear output) is fitted to the labels of
+   the first ``samples`` states by weighted cross-entropy (failures weigh ``negative_weight``
+   times more), deterministically from ``seed`` (:func:`fit_layers`).
+4. **Threshold.** The calibration states set it: the highest score a failure among them has.
+5. **Validation**, as for the grid: ``validation`` fresh states drawn uniformly inside the
+   region are simulated; a failure raises the threshold past its score and a new fresh draw
+   follows, until a draw has none (rule of three: a failure rate below ``3 / validation`` with
+   95 % confidence).
+6. **Coverage**: ``coverage`` fresh states over the domain tell which are rescuable; the coverage
+   is the share of those the region holds. The spec's grid region, if it has one, is scored on the
+   same states, so the two are compared over the same termination domain.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from pidlab import __version__
+from pidlab.checks import integer, number
+from pidlab.checks import seed as check_seed
+from pidlab.controller.spec import CoachSpec, law_digest
+from pidlab.errors import RegionError
+from pidlab.lookup import MAX_CLASSIFIER_VARIABLES, MAX_WIDTH, RescueClassifier, is_classifier
+from pidlab.plant.model import LoadedModel
+from pidlab.region.rescue import MAX_ROUNDS, _Domain, _Estimate, _estimating, state_domain
+from pidlab.region.takeover import ClassifierRegion, GridRegion, region_from_bounds
+
+Progress = Callable[[str, "float | None"], None]
+
+MAX_SAMPLES = 2_000_000
+"""The most labelled states an estimate may simulate per stage."""
+
+MAX_DRAWS = 2000
+"""Uniform draws per state kept, at most, before a domain is called empty (rejection sampling)."""
+
+
+@dataclass(frozen=True)
+class ClassifierSettings:
+    """What a classifier rescue region covers and how hard it looks.
+
+    Attributes
+    ----------
+    variables : tuple of str
+        Observation variables (a hinge or slide joint's position, its sine, or its velocity): every
+        one that decides a rescue.
+    half_range : tuple of float
+        The domain box's half-widths about the operating point's observation.
+    samples : int
+        Labelled states the network is fitted on.
+    calibration : int
+        Further labelled states that set the threshold.
+    validation : int
+        Fresh states per validation draw.
+    coverage : int
+        Fresh states over the domain for the coverage.
+    width : int
+        Units per hidden layer (two hidden layers).
+    epochs : int
+        Passes over the fitted states.
+    negative_weight : float
+        Weight of a failure's loss against a rescue's.
+    horizon_s : float
+        Simulated time per rescue.
+    seed : int
+    """
+
+    variables: tuple[str, ...]
+    half_range: tuple[float, ...]
+    samples: int = 160_000
+    calibration: int = 25_000
+    validation: int = 2000
+    coverage: int = 20_000
+    width: int = 64
+    epochs: int = 100
+    negative_weight: float = 3.0
+    horizon_s: float = 3.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        """Refuse settings out of range at once (:class:`RegionError` naming the field)."""
+        _check_settings(self)
+
+
+def _check_settings(s: ClassifierSettings) -> None:
+    k = len(s.variables)
+    if not 1 <= k <= MAX_CLASSIFIER_VARIABLES or len(s.half_range) != k or len(set(s.variables)) != k:
+        raise RegionError(
+            f"classifier domain: expected 1 to {MAX_CLASSIFIER_VARIABLES} distinct variables with a "
+            "half-range each"
+        )
+    for name, h in zip(s.variables, s.half_range, strict=True):
+        number(h, f"half-range of {name}", RegionError, low=0.0, low_open=True)
+    for name, low in (("samples", 100), ("calibration", 100), ("validation", 1), ("coverage", 1)):
+        integer(getattr(s, name), name, RegionError, low=low, high=MAX_SAMPLES, param=name)
+    integer(s.width, "width", RegionError, low=2, high=MAX_WIDTH, param="width")
+    integer(s.epochs, "epochs", RegionError, low=1, high=10_000, param="epochs")
+    number(s.negative_weight, "negative_weight", RegionError, low=0.0, low_open=True, high=1e6)
+    number(s.horizon_s, "horizon_s", RegionError, low=0.0, low_open=True, high=600.0)
+    check_seed(s.seed, "seed", RegionError, param="seed")
+
+
+@dataclass(frozen=True)
+class ClassifierRescue:
+    """A validated classifier rescue region and how it was found.
+
+    Attributes
+    ----------
+    classifier : RescueClassifier
+    settings : ClassifierSettings
+    coverage : float
+        Share of the rescuable domain states the region holds.
+    coverage_grid : float or None
+        The spec's grid region on the same states (None without one).
+    rescued_fraction : float
+        Share of the domain states the coach rescues.
+    volume : float
+        Share of the domain states the region holds.
+    validation_rounds : int
+        Draws until one had no failure.
+    failures_removed : int
+        Failures found (and excluded by a higher threshold) in the earlier draws.
+    calibration_accuracy : float
+        Share of calibration states the network's sign classifies right (score >= 0: rescued).
+    provenance : dict
+    """
+
+    classifier: RescueClassifier
+    settings: ClassifierSettings
+    coverage: float
+    coverage_grid: float | None
+    rescued_fraction: float
+    volume: float
+    validation_rounds: int
+    failures_removed: int
+    calibration_accuracy: float
+    provenance: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
+
+    @property
+    def failure_bound_95(self) -> float:
+        """Upper 95 % bound on the failure rate inside the region (rule of three)."""
+        return 3.0 / self.settings.validation
+
+    def to_table(self) -> dict[str, Any]:
+        """The spec's ``[bounds.rescue]`` table."""
+        return {**self.classifier.to_table(), "provenance": dict(self.provenance)}
+
+
+def fit_layers(
+    x: np.ndarray, y: np.ndarray, width: int, epochs: int, negative_weight: float, seed: int
+) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """Fit a two-hidden-layer ``tanh`` network's score to labels, deterministically.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n, k)
+        Inputs, scaled to [-1, 1].
+    y : ndarray of bool, shape (n,)
+        Labels (True: rescued).
+    width, epochs : int
+    negative_weight : float
+        Loss weight of a False label against a True one.
+    seed : int
+
+    Returns
+    -------
+    tuple of (weights, bias)
+        Per layer, weights of shape ``(inputs, outputs)``; the score is the last layer's output.
+    """
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            k = x.shape[1]
+            net = torch.nn.Sequential(
+                torch.nn.Linear(k, width), torch.nn.Tanh(), torch.nn.Linear(width, width), torch.nn.Tanh(),
+                torch.nn.Linear(width, 1),
+            )  # fmt: skip
+            _train(net, torch.tensor(x, dtype=torch.float32), torch.tensor(y, dtype=torch.float32),
+                   epochs, negative_weight)  # fmt: skip
+    finally:
+        torch.set_num_threads(threads)
+    linears = [m for m in net if isinstance(m, torch.nn.Linear)]
+    return tuple((m.weight.detach().double().numpy().T.copy(), m.bias.detach().double().numpy().copy())
+                 for m in linears)  # fmt: skip
+
+
+def _train(net: Any, x: Any, y: Any, epochs: int, negative_weight: float) -> None:
+    """Adam with a cosine-decayed step size over ``epochs`` passes of shuffled batches.
+
+    A batch is 1/50 of the states (32 to 1,024), so that a pass takes at least 50 steps whatever
+    the number of states.
+    """
+    import torch
+
+    batch = min(max(len(x) // 50, 32), 1024)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
+    weight = torch.where(y > 0.5, 1.0, float(negative_weight))
+    for _ in range(epochs):
+        order = torch.randperm(len(x))
+        for i in range(0, len(x), batch):
+            b = order[i : i + batch]
+            loss = torch.nn.functional.binary_cross_entropy_with_logits(net(x[b]).squeeze(1), y[b],
+                                                                        weight=weight[b])  # fmt: skip
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        schedule.step()
+
+
+def calibrated_threshold(scores: np.ndarray, rescued: np.ndarray) -> float:
+    """The highest score of a failure (every failure outside); below every score when none failed."""
+    failed = scores[~rescued]
+    return float(failed.max()) if failed.size else float(scores.min()) - 1.0
+
+
+def raised_threshold(threshold: float, failed_scores: np.ndarray) -> float:
+    """The threshold moved just past the highest score of the failures found inside the region."""
+    if not failed_scores.size:
+        return threshold
+    return float(np.nextafter(max(threshold, float(failed_scores.max())), np.inf))
+
+
+@dataclass
+class _Work:
+    """The estimate's working state: the simulations, the domain, the clock and the progress."""
+
+    est: _Estimate
+    domain: _Domain
+    settings: ClassifierSettings
+    started: float
+    report: Progress
+
+
+def _draw(work: _Work, n: int, keep: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+    """``n`` states uniform in the domain that the env does not end (and that ``keep`` accepts)."""
+    d, sim, rng = work.domain, work.est.pool.sim, work.est.rng
+    out: list[np.ndarray] = []
+    drawn = 0
+    while len(out) < n:
+        if drawn > MAX_DRAWS * n:
+            raise RegionError(
+                f"after {drawn} uniform draws only {len(out)} of {n} states lay in the region's domain "
+                "(the termination rule, or the region, leaves almost nothing of the box)"
+            )
+        batch = rng.uniform(d.lower, d.upper, (max(n, 1000), len(d.grid_vars)))
+        drawn += len(batch)
+        alive = np.array([not sim.terminated(sim.start(d.to_plant(v, sim))) for v in batch], dtype=bool)
+        batch = batch[alive]
+        if keep is not None and len(batch):
+            batch = batch[keep(batch)]
+        out.extend(batch[: n - len(out)])
+    return np.array(out).reshape(n, len(d.grid_vars))
+
+
+@contextlib.contextmanager
+def _working(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    s: ClassifierSettings,
+    workers: int | None,
+    progress: Progress | None,
+) -> Iterator[_Work]:
+    from pidlab.region.rescue import RescueSettings
+
+    # the rescue simulations of the grid estimate (its settings only lay out the simulations here)
+    grid_like = RescueSettings(variables=s.variables[:1], half_range=s.half_range[:1], cells=(2,),
+                               horizon_s=s.horizon_s, seed=s.seed)  # fmt: skip
+    with _estimating(spec, loaded, grid_like, workers, progress) as (est, _, _):
+        domain = state_domain(s.variables, s.half_range, loaded.require_card(), loaded, est.pool.sim.y_op)
+        est.domain = domain  # the simulations start from this domain's states
+        yield _Work(est, domain, s, time.perf_counter(), progress or (lambda stage, f: None))
+
+
+def estimate_classifier(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    settings: ClassifierSettings,
+    workers: int | None = None,
+    progress: Progress | None = None,
+) -> ClassifierRescue:
+    """Estimate, validate and score a classifier rescue region (see the module docstring).
+
+    Parameters
+    ----------
+    spec : CoachSpec
+        The coach, with its certified core (``pidlab bounds SPEC --write`` first).
+    loaded : LoadedModel
+    settings : ClassifierSettings
+    workers : int, optional
+        Worker processes for the simulations (default: the machine's cores).
+    progress : callable, optional
+        ``progress(stage, fraction)``.
+
+    Returns
+    -------
+    ClassifierRescue
+
+    Raises
+    ------
+    RegionError
+        A variable that is not a joint's position, sine or velocity; no certified core; a domain the
+        termination rule leaves (almost) empty; a region that leaves out the operating point, or that
+        validation cannot clear in :data:`MAX_ROUNDS` draws.
+    """
+    with _working(spec, loaded, settings, workers, progress) as work:
+        s, est = settings, work.est
+        labelled = _draw(work, s.samples + s.calibration)
+        rescued, _ = est.rescued(labelled, "labelling")
+        box = _box(work.domain)
+        unfitted = RescueClassifier(s.variables, *box, layers=(), coach=law_digest(spec))
+        work.report("fitting", None)
+        layers = fit_layers(unfitted.scaled(labelled[: s.samples]), rescued[: s.samples], s.width, s.epochs,
+                            s.negative_weight, s.seed)  # fmt: skip
+        scores = replace(unfitted, layers=layers).scores(labelled[s.samples :])
+        accuracy = float(np.mean((scores >= 0.0) == rescued[s.samples :]))
+        clf = replace(unfitted, layers=layers, threshold=calibrated_threshold(scores, rescued[s.samples :]))
+        clf, rounds, removed = _validate(work, clf, s.validation)
+        return _scored(spec, work, clf, (rounds, removed, accuracy))
+
+
+def _box(d: _Domain) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    return tuple(float(v) for v in d.lower), tuple(float(v) for v in d.upper)
+
+
+def _validate(work: _Work, clf: RescueClassifier, n: int) -> tuple[RescueClassifier, int, int]:
+    """Fresh draws inside until one has no failure: the classifier with its final threshold."""
+    centre = ((np.array(clf.lower) + np.array(clf.upper)) / 2.0)[None, :]
+    removed = 0
+    for k in range(1, MAX_ROUNDS + 1):
+        if not clf.inside(centre)[0]:
+            raise RegionError(
+                "the classifier region leaves out the operating point (where the coach hands back): a "
+                "failure scores as high as it; fit on more samples (--samples) or longer (--epochs)"
+            )
+        inside = _draw(work, n, keep=clf.inside)
+        ok, _ = work.est.rescued(inside, f"validation {k}")
+        if ok.all():
+            return clf, k, removed
+        removed += int((~ok).sum())
+        clf = replace(clf, threshold=raised_threshold(clf.threshold, clf.scores(inside[~ok])))
+    raise RegionError(f"the classifier region still failed validation after {MAX_ROUNDS} draws")
+
+
+def _scored(
+    spec: CoachSpec, work: _Work, clf: RescueClassifier, how: tuple[int, int, float]
+) -> ClassifierRescue:
+    """Coverage over fresh domain states, the spec's grid region on the same ones, and the provenance."""
+    s, est = work.settings, work.est
+    states = _draw(work, s.coverage)
+    rescued, obs = est.rescued(states, "coverage")
+    inside = clf.inside(states)
+    grid = _grid_region(spec, est.pool.sim.card.observation_names)
+    in_grid = None if grid is None else np.array([grid.contains(o) for o in obs], dtype=bool)
+    held = int(rescued.sum())
+
+    def share(mask: np.ndarray) -> float:
+        return float((mask & rescued).sum()) / held if held else 0.0
+
+    rounds, removed, accuracy = how
+    result = ClassifierRescue(
+        clf, s, share(inside), None if in_grid is None else share(in_grid), float(rescued.mean()),
+        float(inside.mean()), rounds, removed, accuracy,
+    )  # fmt: skip
+    facts = {"simulations": est.simulations, "elapsed_s": round(time.perf_counter() - work.started, 1),
+             "coverage_rescuable": held}  # fmt: skip
+    return replace(result, provenance=_provenance(result, facts))
+
+
+def _grid_region(spec: CoachSpec, names: tuple[str, ...]) -> GridRegion | None:
+    """The spec's lookup-grid rescue region, if it has one (scored on the same states)."""
+    rescue = (spec.bounds or {}).get("rescue")
+    if rescue is None or is_classifier(rescue):
+        return None
+    region = region_from_bounds(spec.bounds, names, "rescue", spec.name)
+    return region if isinstance(region, GridRegion) else None
+
+
+def _provenance(r: ClassifierRescue, facts: dict[str, Any]) -> dict[str, Any]:
+    """How the region was found, for ``[bounds.rescue.provenance]``."""
+    import datetime
+
+    s = r.settings
+    out: dict[str, Any] = {
+        "method": "simulation: classifier fitted on labelled states, validated on fresh states inside",
+        "domain": dict(zip(s.variables, s.half_range, strict=True)),
+        "domain_rule": "box about the operating point, states the env's termination rule ends dropped",
+        "horizon_s": s.horizon_s,
+        "samples": s.samples,
+        "calibration": s.calibration,
+        "width": s.width,
+        "epochs": s.epochs,
+        "negative_weight": s.negative_weight,
+        "calibration_accuracy": round(r.calibration_accuracy, 6),
+        "validation_samples": s.validation,
+        "validation_failures": 0,
+        "validation_rounds": r.validation_rounds,
+        "failures_removed": r.failures_removed,
+        "failure_probability_95": r.failure_bound_95,
+        "coverage_samples": s.coverage,
+        **facts,
+        "coverage_rescue": r.coverage,
+        "rescued_fraction": r.rescued_fraction,
+        "volume_rescue": r.volume,
+        "seed": s.seed,
+        "date": datetime.date.today().isoformat(),
+        "pidlab_version": __version__,
+    }
+    if r.coverage_grid is not None:
+        out["coverage_grid"] = r.coverage_grid
+    return out
+
+
+def with_classifier(spec: CoachSpec, region: ClassifierRescue, takeover: bool = True) -> CoachSpec:
+    """``spec`` with ``region`` as its ``[bounds.rescue]`` (and its takeover region when ``takeover``).
+
+    A ``[bounds.forecast]`` measured on the former region is dropped: the model predictor narrows
+    lookup grids only.
+    """
+    bounds = dict(spec.bounds or {})
+    bounds["rescue"] = region.to_table()
+    bounds.pop("forecast", None)
+    if takeover:
+        bounds["takeover"] = "rescue"
+    return replace(spec, bounds=bounds)
+
+
+def classifier_region(spec: CoachSpec, observation_names: tuple[str, ...]) -> ClassifierRegion:
+    """The spec's classifier rescue region, as the coaching wrapper asks it.
+
+    Raises
+    ------
+    RegionError
+        The spec's rescue region is no classifier.
+    """
+    region = region_from_bounds(spec.bounds, observation_names, "rescue", spec.name)
+    if not isinstance(region, ClassifierRegion):
+        raise RegionError(f"{spec.name}: its rescue region is a lookup grid, not a classifier")
+    return region

@@ -1,0 +1,265 @@
+"""Classifier rescue regions: the data and its TOML form, membership, the estimate in MuJoCo, the command.
+
+The estimate runs on InvertedDoublePendulum-v5 with small draws: what it checks is the mechanics
+(the last validation draw had no failure, so fresh states inside are rescued; the accounts of the
+coverage; the spec round trip and the refusals), not the size of a full-budget region.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from pidlab.controller.spec import dumps_spec, law_digest, load_spec, loads_spec
+from pidlab.errors import CoachingError, RegionError, SpecError
+from pidlab.lookup import RescueClassifier, parse_classifier, parse_rescue
+from pidlab.plant.model import load_model
+from pidlab.region.classifier import (
+    ClassifierSettings,
+    calibrated_threshold,
+    estimate_classifier,
+    fit_layers,
+    raised_threshold,
+    with_classifier,
+)
+from pidlab.region.rescue import _core, _rescued
+from pidlab.region.simulate import Simulator
+from pidlab.region.takeover import ClassifierRegion, load_region
+from tests.helpers import TUNING, cli_in_process
+
+IDP = "InvertedDoublePendulum-v5"
+SPEC = TUNING / f"{IDP}.pidlab-rescue.toml"
+VARS = ("slider_pos", "hinge_sin", "hinge2_sin", "slider_vel", "hinge_vel", "hinge2_vel")
+HALF = (0.9, 0.6, 0.9, 1.0, 2.0, 2.0)
+
+
+def _tiny(threshold: float = 0.0) -> RescueClassifier:
+    """One variable on [-1, 1]: score(x) = tanh(2 x) - 0.5 (hand-checkable)."""
+    layers = ((np.array([[2.0]]), np.array([0.0])), (np.array([[1.0]]), np.array([-0.5])))
+    return RescueClassifier(("hinge_sin",), (-1.0,), (1.0,), layers, threshold, "abc")
+
+
+def test_the_score_is_the_network_computed_by_hand() -> None:
+    c = _tiny()
+    x = np.array([[0.5], [-0.25], [1.0]])
+    assert c.scores(x) == pytest.approx([math.tanh(1.0) - 0.5, math.tanh(-0.5) - 0.5, math.tanh(2.0) - 0.5])
+    # inside: in the box and a score >= threshold; tanh(2x) >= 0.5 from x = atanh(0.5) / 2 = 0.2747
+    pts = np.array([[0.27], [0.28], [1.0], [1.01]])
+    assert c.inside(pts).tolist() == [False, True, True, False]
+    assert c.inside(pts, threshold=0.45).tolist() == [False, False, True, False]
+
+
+def test_a_classifier_round_trips_through_its_toml_table() -> None:
+    c = _tiny(0.25)
+    back = parse_rescue(c.to_table())
+    assert isinstance(back, RescueClassifier) and back == c
+    x = np.linspace(-1, 1, 7)[:, None]
+    assert np.array_equal(back.scores(x), c.scores(x))
+
+
+def _table(**change: object) -> dict:
+    t = _tiny().to_table()
+    t.update(change)
+    return t
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"shape": "boxes"}, r"shape: 'boxes'; expected 'classifier'"),
+        ({"trigger": "reactive"}, r"trigger: 'reactive'; a classifier region is for 'predictive'"),
+        ({"action_fraction": 0.5}, r"action_fraction: 0.5; expected 0"),
+        ({"action_fraction": False}, r"action_fraction: False; expected 0"),
+        ({"variables": []}, r"variables: expected 1 to 12"),
+        ({"lower": [1.0]}, r"expected lower < upper"),
+        ({"layers": [{"weights": [[1.0]], "bias": [0.0]}]}, r"layers: expected 2 to 4 layers"),
+        ({"layers": [{"weights": [[1.0, 2.0]], "bias": [0.0, 0.0]}, {"weights": [[1.0]], "bias": [0.0]}]},
+         r"layers\[1\].weights: expected 2 rows"),
+        ({"layers": [{"weights": [[1.0]], "bias": [0.0]}, {"weights": [[1.0, 1.0]], "bias": [0.0, 0.0]}]},
+         r"layers\[1\].bias: 2 entries; expected 1 output"),
+        ({"layers": [{"weights": [[float("nan")]], "bias": [0.0]}, {"weights": [[1.0]], "bias": [0.0]}]},
+         r"layers\[0\].weights\[0\]: expected a list of 1 finite numbers"),
+        ({"threshold": float("inf")}, r"threshold: inf; expected a finite number"),
+        ({"coach": ""}, r"coach: expected the digest"),
+        ({"cells": [3]}, r"unknown field\(s\) \['cells'\]"),
+    ],
+)  # fmt: skip
+def test_a_damaged_classifier_table_is_one_spec_error(change: dict, message: str) -> None:
+    with pytest.raises(SpecError, match=message):
+        parse_classifier(_table(**change))
+
+
+def test_threshold_rules_computed_by_hand() -> None:
+    scores = np.array([0.1, 0.9, -0.3, 0.4])
+    rescued = np.array([True, True, False, False])
+    assert calibrated_threshold(scores, rescued) == 0.4  # the highest failure's score
+    assert calibrated_threshold(scores, np.ones(4, dtype=bool)) == pytest.approx(-1.3)  # none failed
+    t = raised_threshold(0.4, np.array([0.5, 0.45]))
+    assert t > 0.5 and t == np.nextafter(0.5, np.inf)
+    assert raised_threshold(0.4, np.array([])) == 0.4
+    assert raised_threshold(0.6, np.array([0.5])) == np.nextafter(0.6, np.inf)
+
+
+def test_the_fit_is_deterministic_and_learns_a_separable_rule() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (2000, 2))
+    y = x[:, 0] + 0.5 * x[:, 1] > 0.1
+    a = fit_layers(x, y, width=8, epochs=300, negative_weight=3.0, seed=1)
+    b = fit_layers(x, y, width=8, epochs=300, negative_weight=3.0, seed=1)
+    assert all(
+        np.array_equal(wa, wb) and np.array_equal(ba, bb) for (wa, ba), (wb, bb) in zip(a, b, strict=True)
+    )
+    assert [w.shape for w, _ in a] == [(2, 8), (8, 8), (8, 1)]
+    c = RescueClassifier(("a", "b"), (-1.0, -1.0), (1.0, 1.0), a, 0.0, "x")
+    assert np.mean((c.scores(x) >= 0) == y) > 0.95
+
+
+def test_the_region_object_tests_observations_and_narrows_for_the_hand_back() -> None:
+    names = ("slider_pos", "hinge_sin", "hinge_vel")
+    region = ClassifierRegion(_tiny(), names)
+    assert region.kind == "rescue" and region.trigger == "predictive"
+    assert region.operating_score == pytest.approx(-0.5)  # the box's centre, x = 0
+    assert region.contains(np.array([9.0, 0.5, 9.0])) and not region.contains(np.array([0.0, 0.1, 0.0]))
+    assert not region.contains(np.array([0.0, 1.5, 0.0]))  # outside the domain box
+    # the operating point scores below the threshold here, so narrowing cannot move the threshold
+    assert region.inner(0.5).threshold == region.threshold
+    high = ClassifierRegion(_tiny(-0.9), names, operating_score=-0.5)
+    assert high.inner(0.5).threshold == pytest.approx(-0.7)  # halfway from -0.9 to the operating score
+    assert high.inner(0.5).inner(0.5).threshold == pytest.approx(-0.6)
+    with pytest.raises(CoachingError, match="expected the env's observation, 3 numbers"):
+        region.contains(np.zeros(2))
+
+
+def _small(**kw: object) -> ClassifierSettings:
+    base = ClassifierSettings(VARS, HALF, samples=10000, calibration=2000, validation=200, coverage=600,
+                              width=16, epochs=100, seed=3)  # fmt: skip
+    return dataclasses.replace(base, **kw)
+
+
+@pytest.fixture(scope="module")
+def idp_classifier() -> tuple[object, object]:
+    spec = load_spec(SPEC)
+    return spec, estimate_classifier(spec, load_model(IDP), _small(), workers=2)
+
+
+def test_fresh_states_inside_the_classifier_region_are_rescued(idp_classifier: tuple) -> None:
+    spec, r = idp_classifier
+    loaded = load_model(IDP)
+    from pidlab.controller.analysis import analyze_coach
+    from pidlab.controller.pid import Coach
+
+    sim = Simulator(spec, loaded, analyze_coach(Coach(spec, loaded), loaded).linearization)
+    region = ClassifierRegion(r.classifier, loaded.require_card().observation_names)
+    core, rng, checked = _core(spec, loaded.require_card()), np.random.default_rng(77), 0
+    while checked < 15:
+        x = np.zeros(6)
+        x[:3] = rng.uniform([-0.9, -0.6, -0.9], [0.9, 0.6, 0.9])  # slider, hinge, hinge2 (angles ~ sines)
+        x[3:] = rng.uniform([-1.0, -2.0, -2.0], [1.0, 2.0, 2.0])
+        obs = sim.start(x)
+        if sim.terminated(obs) or not region.contains(obs):
+            continue
+        ok, _ = _rescued(sim, (x, None), 60, core)
+        assert ok, f"a state in the classifier region was not rescued: {obs}"
+        checked += 1
+
+
+def test_classifier_accounts_add_up(idp_classifier: tuple) -> None:
+    spec, r = idp_classifier
+    p = r.provenance
+    assert p["validation_samples"] == 200 and p["validation_failures"] == 0
+    assert p["validation_rounds"] == r.validation_rounds >= 1
+    assert 0 < p["coverage_rescuable"] <= 600
+    assert p["coverage_rescue"] == r.coverage and 0.0 <= r.coverage <= 1.0
+    assert r.coverage_grid is not None and 0.0 <= r.coverage_grid <= 1.0  # the shipped grid, same states
+    assert 0.0 < r.volume <= 1.0 and 0.0 < r.rescued_fraction < 1.0
+    assert p["simulations"] >= 10000 + 2000 + 200 + 600
+    assert r.classifier.coach == law_digest(spec)
+    lo, hi = np.array(r.classifier.lower), np.array(r.classifier.upper)
+    assert hi - lo == pytest.approx(2 * np.array(HALF))
+
+
+def test_written_into_a_spec_it_is_the_takeover_region_and_refused_for_another_coach(
+    idp_classifier: tuple,
+) -> None:
+    spec, r = idp_classifier
+    text = dumps_spec(with_classifier(spec, r))
+    again = loads_spec(text)
+    assert again.bounds["takeover"] == "rescue" and "forecast" not in again.bounds
+    region = load_region(again)
+    assert isinstance(region, ClassifierRegion) and region.classifier == r.classifier
+    # the same table on a coach with another gain: fitted for another coach, refused in one line
+    other = text.replace(f"kp = {spec.loops[0].kp!r}", f"kp = {spec.loops[0].kp * 1.5!r}", 1)
+    assert other != text
+    with pytest.raises(SpecError, match="the classifier was fitted for another coach"):
+        loads_spec(other)
+
+
+def test_the_model_predictor_refuses_a_classifier_region(idp_classifier: tuple) -> None:
+    from pidlab.rl.coaching import model_region
+
+    spec, r = idp_classifier
+    new = with_classifier(spec, r)
+    loaded = load_model(IDP)
+    region = load_region(new)
+    with pytest.raises(CoachingError, match="this spec's region is a classifier: use predictor = 'exact'"):
+        model_region(new, loaded, region)
+
+
+def test_settings_out_of_range_are_refused() -> None:
+    with pytest.raises(RegionError, match="expected 1 to 12 distinct variables"):
+        ClassifierSettings(("a", "a"), (1.0, 1.0))
+    with pytest.raises(RegionError, match="half-range of a"):
+        ClassifierSettings(("a",), (0.0,))
+    with pytest.raises(RegionError, match="samples"):
+        _small(samples=10)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["--domain", "hinge_sin=0"],
+            "--domain 'hinge_sin=0': expected VARIABLE=HALF-WIDTH with a half-width > 0",
+        ),
+        (["--domain", "hinge_sin=1,hinge_sin=2"], "--domain: 'hinge_sin' is given twice"),
+        (["--domain", "slider_constraint=1"], "slider_constraint: a rescue region's variable must be"),
+        (["--domain", "hinge_sin=1", "--samples", "5"], "--samples 5: expected an integer in [100, 2000000]"),
+        (["--domain", "hinge_sin=1", "--write", "-o", "x.toml"], "--write and --output: choose one"),
+    ],
+)
+def test_the_command_refuses_bad_input_in_one_line(args: list[str], message: str) -> None:
+    code, err = cli_in_process("rescue-classifier", str(SPEC), *args)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1
+    assert lines[0].startswith("pidlab: error: ") and message in lines[0]
+
+
+def test_the_shield_lets_an_agent_act_only_where_the_classifier_region_holds_the_next_state(
+    idp_classifier: tuple,
+) -> None:
+    """Predictive trigger, exact copy: an action runs only if the state after it is in the region."""
+    import gymnasium as gym
+
+    from pidlab.rl.coaching import CoachingWrapper
+
+    spec, r = idp_classifier
+    shielded = with_classifier(spec, r)
+    env = CoachingWrapper(gym.make(IDP), shielded, mode="takeover", region="rescue", trigger="predictive",
+                          view="penalty")  # fmt: skip
+    region = load_region(shielded)
+    assert isinstance(env.region, ClassifierRegion)
+    obs, _ = env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    acted = vetoed = 0
+    for _ in range(200):
+        obs, _, terminated, truncated, info = env.step(rng.uniform(-1, 1, 1).astype(np.float32))
+        if info["coach_steps"] == 0:
+            acted += 1
+            assert region.contains(obs), obs  # the agent's own step kept the state in the region
+        vetoed += bool(info.get("vetoed"))
+        if terminated or truncated:
+            obs, _ = env.reset()
+    assert acted > 0 and vetoed > 0
