@@ -263,3 +263,18 @@ def test_the_shield_lets_an_agent_act_only_where_the_classifier_region_holds_the
         if terminated or truncated:
             obs, _ = env.reset()
     assert acted > 0 and vetoed > 0
+
+
+def test_a_domain_the_termination_rule_leaves_empty_is_refused_in_one_line() -> None:
+    """Both poles tilted past the termination height everywhere in the box: nothing to label."""
+    from pidlab.region import classifier
+
+    spec, loaded = load_spec(SPEC), load_model(IDP)
+    settings = ClassifierSettings(
+        ("hinge_sin",), (1.0,), samples=100, calibration=100, validation=10, coverage=10
+    )
+    with classifier._working(spec, loaded, settings, 1, None) as work:
+        # a box whose every state leans the lower pole beyond 0.9 in sine: the env ends them all
+        work.domain = dataclasses.replace(work.domain, lower=np.array([0.9]), upper=np.array([1.0]))
+        with pytest.raises(RegionError, match=r"after [0-9,]+ uniform draws only 0 of 10 states"):
+            classifier._draw(work, 10)

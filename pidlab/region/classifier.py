@@ -54,6 +54,9 @@ MAX_SAMPLES = 2_000_000
 MAX_DRAWS = 2000
 """Uniform draws per state kept, at most, before a domain is called empty (rejection sampling)."""
 
+FIRST_DRAWS = 100_000
+"""Uniform draws after which a domain (or region) that kept no state at all is called empty."""
+
 
 @dataclass(frozen=True)
 class ClassifierSettings:
@@ -262,9 +265,9 @@ def _draw(work: _Work, n: int, keep: Callable[[np.ndarray], np.ndarray] | None =
     out: list[np.ndarray] = []
     drawn = 0
     while len(out) < n:
-        if drawn > MAX_DRAWS * n:
+        if drawn > MAX_DRAWS * n or (drawn >= FIRST_DRAWS and not out):
             raise RegionError(
-                f"after {drawn} uniform draws only {len(out)} of {n} states lay in the region's domain "
+                f"after {drawn:,} uniform draws only {len(out):,} of {n:,} states lay in the region's domain "
                 "(the termination rule, or the region, leaves almost nothing of the box)"
             )
         batch = rng.uniform(d.lower, d.upper, (max(n, 1000), len(d.grid_vars)))
