@@ -278,3 +278,18 @@ def test_a_domain_the_termination_rule_leaves_empty_is_refused_in_one_line() -> 
         work.domain = dataclasses.replace(work.domain, lower=np.array([0.9]), upper=np.array([1.0]))
         with pytest.raises(RegionError, match=r"after [0-9,]+ uniform draws only 0 of 10 states"):
             classifier._draw(work, 10)
+
+
+def test_one_step_room_is_read_from_the_spec_s_region() -> None:
+    """benchmarks/one_step_room.py: the shipped full-state region holds a small first action, not a full one."""
+    import importlib.util
+
+    path = TUNING.parent / "benchmarks" / "one_step_room.py"
+    module_spec = importlib.util.spec_from_file_location("one_step_room", path)
+    room = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(room)
+    rows = {size: (plus, minus) for size, plus, minus, _ in room.one_step_inside(
+        str(TUNING / f"{IDP}.pidlab-rescue-full.toml"), (0.05, 1.0))}  # fmt: skip
+    assert rows[0.05] == (True, True) and rows[1.0] == (False, False)
+    assert room.share_at_least(0.0, 1.0) == 1.0
+    assert room.share_at_least(1.96, 1.0) == pytest.approx(0.05, abs=1e-3)  # the normal's 95 % point
