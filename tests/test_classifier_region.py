@@ -293,3 +293,13 @@ def test_one_step_room_is_read_from_the_spec_s_region() -> None:
     assert rows[0.05] == (True, True) and rows[1.0] == (False, False)
     assert room.share_at_least(0.0, 1.0) == 1.0
     assert room.share_at_least(1.96, 1.0) == pytest.approx(0.05, abs=1e-3)  # the normal's 95 % point
+
+
+def test_the_estimate_is_the_same_on_one_worker(idp_classifier: tuple) -> None:
+    spec, r = idp_classifier  # estimated on two workers
+    again = estimate_classifier(spec, load_model(IDP), _small(), workers=1)
+    assert again.classifier == r.classifier and again.classifier.threshold == r.classifier.threshold
+    assert all(
+        np.array_equal(a[0], b[0]) for a, b in zip(again.classifier.layers, r.classifier.layers, strict=True)
+    )
+    assert (again.coverage, again.validation_rounds) == (r.coverage, r.validation_rounds)
