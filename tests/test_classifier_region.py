@@ -107,8 +107,8 @@ def test_the_fit_is_deterministic_and_learns_a_separable_rule() -> None:
     rng = np.random.default_rng(0)
     x = rng.uniform(-1, 1, (2000, 2))
     y = x[:, 0] + 0.5 * x[:, 1] > 0.1
-    a = fit_layers(x, y, width=8, epochs=300, negative_weight=3.0, seed=1)
-    b = fit_layers(x, y, width=8, epochs=300, negative_weight=3.0, seed=1)
+    a = fit_layers(x, y, width=8, epochs=40, negative_weight=3.0, seed=1)
+    b = fit_layers(x, y, width=8, epochs=40, negative_weight=3.0, seed=1)
     assert all(
         np.array_equal(wa, wb) and np.array_equal(ba, bb) for (wa, ba), (wb, bb) in zip(a, b, strict=True)
     )
