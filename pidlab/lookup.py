@@ -165,6 +165,21 @@ def _check_fields(t: Any, where: str, allowed: tuple[str, ...]) -> None:
         raise SpecError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {', '.join(sorted(allowed))}")
 
 
+def _variables_box(t: dict[str, Any], where: str, most: int) -> tuple[list[str], list[float], list[float]]:
+    """A rescue table's ``variables`` (1 to ``most`` distinct names) with their ``lower`` < ``upper``."""
+    raw = t.get("variables")
+    names: list[str] = list(raw) if isinstance(raw, list) else []
+    if not all(isinstance(v, str) and v for v in names) or not 1 <= len(names) <= most:
+        raise SpecError(f"{where}.variables: expected 1 to {most} observation variable names")
+    if len(set(names)) != len(names):
+        raise SpecError(f"{where}.variables: a variable is named twice")
+    lower = _finite_list(t.get("lower"), len(names), f"{where}.lower")
+    upper = _finite_list(t.get("upper"), len(names), f"{where}.upper")
+    if not all(lo < hi for lo, hi in zip(lower, upper, strict=True)):
+        raise SpecError(f"{where}: expected lower < upper for every variable")
+    return names, lower, upper
+
+
 def parse_lookup(t: Any, where: str = "bounds.rescue") -> LookupGrid:
     """Read and check a ``[bounds.rescue]`` table.
 
@@ -180,17 +195,8 @@ def parse_lookup(t: Any, where: str = "bounds.rescue") -> LookupGrid:
     frac = t.get("action_fraction")
     if isinstance(frac, bool) or not isinstance(frac, int | float) or not 0.0 <= frac <= 1.0:
         raise SpecError(f"{where}.action_fraction: {frac!r}; expected a number in [0, 1]")
-    raw = t.get("variables")
-    names: list[str] = list(raw) if isinstance(raw, list) else []
-    if not all(isinstance(v, str) and v for v in names) or not 1 <= len(names) <= 4:
-        raise SpecError(f"{where}.variables: expected 1 to 4 observation variable names")
-    if len(set(names)) != len(names):
-        raise SpecError(f"{where}.variables: a variable is named twice")
+    names, lower, upper = _variables_box(t, where, 4)
     k = len(names)
-    lower = _finite_list(t.get("lower"), k, f"{where}.lower")
-    upper = _finite_list(t.get("upper"), k, f"{where}.upper")
-    if not all(lo < hi for lo, hi in zip(lower, upper, strict=True)):
-        raise SpecError(f"{where}: expected lower < upper for every variable")
     cells = _check_cells(t.get("cells"), k, f"{where}.cells")
     table = _check_rows(t.get("rows"), cells, f"{where}.rows")
     guard = _check_guard(t.get("guard", {}), names, f"{where}.guard")
@@ -467,19 +473,8 @@ def parse_classifier(t: Any, where: str = "bounds.rescue") -> RescueClassifier:
     frac = t.get("action_fraction")
     if isinstance(frac, bool) or not isinstance(frac, int | float) or frac != 0:
         raise SpecError(f"{where}.action_fraction: {frac!r}; expected 0 (predictive)")
-    raw = t.get("variables")
-    names: list[str] = list(raw) if isinstance(raw, list) else []
-    most = MAX_CLASSIFIER_VARIABLES
-    if not all(isinstance(v, str) and v for v in names) or not 1 <= len(names) <= most:
-        raise SpecError(f"{where}.variables: expected 1 to {most} observation variable names")
-    if len(set(names)) != len(names):
-        raise SpecError(f"{where}.variables: a variable is named twice")
-    k = len(names)
-    lower = _finite_list(t.get("lower"), k, f"{where}.lower")
-    upper = _finite_list(t.get("upper"), k, f"{where}.upper")
-    if not all(lo < hi for lo, hi in zip(lower, upper, strict=True)):
-        raise SpecError(f"{where}: expected lower < upper for every variable")
-    layers = _check_layers(t.get("layers"), k, f"{where}.layers")
+    names, lower, upper = _variables_box(t, where, MAX_CLASSIFIER_VARIABLES)
+    layers = _check_layers(t.get("layers"), len(names), f"{where}.layers")
     threshold = t.get("threshold")
     if isinstance(threshold, bool) or not isinstance(threshold, int | float) or not np.isfinite(threshold):
         raise SpecError(f"{where}.threshold: {threshold!r}; expected a finite number")

@@ -949,8 +949,6 @@ def rescue(
     """Estimate the coach's rescue region by simulation, validate it and score its coverage."""
     from dataclasses import replace
 
-    from rich.progress import Progress
-
     from pidlab.controller.spec import editing_spec, save_spec
     from pidlab.files import check_output_folder
     from pidlab.plant.model import load_model
@@ -973,12 +971,8 @@ def rescue(
             default_settings(spec, loaded, trigger), action_fraction=fraction, validation=validation,
             coverage=coverage, probes=probes, horizon_s=horizon, seed=seed,
         )  # fmt: skip
-        with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
-            task = bar.add_task("rescue region", total=1.0)
-            region = estimate_rescue(
-                spec, loaded, settings, workers=workers,
-                progress=lambda stage, f: bar.update(task, description=stage, completed=f or 0.0),
-            )  # fmt: skip
+        region = _with_bar("rescue region", lambda progress: estimate_rescue(
+            spec, loaded, settings, workers=workers, progress=progress))  # fmt: skip
         units = {v.name: v.unit for v in loaded.require_card().observation}
         con = wide_console()
         con.print(rescue_view(region, units))
@@ -1032,8 +1026,6 @@ def rescue_classifier(
     """Fit, validate and score a rescue region over every listed variable: a learned classifier."""
     from pathlib import Path
 
-    from rich.progress import Progress
-
     from pidlab.controller.spec import editing_spec, save_spec, writing_spec
     from pidlab.plant.model import load_model
     from pidlab.region.classifier import ClassifierSettings, estimate_classifier, with_classifier
@@ -1049,12 +1041,8 @@ def rescue_classifier(
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
-        with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
-            task = bar.add_task("classifier region", total=1.0)
-            found = estimate_classifier(
-                spec, loaded, settings, workers=workers,
-                progress=lambda stage, f: bar.update(task, description=stage, completed=f or 0.0),
-            )  # fmt: skip
+        found = _with_bar("classifier region", lambda progress: estimate_classifier(
+            spec, loaded, settings, workers=workers, progress=progress))  # fmt: skip
         units = {v.name: v.unit for v in loaded.require_card().observation}
         con = wide_console()
         con.print(classifier_view(found, spec.name, spec.env_id, units))
@@ -1066,6 +1054,15 @@ def rescue_classifier(
             name = stem.removeprefix(f"{spec.env_id}.") if stem.startswith(f"{spec.env_id}.") else spec.name
             path = write_copy(dataclasses.replace(new, name=name))
             con.print(f"wrote the spec with its classifier region to {path}")
+
+
+def _with_bar(label: str, work: Callable[[Callable[[str, float | None], None]], Any]) -> Any:
+    """``work(progress)`` under a transient progress bar (on a terminal) that shows its stages."""
+    from rich.progress import Progress
+
+    with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
+        task = bar.add_task(label, total=1.0)
+        return work(lambda stage, f: bar.update(task, description=stage, completed=f or 0.0))
 
 
 def _domain_box(text: str) -> dict[str, float]:
