@@ -275,7 +275,7 @@ def test_a_domain_the_termination_rule_leaves_empty_is_refused_in_one_line() -> 
     )
     with classifier._working(spec, loaded, settings, 1, None) as work:
         # a box whose every state leans the lower pole beyond 0.9 in sine: the env ends them all
-        work.domain = dataclasses.replace(work.domain, lower=np.array([0.9]), upper=np.array([1.0]))
+        work.est.domain = dataclasses.replace(work.est.domain, lower=np.array([0.9]), upper=np.array([1.0]))
         with pytest.raises(RegionError, match=r"after [0-9,]+ uniform draws only 0 of 10 states"):
             classifier._draw(work, 10)
 

@@ -1024,8 +1024,6 @@ def rescue_classifier(
     ] = None,
 ) -> None:
     """Fit, validate and score a rescue region over every listed variable: a learned classifier."""
-    from pathlib import Path
-
     from pidlab.controller.spec import editing_spec, save_spec, writing_spec
     from pidlab.plant.model import load_model
     from pidlab.region.classifier import ClassifierSettings, estimate_classifier, with_classifier
@@ -1050,9 +1048,7 @@ def rescue_classifier(
         if write:
             con.print(f"wrote the classifier region into {save_spec(new, spec_file)} as its takeover region")
         elif output and write_copy is not None:
-            stem = Path(output).name.removesuffix(".toml")
-            name = stem.removeprefix(f"{spec.env_id}.") if stem.startswith(f"{spec.env_id}.") else spec.name
-            path = write_copy(dataclasses.replace(new, name=name))
+            path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
             con.print(f"wrote the spec with its classifier region to {path}")
 
 
@@ -1107,8 +1103,6 @@ def forecast(
     force: Annotated[bool, typer.Option("--force", help="Replace the --output file if it exists.")] = False,
 ) -> None:  # fmt: skip
     """Measure the model predictor's forecast error on a spec's rescue region, and its vetoes."""
-    from pathlib import Path
-
     from rich.progress import Progress
 
     from pidlab.controller.spec import editing_spec, save_spec, writing_spec
@@ -1139,10 +1133,16 @@ def forecast(
         if write:
             con.print(f"wrote the forecast's error into {save_spec(new, spec_file)}")
         elif output and write_copy is not None:
-            stem = Path(output).name.removesuffix(".toml")
-            name = stem.removeprefix(f"{spec.env_id}.") if stem.startswith(f"{spec.env_id}.") else spec.name
-            path = write_copy(dataclasses.replace(new, name=name))
+            path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
             con.print(f"wrote the spec with its forecast's error to {path}")
+
+
+def _copy_name(spec: Any, output: str) -> str:
+    """The name of ``-o FILE``'s copy of ``spec``: NAME for a file ``ENV.NAME.toml``, else the spec's."""
+    from pathlib import Path
+
+    stem = Path(output).name.removesuffix(".toml")
+    return stem.removeprefix(f"{spec.env_id}.") if stem.startswith(f"{spec.env_id}.") else spec.name
 
 
 def _with_forecast(spec: Any, found: Any) -> Any:

@@ -43,7 +43,7 @@ from pidlab.controller.spec import CoachSpec, law_digest
 from pidlab.errors import RegionError
 from pidlab.lookup import MAX_CLASSIFIER_VARIABLES, MAX_WIDTH, RescueClassifier, is_classifier
 from pidlab.plant.model import LoadedModel
-from pidlab.region.rescue import MAX_ROUNDS, _Domain, _Estimate, _estimating, state_domain
+from pidlab.region.rescue import MAX_ROUNDS, _Domain, _Estimate, simulations, state_domain
 from pidlab.region.takeover import ClassifierRegion, GridRegion, region_from_bounds
 
 Progress = Callable[[str, "float | None"], None]
@@ -253,7 +253,6 @@ class _Work:
     """The estimate's working state: the simulations, the domain, the clock and the progress."""
 
     est: _Estimate
-    domain: _Domain
     settings: ClassifierSettings
     started: float
     report: Progress
@@ -261,7 +260,7 @@ class _Work:
 
 def _draw(work: _Work, n: int, keep: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """``n`` states uniform in the domain that the env does not end (and that ``keep`` accepts)."""
-    d, sim, rng = work.domain, work.est.pool.sim, work.est.rng
+    d, sim, rng = work.est.domain, work.est.pool.sim, work.est.rng
     out: list[np.ndarray] = []
     drawn = 0
     while len(out) < n:
@@ -288,15 +287,11 @@ def _working(
     workers: int | None,
     progress: Progress | None,
 ) -> Iterator[_Work]:
-    from pidlab.region.rescue import RescueSettings
+    def domain_of(card: Any, model: LoadedModel, y_op: np.ndarray) -> _Domain:
+        return state_domain(s.variables, s.half_range, card, model, y_op)
 
-    # the rescue simulations of the grid estimate (its settings only lay out the simulations here)
-    grid_like = RescueSettings(variables=s.variables[:1], half_range=s.half_range[:1], cells=(2,),
-                               horizon_s=s.horizon_s, seed=s.seed)  # fmt: skip
-    with _estimating(spec, loaded, grid_like, workers, progress) as (est, _, _):
-        domain = state_domain(s.variables, s.half_range, loaded.require_card(), loaded, est.pool.sim.y_op)
-        est.domain = domain  # the simulations start from this domain's states
-        yield _Work(est, domain, s, time.perf_counter(), progress or (lambda stage, f: None))
+    with simulations(spec, loaded, s, domain_of, workers, progress) as (est, _, _):
+        yield _Work(est, s, time.perf_counter(), progress or (lambda stage, f: None))
 
 
 def estimate_classifier(
@@ -334,7 +329,7 @@ def estimate_classifier(
         s, est = settings, work.est
         labelled = _draw(work, s.samples + s.calibration)
         rescued, _ = est.rescued(labelled, "labelling")
-        box = _box(work.domain)
+        box = _box(work.est.domain)
         unfitted = RescueClassifier(s.variables, *box, layers=(), coach=law_digest(spec))
         work.report("fitting", None)
         layers = fit_layers(unfitted.scaled(labelled[: s.samples]), rescued[: s.samples], s.width, s.epochs,

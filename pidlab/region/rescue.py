@@ -324,7 +324,8 @@ class _Estimate:
 
     pool: SimulationPool
     domain: _Domain
-    settings: RescueSettings
+    settings: Any
+    """A :class:`RescueSettings` (the grid estimate), or a classifier's settings."""
     kicks: list[np.ndarray | None]
     steps: int
     core: _Core
@@ -538,6 +539,35 @@ def _check_settings(s: RescueSettings) -> None:
 
 
 @contextlib.contextmanager
+def simulations(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    settings: Any,
+    domain_of: Callable[[ModelCard, LoadedModel, np.ndarray], _Domain],
+    workers: int | None,
+    progress: Progress | None = None,
+) -> Iterator[tuple[_Estimate, Coach, Linearization]]:
+    """The rescue simulations' setting, with its worker pool open: the estimate, the coach, its linearization.
+
+    ``settings`` needs ``horizon_s`` and ``seed`` (a :class:`RescueSettings`, or a classifier's
+    settings); ``domain_of(card, loaded, y_op)`` lays out the states the simulations start from.
+    Draws nothing: the estimate's random stream starts at ``settings.seed`` for its first user.
+    """
+    from pidlab.controller.analysis import analyze_coach
+
+    card = loaded.require_card()
+    coach = Coach(spec, loaded)
+    lin = analyze_coach(coach, loaded).linearization
+    with SimulationPool(spec, loaded, lin, resolve_workers(workers, RegionError)) as pool:
+        est = _Estimate(
+            pool, domain_of(card, loaded, pool.sim.y_op), settings, [None],
+            horizon_steps(settings.horizon_s, loaded.control_dt), _core(spec, card),
+            np.random.default_rng(settings.seed), progress or (lambda stage, f: None),
+        )  # fmt: skip
+        yield est, coach, lin
+
+
+@contextlib.contextmanager
 def _estimating(
     spec: CoachSpec,
     loaded: LoadedModel,
@@ -545,23 +575,11 @@ def _estimating(
     workers: int | None,
     progress: Progress | None = None,
 ) -> Iterator[tuple[_Estimate, Coach, Linearization]]:
-    """The simulations' setting, with its worker pool open: the estimate, the coach and its linearization.
-
-    Draws nothing: the estimate's random stream starts at ``settings.seed`` for its first user.
-    """
-    from pidlab.controller.analysis import analyze_coach
-
+    """:func:`simulations` over the grid and guard domain of ``settings`` (checked first)."""
     _check_settings(settings)
-    card = loaded.require_card()
-    coach = Coach(spec, loaded)
-    lin = analyze_coach(coach, loaded).linearization
-    with SimulationPool(spec, loaded, lin, resolve_workers(workers, RegionError)) as pool:
-        est = _Estimate(
-            pool, _domain(settings, card, loaded, pool.sim.y_op), settings, [None],
-            horizon_steps(settings.horizon_s, loaded.control_dt), _core(spec, card),
-            np.random.default_rng(settings.seed), progress or (lambda stage, f: None),
-        )  # fmt: skip
-        yield est, coach, lin
+    domain_of = functools.partial(_domain, settings)
+    with simulations(spec, loaded, settings, domain_of, workers, progress) as found:
+        yield found
 
 
 def estimate_rescue(
