@@ -163,6 +163,13 @@ def _preset_problem(env_id: str, preset: Any) -> str | None:
     card = find_card(env_id)
     if preset == "room" and card is not None and not has_room_design(card):
         return f"{env_id} has no linear design that measures its state (its coach is refined on the env)"
+    if preset == "room" and card is not None and card.refine_on_env:
+        # the search on the env takes about 20 min, and the rescue stage's grid starts its probes
+        # off the floor on a standing robot: the pipeline keeps the robust coach there
+        return (
+            f"on {env_id} the room preset searches the gains on the env; run it alone with "
+            f"`pidlab tune {env_id} --auto --preset room` (the pipeline uses it on the pendulums only)"
+        )
     return None
 
 

@@ -175,8 +175,9 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
         # checked before anything is written (it had written linearization.json and pipeline.json first)
         (
             ["Hopper-v5", "--preset", "room"],
-            "--preset 'room': Hopper-v5 has no linear design that measures its state (its coach is refined "
-            "on the env); expected one of robust, weak",
+            "--preset 'room': on Hopper-v5 the room preset searches the gains on the env; run it alone with "
+            "`pidlab tune Hopper-v5 --auto --preset room` (the pipeline uses it on the pendulums only); "
+            "expected one of robust, weak",
         ),
     ],
 )

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from pidlab.controller.spec import load_spec, loads_spec
-from pidlab.errors import CoachingError, PidlabError, RegionError, SpecError
+from pidlab.errors import CoachingError, RegionError, SpecError
 from pidlab.lookup import LookupGrid, parse_lookup
 from pidlab.plant.model import load_model
 from pidlab.region.rescue import (
@@ -237,13 +237,6 @@ def test_rescued_fraction_scores_every_coach_on_the_same_states() -> None:
     a = rescued_fraction(spec, loaded, _small(), 40, workers=1)
     b = rescued_fraction(spec, loaded, _small(), 40, workers=2)
     assert a == b and 0.0 < a < 1.0
-
-
-def test_the_room_preset_is_refused_where_the_coach_is_refined_on_the_env() -> None:
-    from pidlab.region.room import tune_for_room
-
-    with pytest.raises(PidlabError, match="room"):
-        tune_for_room(load_model("Hopper-v5"))
 
 
 @pytest.mark.parametrize(

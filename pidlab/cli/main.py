@@ -559,7 +559,11 @@ def tune(
     bandwidth: Annotated[float | None, typer.Option(help="Target gain crossover, rad/s.")] = None,
     phase_margin: Annotated[float | None, typer.Option(help="Target phase margin, degrees.")] = None,
     preset: Annotated[
-        str, typer.Option(help="robust, weak, or room (pendulums: the largest rescue region).")
+        str,
+        typer.Option(
+            help="robust, weak, or room (pendulums: the largest rescue region; Hopper, Walker2d: the gains "
+            "that hold the most perturbed starts of the model card)."
+        ),
     ] = "robust",
     output: Annotated[str | None, typer.Option("-o", "--output", help="Spec file to write (TOML).")] = None,
     name: Annotated[
@@ -630,7 +634,7 @@ def _check_tune_mode(ctx: typer.Context, auto: bool, ui: bool, preset: str) -> N
     if preset not in (*PRESETS, "room"):
         _fail(f"--preset {preset!r}: expected {', '.join(PRESETS)} or room")
     if preset == "room":
-        why = "--preset room chooses the gains with the largest rescue region, not by a crossover or margin"
+        why = "--preset room chooses the gains by the states its coach rescues, not by a crossover or margin"
         _refuse_unused(ctx, ("bandwidth", "phase_margin"), why + " target; expected no target with it")
 
 
@@ -652,6 +656,12 @@ def _print_tuned(env: str, preset: str, result: Any) -> None:
     if result.refined_return is not None:
         con.print(
             f"  refined on the real env: mean return {result.refined_return:.1f} on tuning seeds 1000-1002"
+        )
+    prov = result.spec.provenance
+    if prov.get("room_held_share") is not None:
+        con.print(
+            f"  searched on the real env: holds {prov['room_held_share']:.0%} of {prov['room_starts']} "
+            f"perturbed starts for {prov['room_horizon_s']:g} s (`pidlab recovery` measures it on others)"
         )
 
 
@@ -1078,6 +1088,61 @@ def _domain_box(text: str) -> dict[str, float]:
             _fail(f"--domain: {name.strip()!r} is given twice")
         box[name.strip()] = half
     return box
+
+
+@app.command()
+@friendly_errors
+def recovery(
+    spec_files: Annotated[
+        list[str],
+        typer.Argument(metavar="SPEC...", help="Coach specs (TOML) of one env, compared side by side."),
+    ],
+    episodes: Annotated[int, typer.Option(help="Episodes from random perturbed starts, per coach.")] = 100,
+    probes: Annotated[int, typer.Option(help="Magnitudes probed per perturbation and side.")] = 20,
+    horizon: Annotated[float, typer.Option(help="Seconds the coach must hold a start, s.")] = 5.0,
+    seed: Annotated[int, typer.Option(help="Seed of the random starts.")] = 0,
+    json_file: Annotated[
+        str | None, typer.Option("--json", help="Also write the figures to this JSON file.")
+    ] = None,
+) -> None:
+    """How hard a push each coach alone recovers from: reach per perturbation, falls per 100 episodes."""
+    from pidlab.controller.spec import load_spec
+    from pidlab.files import check_output_file, write_json
+    from pidlab.plant.model import load_model
+    from pidlab.region.recovery import check_settings, measure_recovery, perturbations_of
+    from pidlab.report.console import recovery_view, wide_console
+
+    check_settings(probes, episodes, horizon, seed, ("--probes", "--episodes", "--horizon", "--seed"))
+    if json_file is not None:
+        check_output_file(json_file, "json")
+    specs = [load_spec(f) for f in spec_files]
+    envs = sorted({s.env_id for s in specs})
+    if len(envs) > 1:
+        _fail(f"SPEC...: coaches of {', '.join(envs)}; expected coach specs of one env to compare")
+    loaded = load_model(specs[0].env_id)
+    per_coach = 2 * len(perturbations_of(loaded)) + episodes
+    found = []
+    with _counted_bar("recovery", per_coach * len(specs)) as bar:
+        for i, spec in enumerate(specs):
+            done_before = i * per_coach
+            found.append(measure_recovery(
+                spec, loaded, probes=probes, episodes=episodes, horizon_s=horizon, seed=seed,
+                progress=lambda n: bar(done_before + n),  # noqa: B023 (called before the next spec)
+            ))  # fmt: skip
+    wide_console().print(recovery_view(found))
+    if json_file is not None:
+        write_json(json_file, [r.to_dict() for r in found])
+        wide_console().print(f"wrote {json_file}")
+
+
+@contextlib.contextmanager
+def _counted_bar(label: str, total: int) -> Iterator[Callable[[int], None]]:
+    """A transient progress bar (on a terminal) over ``total`` items; yields ``update(done)``."""
+    from rich.progress import Progress
+
+    with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
+        task = bar.add_task(label, total=total)
+        yield lambda done: bar.update(task, completed=done)
 
 
 @app.command()

@@ -54,6 +54,14 @@ Schema ``pidlab.model-card/1``::
     cells = [40, 40]           # cells per grid variable
     guard = { slider_pos = 0.3 }  # other variables drawn within +-these (and required there)
 
+    [[perturbation]]           # optional: the pushes `pidlab recovery` probes the coach with
+    name = "tilt"              # unique
+    kind = "pose"              # pose (joint coordinates) | velocity (joint rates)
+    direction = { hinge = 1.0 }  # joint -> change per unit of the perturbation
+    limit = 0.5                # probed within +-limit units
+    unit = "rad"
+    description = "pole tilted from upright"
+
     [reward]                   # optional: what the env pays, for the coaching views
     alive = 1.0                # its reward per surviving step (the penalty view prices a takeover in it)
     failure = []               # the info terms whose sum is its reward on a failing step ([] = 0);
@@ -252,6 +260,34 @@ class RescueDomain:
     guard: tuple[tuple[str, float], ...] = ()
 
 
+PERTURBATION_KINDS = ("pose", "velocity")
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """A perturbed start the recovery measurement probes (one ``[[perturbation]]`` table).
+
+    Attributes
+    ----------
+    name : str
+    kind : {"pose", "velocity"}
+        ``pose``: the joints' coordinates move (rad or m per unit); ``velocity``: their rates.
+    direction : tuple of (str, float)
+        Joint -> change per unit of the perturbation.
+    limit : float
+        The perturbation is probed within ``+-limit`` units.
+    unit : str
+    description : str
+    """
+
+    name: str
+    kind: str
+    direction: tuple[tuple[str, float], ...]
+    limit: float
+    unit: str = ""
+    description: str = ""
+
+
 @dataclass(frozen=True)
 class CardModel:
     """The MJCF file a card describes, with how an env of it would step (the ``[model]`` table).
@@ -321,6 +357,8 @@ class ModelCard:
     model : CardModel or None
         The MJCF file it describes (its ``[model]`` table), so that the control stages run on a
         robot with no Gymnasium env; None: the env's own model.
+    perturbation : tuple of Perturbation
+        The perturbed starts ``pidlab recovery`` probes a coach with (empty: none).
     """
 
     env_id: str
@@ -338,6 +376,7 @@ class ModelCard:
     rescue: RescueDomain | None = None
     reward: RewardFacts = RewardFacts()
     model: CardModel | None = None
+    perturbation: tuple[Perturbation, ...] = ()
 
     @property
     def observation_names(self) -> tuple[str, ...]:
@@ -383,6 +422,9 @@ class ModelCard:
                         f"{self.path}: tuning.loop {lp.name!r}: no actuator {clip(actuator, 40)!r} in the "
                         f"model; actuators: {', '.join(inputs)}"
                     )
+        for pt in self.perturbation:
+            for joint, _ in pt.direction:
+                _joint_id(model, joint, f"{self.path}: perturbation {pt.name!r}")
         op = self.operating_point
         for field, values, n in (
             ("qpos", op.qpos, model.nq),
@@ -433,13 +475,14 @@ def _require(table: dict[str, Any], key: str, typ: type | tuple[type, ...], wher
 
 _FIELDS = {
     "": {"schema", "env_id", "description", "operating_point", "observation", "termination",
-         "terminate_on_nonfinite", "tuning", "region", "rescue", "paper", "reward", "model"},
+         "terminate_on_nonfinite", "tuning", "region", "rescue", "paper", "reward", "model", "perturbation"},
     "reward": {"alive", "failure"},
     "model": {"mjcf", "frame_skip", "max_episode_steps"},
     "operating_point": {"name", "qpos", "qvel", "ctrl", "note"},
     "observation": {"name", "source", "joint", "transform", "clip", "unit", "description"},
     "termination": {"signal", "low", "high", "interval", "description"},
     "tuning.loop": {"name", "signal", "rate_signal", "actuators", "core"},
+    "perturbation": {"name", "kind", "direction", "limit", "unit", "description"},
     "paper": {"win_target", "episodes_to_5_wins", "episodes_to_average", "savings_percent"},
 }  # fmt: skip
 """The fields each table of a model card may hold (``""``: the top level); anything else is refused."""
@@ -585,6 +628,39 @@ def _parse_rescue(data: dict[str, Any], path: str, names: list[str]) -> RescueDo
     return RescueDomain(tuple(str(v) for v in variables), half_range, n_cells, guard)
 
 
+def _parse_perturbations(data: dict[str, Any], path: str) -> tuple[Perturbation, ...]:
+    out: list[Perturbation] = []
+    for i, t in enumerate(_tables(data.get("perturbation", []), f"{path}: perturbation")):
+        where = f"{path}: perturbation[{i}]"
+        _known(t, "perturbation", where)
+        name = check_name(_require(t, "name", str, where), f"{where}.name", ModelCardError)
+        if name in [p.name for p in out]:
+            raise ModelCardError(f"{where}.name: {name!r} is repeated; perturbation names must be unique")
+        kind = t.get("kind")
+        if kind not in PERTURBATION_KINDS:
+            raise ModelCardError(f"{where}.kind: {shown(kind)}; allowed: {', '.join(PERTURBATION_KINDS)}")
+        table = as_table(_require(t, "direction", dict, where), f"{where}.direction", ModelCardError)
+        direction = tuple(
+            (str(j), number(v, f"{where}.direction.{clip(str(j), 40)}", ModelCardError))
+            for j, v in table.items()
+        )
+        if not any(v != 0.0 for _, v in direction):
+            raise ModelCardError(f"{where}.direction: expected at least one joint with a nonzero weight")
+        limit = number(_require(t, "limit", (int, float), where), f"{where}.limit", ModelCardError,
+                       low=0.0, low_open=True)  # fmt: skip
+        out.append(
+            Perturbation(
+                name=name,
+                kind=str(kind),
+                direction=direction,
+                limit=limit,
+                unit=text(t.get("unit", ""), f"{where}.unit", ModelCardError),
+                description=text(t.get("description", ""), f"{where}.description", ModelCardError),
+            )
+        )
+    return tuple(out)
+
+
 def _parse_reward(data: dict[str, Any], path: str) -> RewardFacts:
     if "reward" not in data:
         return RewardFacts()
@@ -721,6 +797,7 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
         rescue=_parse_rescue(data, path, names),
         reward=_parse_reward(data, path),
         model=_parse_model(data, path),
+        perturbation=_parse_perturbations(data, path),
     )
 
 

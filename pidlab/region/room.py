@@ -10,8 +10,10 @@ termination; rescued means brought into the candidate's own certified core, from
 :func:`pidlab.region.roa.estimate_roa`). Every candidate is scored on the same states. The
 margins of the chosen coach are reported as for the other presets.
 
-It needs a linear design that measures the state (the pendulums); the contact-rich envs, whose
-robust coach is refined on the env, are refused.
+On the contact-rich envs (Hopper, Walker2d), whose robust coach is refined on the env, the linear
+designs hold nothing; there the preset searches the gains on the env for the coach that holds the
+most of the model card's perturbed starts (:mod:`pidlab.region.room_env`). An env with neither a
+state-measuring linear design nor ``[[perturbation]]`` tables is refused.
 """
 
 from __future__ import annotations
@@ -62,11 +64,12 @@ def _with_core(spec: CoachSpec, loaded: LoadedModel, seed: int, workers: int | N
 
 
 def has_room_design(card: ModelCard) -> bool:
-    """Whether the room preset can tune the env of ``card``: a linear design that measures its state.
+    """Whether the room preset can tune the env of ``card``.
 
-    Envs whose coach is refined on the env (contacts: Hopper, Walker2d) have none.
+    It needs a tuning template, and either a linear design that measures the state (the coach is
+    not refined on the env) or perturbed starts to search the gains on (``[[perturbation]]``).
     """
-    return bool(card.tuning) and not card.refine_on_env
+    return bool(card.tuning) and (not card.refine_on_env or bool(card.perturbation))
 
 
 def tune_for_room(
@@ -82,7 +85,8 @@ def tune_for_room(
     Parameters
     ----------
     loaded : LoadedModel
-        A pendulum env with a model card (template and ``[rescue]`` domain).
+        An env with a model card: template and ``[rescue]`` domain (pendulums), or template and
+        ``[[perturbation]]`` tables (envs whose coach is refined on the env).
     lin : Linearization, optional
         Default: at the card's operating point.
     samples : int
@@ -102,9 +106,13 @@ def tune_for_room(
     if not has_room_design(card):
         raise PidlabError(
             f"preset room: {loaded.name} has no linear design that measures its state (its coach is "
-            "refined on the env); use the robust preset"
+            "refined on the env) and no [[perturbation]] tables to search its gains on; use the robust preset"
         )
     lin = lin if lin is not None else linearize(loaded)
+    if card.refine_on_env:
+        from pidlab.region.room_env import tune_room_on_env
+
+        return tune_room_on_env(loaded, lin, seed=seed, progress=progress)
     problem, _ = tuning_problem(loaded, card, lin, PRESETS["robust"])
     scores = []
     for i, w in enumerate(INPUT_WEIGHTS):

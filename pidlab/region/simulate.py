@@ -17,6 +17,7 @@ from pidlab.controller.spec import CoachSpec
 from pidlab.errors import RegionError
 from pidlab.linear.linearize import Linearization
 from pidlab.parallel import WorkerPool, resolve_workers
+from pidlab.plant.ground import ground_of, on_floor
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import CompiledCard, observe_at
 
@@ -45,6 +46,8 @@ class Simulator:
         The card's observation and termination rule, compiled for ``m``.
     y_op : ndarray, shape (n_obs,)
         The observation at the operating point.
+    ground : Ground or None
+        How the model stands on its floor at the operating point (None: it does not).
     """
 
     def __init__(self, spec: CoachSpec, loaded: LoadedModel, lin: Linearization) -> None:
@@ -57,6 +60,7 @@ class Simulator:
         self.card = card
         self.fast = CompiledCard(card, self.m)
         self.y_op = observe_at(self.card, self.m, lin.op.qpos, lin.op.qvel)
+        self.ground = ground_of(self.m, lin.op.qpos)
 
     def observe(self) -> np.ndarray:
         """The observation at the current state (``fast.observe(d)``)."""
@@ -66,13 +70,16 @@ class Simulator:
         """Whether the env would terminate now; ``obs`` is :meth:`observe` (as ``fast.terminated(d)``)."""
         return self.fast.terminated(self.d, obs)
 
-    def start(self, x_plant: np.ndarray) -> np.ndarray:
+    def start(self, x_plant: np.ndarray, grounded: bool = False) -> np.ndarray:
         """Put MuJoCo at the operating point (+) ``x_plant`` and reset the coach.
 
         Parameters
         ----------
         x_plant : ndarray, shape (2*nv,)
             Tangent-space deviation ``(dq, dv)`` from the operating point.
+        grounded : bool
+            Then the root's height is moved so that the feet touch the floor as at the operating
+            point (:func:`pidlab.plant.ground.on_floor`; a model with no :attr:`ground` is unchanged).
 
         Returns
         -------
@@ -85,6 +92,8 @@ class Simulator:
         mujoco.mj_integratePos(m, q, x_plant[: m.nv], 1.0)
         d.qpos[:] = q
         d.qvel[:] = op.qvel + x_plant[m.nv : 2 * m.nv]
+        if grounded and self.ground is not None:
+            on_floor(m, d, self.ground)
         mujoco.mj_forward(m, d)
         obs = self.observe()
         self.coach.reset(obs)

@@ -515,6 +515,28 @@ def classifier_view(r: Any, spec_name: str, env_id: str, units: dict[str, str]) 
     return Group(head, t, cov)
 
 
+def recovery_view(found: Sequence[Any]) -> Group:
+    """What ``pidlab recovery`` prints: each coach's reach per perturbation and its falls."""
+    first = found[0]
+    head = Text()
+    head.append(f"What the coach alone recovers from on {first.env_id}\n", style="bold")
+    head.append(
+        f"a start is recovered when the env's termination rule does not fire in {first.horizon_s:g} s; "
+        "reach: the largest push on each side up to which every probe recovered\n"
+    )
+    t = Table(title_justify="left")
+    t.add_column("coach")
+    for r in first.reach:
+        t.add_column(f"{r.name} ({r.unit}), reach", justify="right")
+    t.add_column(f"falls / 100 episodes (95 % interval), seed {first.seed}", justify="right")
+    for rec in found:
+        cells = [f"{-r.negative or 0.0:.3g} .. {r.positive:+.3g} of {r.limit:g}" for r in rec.reach]
+        lo, hi = rec.falls_ci
+        falls = f"{rec.falls_per_100:.0f} ({lo:.0f}-{hi:.0f}) of {rec.episodes}" if rec.episodes else "-"
+        t.add_row(rec.spec_name, *cells, falls)
+    return Group(head, t)
+
+
 def train_view(result: Any, win_target: float) -> Group:
     """What ``pidlab train`` prints at the end: step accounts and the agent-alone score."""
     t = Table(title=f"Training run {result.run_dir}", title_justify="left")
