@@ -11,7 +11,7 @@ termination; rescued means brought into the candidate's own certified core, from
 margins of the chosen coach are reported as for the other presets.
 
 On the contact-rich envs (Hopper, Walker2d), whose robust coach is refined on the env, the linear
-designs hold nothing; there the preset searches the gains on the env for the coach that holds the
+designs hold little; there the preset searches the gains on the env for the coach that holds the
 most of the model card's perturbed starts (:mod:`pidlab.region.room_env`). An env with neither a
 state-measuring linear design nor ``[[perturbation]]`` tables is refused.
 """
