@@ -1168,8 +1168,6 @@ def forecast(
     force: Annotated[bool, typer.Option("--force", help="Replace the --output file if it exists.")] = False,
 ) -> None:  # fmt: skip
     """Measure the model predictor's forecast error on a spec's rescue region, and its vetoes."""
-    from rich.progress import Progress
-
     from pidlab.controller.spec import editing_spec, save_spec, writing_spec
     from pidlab.lookup import parse_lookup
     from pidlab.plant.model import load_model
@@ -1183,11 +1181,10 @@ def forecast(
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
-        with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
-            task = bar.add_task("forecast error", total=transitions + held_out)
+        with _counted_bar("forecast error", transitions + held_out) as bar:
             found = measure_forecast(
                 spec, loaded, transitions=transitions, held_out=held_out, seed=seed,
-                progress=lambda done, total: bar.update(task, completed=done),
+                progress=lambda done, total: bar(done),
             )  # fmt: skip
         card = loaded.require_card()
         units = {v.name: v.unit for v in card.observation}

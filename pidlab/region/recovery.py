@@ -30,7 +30,7 @@ from pidlab.errors import RegionError
 from pidlab.linear.linearize import Linearization, linearize
 from pidlab.plant.card import Perturbation
 from pidlab.plant.model import LoadedModel
-from pidlab.region.simulate import Simulator
+from pidlab.region.simulate import Simulator, horizon_steps
 
 HORIZON_S = 5.0
 """Seconds the coach must hold a perturbed start (the default)."""
@@ -206,7 +206,7 @@ def measure_recovery(
     check_settings(probes, episodes, horizon_s, seed)
     perturbations = perturbations_of(loaded)
     sim = Simulator(spec, loaded, lin if lin is not None else linearize(loaded))
-    steps = max(1, round(horizon_s / loaded.control_dt))
+    steps = horizon_steps(horizon_s, loaded.control_dt)
     done = 0
     reach = []
     for pt in perturbations:

@@ -90,10 +90,12 @@ def tune_for_room(
     lin : Linearization, optional
         Default: at the card's operating point.
     samples : int
-        States each candidate is scored on.
+        States each candidate is scored on (pendulums; the search on the env scores each on
+        :data:`pidlab.region.room_env.ROOM_EPISODES` perturbed starts).
     seed : int
     workers : int, optional
-        Worker processes for the simulations.
+        Worker processes for the simulations (pendulums; the search on the env runs in this
+        process).
     progress : callable, optional
         Called with the number of candidates scored so far.
 

@@ -42,7 +42,7 @@ from pidlab.linear.linearize import Linearization, linearize
 from pidlab.plant.card import ModelCard, TuningLoop
 from pidlab.plant.model import LoadedModel
 from pidlab.region.recovery import HORIZON_S, episode_starts, perturbations_of, survived
-from pidlab.region.simulate import Simulator
+from pidlab.region.simulate import Simulator, horizon_steps
 
 ROOM_CANDIDATES = 100
 """Random candidates scored before the refinement."""
@@ -195,7 +195,7 @@ class _Scorer:
         self.starts = episode_starts(
             perturbations_of(loaded), loaded.model, episodes, TUNING_SEED + seed, scale=ROOM_SCALE
         )
-        self.steps = max(1, round(HORIZON_S / loaded.control_dt))
+        self.steps = horizon_steps(HORIZON_S, loaded.control_dt)
         self.count = 0
 
     def held(self, theta: np.ndarray) -> np.ndarray:
