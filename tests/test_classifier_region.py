@@ -268,6 +268,7 @@ def test_the_shield_lets_an_agent_act_only_where_the_classifier_region_holds_the
 def test_a_domain_the_termination_rule_leaves_empty_is_refused_in_one_line() -> None:
     """Both poles tilted past the termination height everywhere in the box: nothing to label."""
     from pidlab.region import classifier
+    from pidlab.region.coverage import draw_states
 
     spec, loaded = load_spec(SPEC), load_model(IDP)
     settings = ClassifierSettings(
@@ -277,7 +278,7 @@ def test_a_domain_the_termination_rule_leaves_empty_is_refused_in_one_line() -> 
         # a box whose every state leans the lower pole beyond 0.9 in sine: the env ends them all
         work.est.domain = dataclasses.replace(work.est.domain, lower=np.array([0.9]), upper=np.array([1.0]))
         with pytest.raises(RegionError, match=r"after [0-9,]+ uniform draws only 0 of 10 states"):
-            classifier._draw(work, 10)
+            draw_states(work.est, 10)
 
 
 def test_one_step_room_is_read_from_the_spec_s_region() -> None:

@@ -1090,6 +1090,51 @@ def _domain_box(text: str) -> dict[str, float]:
     return box
 
 
+@app.command("rescue-coverage")
+@friendly_errors
+def rescue_coverage(
+    spec_files: Annotated[
+        list[str],
+        typer.Argument(metavar="SPEC...", help="Coach specs (TOML) of one env, scored on the same states."),
+    ],
+    domain: Annotated[
+        str,
+        typer.Option(
+            help="The domain box: VARIABLE=HALF-WIDTH about the operating point, comma-separated; the "
+            "states the env's termination rule ends, or with a joint outside its range, are dropped."
+        ),
+    ],
+    states: Annotated[int, typer.Option(help="States drawn over the domain and simulated.")] = 2000,
+    horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
+    seed: Annotated[int, typer.Option(help="Sampling seed (the same states for every coach).")] = 0,
+    workers: Annotated[
+        int | None, typer.Option(help="Worker processes for the simulations (default: the machine's cores).")
+    ] = None,
+    json_file: Annotated[
+        str | None, typer.Option("--json", help="Also write the figures to this JSON file.")
+    ] = None,
+) -> None:
+    """Score each coach's regions over a domain: the rescuable states they hold, and their false claims."""
+    from pidlab.files import check_output_file, write_json
+    from pidlab.region.coverage import DomainSettings, measure_domain_coverage
+    from pidlab.report.console import coverage_view, wide_console
+
+    box = _domain_box(domain)
+    settings = DomainSettings(tuple(box), tuple(box.values()), states=states, horizon_s=horizon, seed=seed)
+    if json_file is not None:
+        check_output_file(json_file, "json")
+    specs, loaded = _specs_of_one_env(spec_files)
+    found = []
+    for spec in specs:
+        work = functools.partial(measure_domain_coverage, spec, loaded, settings, workers)
+        found.append(_with_bar(f"coverage: {spec.name}", work))
+    units = {v.name: v.unit for v in loaded.require_card().observation}
+    wide_console().print(coverage_view(found, units))
+    if json_file is not None:
+        write_json(json_file, [c.to_dict() for c in found])
+        wide_console().print(f"wrote {json_file}")
+
+
 @app.command()
 @friendly_errors
 def recovery(
@@ -1106,20 +1151,14 @@ def recovery(
     ] = None,
 ) -> None:
     """How hard a push each coach alone recovers from: reach per perturbation, falls per 100 episodes."""
-    from pidlab.controller.spec import load_spec
     from pidlab.files import check_output_file, write_json
-    from pidlab.plant.model import load_model
     from pidlab.region.recovery import check_settings, measure_recovery, perturbations_of
     from pidlab.report.console import recovery_view, wide_console
 
     check_settings(probes, episodes, horizon, seed, ("--probes", "--episodes", "--horizon", "--seed"))
     if json_file is not None:
         check_output_file(json_file, "json")
-    specs = [load_spec(f) for f in spec_files]
-    envs = sorted({s.env_id for s in specs})
-    if len(envs) > 1:
-        _fail(f"SPEC...: coaches of {', '.join(envs)}; expected coach specs of one env to compare")
-    loaded = load_model(specs[0].env_id)
+    specs, loaded = _specs_of_one_env(spec_files)
     per_coach = 2 * len(perturbations_of(loaded)) + episodes
     found = []
     with _counted_bar("recovery", per_coach * len(specs)) as bar:
@@ -1133,6 +1172,18 @@ def recovery(
     if json_file is not None:
         write_json(json_file, [r.to_dict() for r in found])
         wide_console().print(f"wrote {json_file}")
+
+
+def _specs_of_one_env(spec_files: list[str]) -> tuple[list[Any], Any]:
+    """The coach specs, refused in one line unless they share an env, and that env's model."""
+    from pidlab.controller.spec import load_spec
+    from pidlab.plant.model import load_model
+
+    specs = [load_spec(f) for f in spec_files]
+    envs = sorted({s.env_id for s in specs})
+    if len(envs) > 1:
+        _fail(f"SPEC...: coaches of {', '.join(envs)}; expected coach specs of one env to compare")
+    return specs, load_model(specs[0].env_id)
 
 
 @contextlib.contextmanager

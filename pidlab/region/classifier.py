@@ -43,19 +43,14 @@ from pidlab.controller.spec import CoachSpec, law_digest
 from pidlab.errors import RegionError
 from pidlab.lookup import MAX_CLASSIFIER_VARIABLES, MAX_WIDTH, RescueClassifier, is_classifier
 from pidlab.plant.model import LoadedModel
-from pidlab.region.rescue import MAX_ROUNDS, _Domain, _Estimate, simulations, state_domain
+from pidlab.region.coverage import draw_states
+from pidlab.region.rescue import MAX_ROUNDS, STARTS_ON_FLOOR, _Domain, _Estimate, simulations, state_domain
 from pidlab.region.takeover import ClassifierRegion, GridRegion, region_from_bounds
 
 Progress = Callable[[str, "float | None"], None]
 
 MAX_SAMPLES = 2_000_000
 """The most labelled states an estimate may simulate per stage."""
-
-MAX_DRAWS = 2000
-"""Uniform draws per state kept, at most, before a domain is called empty (rejection sampling)."""
-
-FIRST_DRAWS = 100_000
-"""Uniform draws after which a domain (or region) that kept no state at all is called empty."""
 
 
 @dataclass(frozen=True)
@@ -258,27 +253,6 @@ class _Work:
     report: Progress
 
 
-def _draw(work: _Work, n: int, keep: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
-    """``n`` states uniform in the domain that the env does not end (and that ``keep`` accepts)."""
-    d, sim, rng = work.est.domain, work.est.pool.sim, work.est.rng
-    out: list[np.ndarray] = []
-    drawn = 0
-    while len(out) < n:
-        if drawn > MAX_DRAWS * n or (drawn >= FIRST_DRAWS and not out):
-            raise RegionError(
-                f"after {drawn:,} uniform draws only {len(out):,} of {n:,} states lay in the region's domain "
-                "(the termination rule, or the region, leaves almost nothing of the box)"
-            )
-        batch = rng.uniform(d.lower, d.upper, (max(n, 1000), len(d.grid_vars)))
-        drawn += len(batch)
-        alive = np.array([not sim.terminated(sim.start(d.to_plant(v, sim))) for v in batch], dtype=bool)
-        batch = batch[alive]
-        if keep is not None and len(batch):
-            batch = batch[keep(batch)]
-        out.extend(batch[: n - len(out)])
-    return np.array(out).reshape(n, len(d.grid_vars))
-
-
 @contextlib.contextmanager
 def _working(
     spec: CoachSpec,
@@ -327,7 +301,7 @@ def estimate_classifier(
     """
     with _working(spec, loaded, settings, workers, progress) as work:
         s, est = settings, work.est
-        labelled = _draw(work, s.samples + s.calibration)
+        labelled = draw_states(work.est, s.samples + s.calibration)
         rescued, _ = est.rescued(labelled, "labelling")
         box = _box(work.est.domain)
         unfitted = RescueClassifier(s.variables, *box, layers=(), coach=law_digest(spec))
@@ -355,7 +329,7 @@ def _validate(work: _Work, clf: RescueClassifier, n: int) -> tuple[RescueClassif
                 "the classifier region leaves out the operating point (where the coach hands back): a "
                 "failure scores as high as it; fit on more samples (--samples) or longer (--epochs)"
             )
-        inside = _draw(work, n, keep=clf.inside)
+        inside = draw_states(work.est, n, keep=clf.inside)
         ok, _ = work.est.rescued(inside, f"validation {k}")
         if ok.all():
             return clf, k, removed
@@ -369,7 +343,7 @@ def _scored(
 ) -> ClassifierRescue:
     """Coverage over fresh domain states, the spec's grid region on the same ones, and the provenance."""
     s, est = work.settings, work.est
-    states = _draw(work, s.coverage)
+    states = draw_states(work.est, s.coverage)
     rescued, obs = est.rescued(states, "coverage")
     inside = clf.inside(states)
     grid = _grid_region(spec, est.pool.sim.card.observation_names)
@@ -384,8 +358,10 @@ def _scored(
         clf, s, share(inside), None if in_grid is None else share(in_grid), float(rescued.mean()),
         float(inside.mean()), rounds, removed, accuracy,
     )  # fmt: skip
-    facts = {"simulations": est.simulations, "elapsed_s": round(time.perf_counter() - work.started, 1),
-             "coverage_rescuable": held}  # fmt: skip
+    elapsed = round(time.perf_counter() - work.started, 1)
+    facts: dict[str, Any] = {"simulations": est.simulations, "elapsed_s": elapsed, "coverage_rescuable": held}
+    if est.grounded:
+        facts["starts"] = STARTS_ON_FLOOR
     return replace(result, provenance=_provenance(result, facts))
 
 
@@ -406,7 +382,8 @@ def _provenance(r: ClassifierRescue, facts: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {
         "method": "simulation: classifier fitted on labelled states, validated on fresh states inside",
         "domain": dict(zip(s.variables, s.half_range, strict=True)),
-        "domain_rule": "box about the operating point, states the env's termination rule ends dropped",
+        "domain_rule": "box about the operating point, states the env's termination rule ends (or outside a "
+        "joint's range) dropped",
         "horizon_s": s.horizon_s,
         "samples": s.samples,
         "calibration": s.calibration,

@@ -70,6 +70,9 @@ Progress = Callable[[str, "float | None"], None]
 MAX_ROUNDS = 12
 """Validation draws before the estimate gives up."""
 
+STARTS_ON_FLOOR = "on the floor: the root's height moved until the feet touch it as at the operating point"
+"""Provenance of a region whose simulations started on the floor (a model standing on one)."""
+
 
 @dataclass(frozen=True)
 class RescueSettings:
@@ -289,14 +292,19 @@ def _core(spec: CoachSpec, card: ModelCard) -> _Core:
 
 
 def _rescued(
-    sim: Simulator, item: tuple[np.ndarray, np.ndarray | None], steps: int, core: _Core
+    sim: Simulator,
+    item: tuple[np.ndarray, np.ndarray | None],
+    steps: int,
+    core: _Core,
+    grounded: bool = False,
 ) -> tuple[bool, np.ndarray]:
     """Whether the coach rescues the state ``item[0]`` (after the agent step ``item[1]``), and its obs.
 
-    A task of :meth:`~pidlab.parallel.WorkerPool.run`.
+    A task of :meth:`~pidlab.parallel.WorkerPool.run`. ``grounded``: the start is put on the floor
+    (:meth:`Simulator.start`).
     """
     x, v = item
-    obs0 = sim.start(x)
+    obs0 = sim.start(x, grounded=grounded)
     m, d, card, frame_skip = sim.m, sim.d, sim.fast, sim.loaded.frame_skip
     obs = obs0
     if v is not None:
@@ -332,13 +340,15 @@ class _Estimate:
     rng: np.random.Generator
     report: Progress
     simulations: int = 0
+    grounded: bool = False
+    """Starts are put on the floor (a model that stands on one at its operating point)."""
 
     def rescued(self, values: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
         """Per row of ``values`` (grid then guard variables): rescued after every kick, and its obs."""
         sim = self.pool.sim
         xs = [self.domain.to_plant(v, sim) for v in values]
         items = [(x, k) for x in xs for k in self.kicks]
-        task = functools.partial(_rescued, steps=self.steps, core=self.core)
+        task = functools.partial(_rescued, steps=self.steps, core=self.core, grounded=self.grounded)
         n = max(len(items), 1)
         results = self.pool.run(task, items, tick=lambda i: self.report(label, i / n)).results
         self.simulations += len(items)
@@ -563,6 +573,7 @@ def simulations(
             pool, domain_of(card, loaded, pool.sim.y_op), settings, [None],
             horizon_steps(settings.horizon_s, loaded.control_dt), _core(spec, card),
             np.random.default_rng(settings.seed), progress or (lambda stage, f: None),
+            grounded=pool.sim.ground is not None,
         )  # fmt: skip
         yield est, coach, lin
 
@@ -642,6 +653,8 @@ def estimate_rescue(
     elapsed = time.perf_counter() - t0
     prov = _provenance(used, (s.validation, rounds, unmarked), coverage, est.simulations, elapsed)
     prov["fraction_chosen"] = s.trigger == "reactive" and s.action_fraction is None
+    if est.grounded:
+        prov["starts"] = STARTS_ON_FLOOR
     return RescueRegion(
         spec.env_id, spec.name, grid, used, (s.validation, 0), rounds, unmarked, coverage, elapsed, prov
     )

@@ -61,6 +61,18 @@ class Simulator:
         self.fast = CompiledCard(card, self.m)
         self.y_op = observe_at(self.card, self.m, lin.op.qpos, lin.op.qvel)
         self.ground = ground_of(self.m, lin.op.qpos)
+        m = self.m
+        kinds = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+        self._limits = tuple(
+            (int(m.jnt_qposadr[j]), float(m.jnt_range[j][0]), float(m.jnt_range[j][1]))
+            for j in range(m.njnt)
+            if m.jnt_limited[j] and int(m.jnt_type[j]) in kinds
+        )
+
+    def within_limits(self) -> bool:
+        """Whether every limited hinge or slide joint lies within its range (a state the model can reach)."""
+        q = self.d.qpos
+        return all(lo <= q[adr] <= hi for adr, lo, hi in self._limits)
 
     def observe(self) -> np.ndarray:
         """The observation at the current state (``fast.observe(d)``)."""

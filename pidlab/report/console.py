@@ -537,6 +537,36 @@ def recovery_view(found: Sequence[Any]) -> Group:
     return Group(head, t)
 
 
+def coverage_view(found: Sequence[Any], units: dict[str, str]) -> Group:
+    """What ``pidlab rescue-coverage`` prints: per coach, the rescuable share and each region's scores."""
+    first = found[0]
+    s = first.settings
+    pairs = zip(s.variables, s.half_range, strict=True)
+    box = ", ".join(f"{v} +-{h:g}{' ' + units[v] if units.get(v) else ''}" for v, h in pairs)
+    head = Text()
+    head.append(f"Rescue coverage on {first.env_id}\n", style="bold")
+    starts = "on the floor" if first.grounded else "as drawn"
+    head.append(
+        f"{s.states:,} states uniform over {box}, inside the termination domain and the joint ranges "
+        f"(starts {starts}, seed {s.seed}); rescued: into the certified core, or held {s.horizon_s:g} s, "
+        "without a termination\n"
+    )
+    t = Table(title_justify="left")
+    for col in ("coach", "rescuable", "region", "states inside", "coverage of the rescuable",
+                "false claims (95 % interval)"):  # fmt: skip
+        t.add_column(col, justify="left" if col in ("coach", "region") else "right")
+    for c in found:
+        share = f"{c.rescuable:,} ({100 * c.rescuable_share:.1f} %)"
+        if not c.scores:
+            t.add_row(c.spec_name, share, "none in [bounds]", "-", "-", "-")
+        for i, r in enumerate(c.scores):
+            lo, hi = r.false_claims_ci
+            false = "-" if not r.inside else f"{100 * r.false_claims:.1f} % ({100 * lo:.1f}-{100 * hi:.1f})"
+            t.add_row(c.spec_name if i == 0 else "", share if i == 0 else "", r.kind, f"{r.inside:,}",
+                      f"{100 * r.coverage:.1f} %", false)  # fmt: skip
+    return Group(head, t)
+
+
 def train_view(result: Any, win_target: float) -> Group:
     """What ``pidlab train`` prints at the end: step accounts and the agent-alone score."""
     t = Table(title=f"Training run {result.run_dir}", title_justify="left")

@@ -1,0 +1,220 @@
+"""Rescue coverage over each env's termination domain, and the falls while the coach acts: docs/rescue.md.
+
+For each env, each coach below is scored with :func:`pidlab.region.coverage.measure_domain_coverage`
+(the same as ``pidlab rescue-coverage``) over one domain per env, the same states for every coach:
+the env's termination domain (and its joints' ranges), cut by a box on the rates. A coach that was
+trained with is read from the published run folder itself (its ``coach.toml``, the same in every
+seed), and the run folder's ``episodes.csv`` files give the falls while the coach acted: under the
+``terminal`` view a takeover ends the agent's episode, so a fall in an episode with a takeover
+happened under the coach. The figures go to docs/results/coverage/ENV.json, the table into
+docs/rescue.md between ``<!-- coverage-table -->`` and ``<!-- /coverage-table -->``.
+
+Run: .venv/bin/python benchmarks/coverage_table.py [--envs Hopper-v5] [--states 20000] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from pidlab.controller.spec import load_spec
+from pidlab.files import write_json
+from pidlab.plant.model import load_model
+from pidlab.region.coverage import DomainCoverage, DomainSettings, measure_domain_coverage
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGE = ROOT / "docs" / "rescue.md"
+OUT = ROOT / "docs" / "results" / "coverage"
+START, END = "<!-- coverage-table -->", "<!-- /coverage-table -->"
+
+DOMAINS = {
+    # the pole to its termination limit, the cart over its rail; rates as the shipped grid's domain
+    "InvertedPendulum-v5": {"hinge_pos": 0.2, "slider_pos": 1.0, "hinge_vel": 4.0, "slider_vel": 1.5},
+    # the classifier's domain: the poles as far as the tip-height rule allows, the cart within 0.9 m
+    "InvertedDoublePendulum-v5": {
+        "slider_pos": 0.9, "hinge_sin": 0.6, "hinge2_sin": 0.9, "slider_vel": 1.0, "hinge_vel": 2.0,
+        "hinge2_vel": 2.0,
+    },
+    # pitch to its termination limit, every leg joint over its range; rates within 2 rad/s, 1 m/s
+    "Hopper-v5": {
+        "rooty_pos": 0.2, "thigh_joint_pos": 2.62, "leg_joint_pos": 2.62, "foot_joint_pos": 0.79,
+        "rootx_vel": 1.0, "rootz_vel": 1.0, "rooty_vel": 2.0, "thigh_joint_vel": 2.0, "leg_joint_vel": 2.0,
+        "foot_joint_vel": 2.0,
+    },
+    "Walker2d-v5": {
+        "rooty_pos": 1.0, "thigh_joint_pos": 2.62, "leg_joint_pos": 2.62, "foot_joint_pos": 0.79,
+        "thigh_left_joint_pos": 2.62, "leg_left_joint_pos": 2.62, "foot_left_joint_pos": 0.79,
+        "rootx_vel": 1.0, "rootz_vel": 1.0, "rooty_vel": 2.0, "thigh_joint_vel": 2.0, "leg_joint_vel": 2.0,
+        "foot_joint_vel": 2.0, "thigh_left_joint_vel": 2.0, "leg_left_joint_vel": 2.0,
+        "foot_left_joint_vel": 2.0,
+    },
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Coach:
+    """A coach to score: a spec file, and the published runs (folder, condition) trained with it."""
+
+    label: str
+    spec: str | None = None
+    runs: tuple[str, str] | None = None
+
+
+def _runs(folder: str, env: str, condition: str) -> Path:
+    return ROOT / "docs" / "results" / folder / "runs" / env / condition
+
+
+COACHES = {
+    "InvertedPendulum-v5": (
+        Coach("room coach, lookup grid", runs=("InvertedPendulum-v5-rescue", "rescue-terminal")),
+    ),
+    "InvertedDoublePendulum-v5": (
+        Coach("room coach, lookup grid + guard box",
+              runs=("InvertedDoublePendulum-v5-rescue", "rescue-terminal")),
+        Coach("room coach, classifier", runs=("InvertedDoublePendulum-v5-full", "rescue-terminal-full")),
+    ),
+    "Hopper-v5": (
+        Coach("robust coach, lookup grid over pitch", runs=("Hopper-v5-rescue", "rescue-terminal")),
+        Coach("room coach (gains searched on the env), no region", "tuning/Hopper-v5.pidlab-room.toml"),
+    ),
+    "Walker2d-v5": (
+        Coach("robust coach, lookup grid over pitch", runs=("Walker2d-v5-evidence", "rescue-terminal")),
+        Coach("room coach (gains searched on the env), no region", "tuning/Walker2d-v5.pidlab-room.toml"),
+    ),
+}  # fmt: skip
+
+
+def spec_file(env: str, coach: Coach) -> Path:
+    """The spec scored: the runs' own ``coach.toml`` (checked the same in every seed), else a file."""
+    if coach.runs is None:
+        return ROOT / str(coach.spec)
+    seeds = sorted(_runs(coach.runs[0], env, coach.runs[1]).glob("seed-*/coach.toml"))
+    if not seeds or len({p.read_bytes() for p in seeds}) != 1:
+        raise SystemExit(f"{coach.runs}: expected one coach.toml shared by every seed ({len(seeds)} files)")
+    return seeds[0]
+
+
+@dataclass(frozen=True)
+class Training:
+    """Falls while the coach acted and the coach's share of env steps, over a condition's runs."""
+
+    runs: int
+    falls: int
+    coach_falls: tuple[int, ...]
+    coach_share: float
+
+
+def training(env: str, folder: str, condition: str) -> Training:
+    """The condition's ``episodes.csv`` files (``terminal`` view: a takeover ends the agent's episode)."""
+    per_run, falls, coach_steps, env_steps = [], 0, 0, 0
+    paths = sorted(_runs(folder, env, condition).glob("seed-*/episodes.csv"))
+    for path in paths:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+        per_run.append(sum(int(r["fell"]) and int(r["interventions"]) > 0 for r in rows))
+        falls += sum(int(r["fell"]) for r in rows)
+        coach_steps += sum(int(r["coach_steps"]) for r in rows)
+        env_steps += sum(int(r["coach_steps"]) + int(r["agent_steps"]) for r in rows)
+    return Training(len(paths), falls, tuple(per_run), coach_steps / max(env_steps, 1))
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f} %"
+
+
+def row(env: str, coach: Coach, c: DomainCoverage) -> str:
+    """One table row (printed as it is measured)."""
+    r = c.score("rescue region")
+    region = "-" if r is None else f"**{_pct(r.coverage)}**"
+    lo, hi = (float("nan"),) * 2 if r is None else r.false_claims_ci
+    false = "-" if r is None or not r.inside else f"{_pct(r.false_claims)} [{100 * lo:.1f}, {100 * hi:.1f}]"
+    rescuable = f"{c.rescuable:,} of {c.settings.states:,} ({_pct(c.rescuable_share)})"
+    train = "not trained with"
+    if coach.runs is not None:
+        t = training(env, *coach.runs)
+        runs = sorted(t.coach_falls)
+        falls = (
+            f"no fall in {t.runs} runs" if not t.falls
+            else f"{sum(runs):,} of the {t.falls:,} falls of {t.runs} runs (per run {runs[0]:,}-{runs[-1]:,})"
+        )  # fmt: skip
+        train = (
+            f"`{coach.runs[1]}` ({coach.runs[0]}): {falls}; the coach ran {_pct(t.coach_share)} of "
+            "the env steps (all runs pooled)"
+        )
+    return f"| {env} | {coach.label} | {rescuable} | {region} | {false} | {train} |"
+
+
+def measure(env: str, states: int, workers: int | None) -> list[str]:
+    """Score ``env``'s coaches on the same states; write their JSON; the table rows."""
+    loaded = load_model(env)
+    box = DOMAINS[env]
+    settings = DomainSettings(tuple(box), tuple(box.values()), states=states)
+    found, lines = [], []
+    for coach in COACHES[env]:
+        path = spec_file(env, coach)
+        c = measure_domain_coverage(load_spec(path), loaded, settings, workers=workers)
+        found.append({"label": coach.label, "spec_file": str(path.relative_to(ROOT)), **c.to_dict()})
+        lines.append(row(env, coach, c))
+        print(lines[-1], f"({c.elapsed_s:.0f} s)", flush=True)
+    OUT.mkdir(parents=True, exist_ok=True)
+    write_json(OUT / f"{env}.json", found)
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--envs", default=",".join(DOMAINS), help="Comma-separated envs (default: all four).")
+    parser.add_argument("--states", type=int, default=20_000, help="States per env (default 20,000).")
+    parser.add_argument("--workers", type=int, default=None, help="Worker processes (default: the cores).")
+    parser.add_argument("--table-only", action="store_true", help="Rebuild the table from the JSON files.")
+    args = parser.parse_args()
+    for env in [] if args.table_only else args.envs.split(","):
+        measure(env, args.states, args.workers)
+    lines = [line for env in DOMAINS for line in _rows_from_json(env)]
+    head = [
+        "| env | coach and region | states the coach rescues (termination domain) | coverage: rescue region "
+        "| false claims of the region [95 %] | training under the region: falls while the coach acted |",
+        "|---|---|---|---|---|---|",
+    ]
+    text = PAGE.read_text(encoding="utf-8")
+    i, j = text.index(START) + len(START), text.index(END)
+    command = f"`.venv/bin/python benchmarks/coverage_table.py --states {args.states}`"
+    block = f"\nMeasured with {command} (figures: docs/results/coverage/ENV.json).\n\n"
+    block += "\n".join(head + lines) + "\n"
+    PAGE.write_text(text[:i] + block + text[j:], encoding="utf-8")
+    print(f"wrote the table into {PAGE}")
+
+
+def _rows_from_json(env: str) -> list[str]:
+    """The rows of an env already measured (its JSON), so that one env can be re-measured alone."""
+    path = OUT / f"{env}.json"
+    if not path.exists():
+        return []
+    out = []
+    for d, coach in zip(json.loads(path.read_text()), COACHES[env], strict=True):
+        out.append(row(env, coach, _coverage_of(d)))
+    return out
+
+
+def _coverage_of(d: dict) -> DomainCoverage:
+    """A :class:`DomainCoverage` back from its JSON."""
+    from pidlab.region.coverage import RegionScore
+
+    s = d["settings"]
+    settings = DomainSettings(
+        tuple(s["variables"]), tuple(s["half_range"]), s["states"], s["horizon_s"], s["seed"]
+    )
+    scores = tuple(
+        RegionScore(x["kind"], x["inside"], x["held"], x["coverage"], x["false_claims"],
+                    tuple(x["false_claims_ci"]))
+        for x in d["scores"]
+    )
+    return DomainCoverage(d["env_id"], d["spec_name"], settings, d["grounded"], d["rescuable"], scores,
+                          d["simulations"], d["elapsed_s"])  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

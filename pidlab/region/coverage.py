@@ -1,0 +1,270 @@
+"""Rescue coverage over the env's own termination domain, and how often a region claims too much.
+
+A region estimate scores its coverage over its *own* domain: a lookup grid over the pole and its
+rate, with the cart in a guard box, or the torso's pitch with the legs at the standing pose. That
+says nothing about the states an agent actually visits, where the other variables move. This
+module scores any spec's regions over a domain the caller names, the same for every coach:
+
+1. **Domain.** A box about the operating point over observation variables (a joint's position,
+   its sine, or its velocity); every variable not named stays at the operating point. A drawn
+   state is dropped when the env's termination rule ends it or a limited joint lies outside its
+   range: what remains is the env's own termination domain, cut by the box on the rates (no
+   termination rule bounds them). A model that stands on a floor starts on it
+   (:meth:`pidlab.region.simulate.Simulator.start`).
+2. **Labels.** ``states`` states drawn uniformly there are simulated as a region estimate's probes
+   are: the coach's real discrete law in MuJoCo, *rescued* when it brings the state into the
+   spec's certified core (or, for a coach certified by simulation, survives the horizon) without a
+   termination.
+3. **Scores**, per region of the spec's ``[bounds]`` (rescue region, certified core, box):
+   the **coverage** (share of the rescuable states the region holds) and the **false claims**
+   (share of the region's states the coach does *not* rescue, with a 95 % Clopper-Pearson
+   interval). A region with false claims lets an agent fall while the coach acts: the region
+   tests fewer variables than decide a rescue.
+
+Deterministic from ``seed``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from scipy.stats import binomtest
+
+from pidlab.checks import integer, number
+from pidlab.checks import seed as check_seed
+from pidlab.controller.spec import CoachSpec
+from pidlab.errors import RegionError
+from pidlab.plant.model import LoadedModel
+from pidlab.region.rescue import _Estimate, simulations, state_domain
+from pidlab.region.takeover import region_from_bounds
+
+Progress = Callable[[str, "float | None"], None]
+
+MAX_STATES = 1_000_000
+"""The most states one coverage measurement may simulate."""
+
+MAX_DOMAIN_VARIABLES = 64
+"""The most variables a coverage domain may span."""
+
+MAX_DRAWS = 2000
+"""Uniform draws per state kept, at most, before a domain is called empty (rejection sampling)."""
+
+MAX_REGION_DRAWS = 50_000
+"""The same for draws inside a region (``keep``), which are rejected before any simulator work."""
+
+FIRST_DRAWS = 100_000
+"""Uniform draws after which a domain (or region) that kept no state at all is called empty."""
+
+REGION_KINDS = {"rescue": "rescue region", "ellipsoid": "certified core", "box": "box"}
+"""The ``[bounds]`` regions scored, and their names in the tables."""
+
+
+@dataclass(frozen=True)
+class DomainSettings:
+    """The domain a coverage is measured over, and how many states.
+
+    Attributes
+    ----------
+    variables : tuple of str
+        Observation variables (a hinge or slide joint's position, its sine, or its velocity).
+    half_range : tuple of float
+        The box's half-widths about the operating point's observation.
+    states : int
+        States drawn and simulated.
+    horizon_s : float
+        Simulated time per rescue, s.
+    seed : int
+    """
+
+    variables: tuple[str, ...]
+    half_range: tuple[float, ...]
+    states: int = 2000
+    horizon_s: float = 3.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        """Refuse settings out of range at once (:class:`RegionError` naming the field)."""
+        k = len(self.variables)
+        if not 1 <= k <= MAX_DOMAIN_VARIABLES or len(self.half_range) != k or len(set(self.variables)) != k:
+            raise RegionError(
+                f"coverage domain: expected 1 to {MAX_DOMAIN_VARIABLES} distinct variables, a half-range each"
+            )
+        for name, h in zip(self.variables, self.half_range, strict=True):
+            number(h, f"half-range of {name}", RegionError, low=0.0, low_open=True)
+        integer(self.states, "states", RegionError, low=1, high=MAX_STATES, param="states")
+        number(self.horizon_s, "horizon_s", RegionError, low=0.0, low_open=True, high=600.0, unit="s",
+               param="horizon_s")  # fmt: skip
+        check_seed(self.seed, "seed", RegionError, param="seed")
+
+
+@dataclass(frozen=True)
+class RegionScore:
+    """One region scored on the domain's states.
+
+    Attributes
+    ----------
+    kind : str
+        ``rescue region``, ``certified core`` or ``box``.
+    inside : int
+        Domain states the region holds.
+    held : int
+        Of those, the ones the coach rescues.
+    coverage : float
+        ``held`` over the domain's rescuable states (0 when none is rescuable).
+    false_claims : float
+        Share of ``inside`` the coach does not rescue (nan when ``inside`` is 0).
+    false_claims_ci : (float, float)
+        Its 95 % Clopper-Pearson interval (nan when ``inside`` is 0).
+    """
+
+    kind: str
+    inside: int
+    held: int
+    coverage: float
+    false_claims: float
+    false_claims_ci: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class DomainCoverage:
+    """How much of the domain the coach rescues, and how each of the spec's regions reads it.
+
+    Attributes
+    ----------
+    env_id, spec_name : str
+    settings : DomainSettings
+    grounded : bool
+        The starts were put on the floor.
+    rescuable : int
+        Domain states the coach rescues.
+    scores : tuple of RegionScore
+        Per region of the spec's ``[bounds]``.
+    simulations : int
+    elapsed_s : float
+    """
+
+    env_id: str
+    spec_name: str
+    settings: DomainSettings
+    grounded: bool
+    rescuable: int
+    scores: tuple[RegionScore, ...]
+    simulations: int
+    elapsed_s: float
+
+    @property
+    def rescuable_share(self) -> float:
+        """Share of the domain's states the coach rescues."""
+        return self.rescuable / self.settings.states
+
+    def score(self, kind: str) -> RegionScore | None:
+        """The score of region ``kind`` (a :data:`REGION_KINDS` value), or None."""
+        return next((s for s in self.scores if s.kind == kind), None)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data (JSON)."""
+        out = asdict(self)
+        out["settings"]["domain"] = dict(zip(self.settings.variables, self.settings.half_range, strict=True))
+        out["rescuable_share"] = self.rescuable_share
+        return out
+
+
+def draw_states(est: _Estimate, n: int, keep: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+    """``n`` states uniform in the estimate's domain that the env can be in (and that ``keep`` accepts).
+
+    A state is dropped when the env's termination rule ends it or a limited joint lies outside its
+    range; starts are on the floor when ``est.grounded``.
+
+    Raises
+    ------
+    RegionError
+        The domain (or ``keep``) leaves (almost) nothing of the box.
+    """
+    d, sim, rng = est.domain, est.pool.sim, est.rng
+    out: list[np.ndarray] = []
+    drawn, most = 0, (MAX_DRAWS if keep is None else MAX_REGION_DRAWS) * n
+    while len(out) < n:
+        if drawn > most or (drawn >= FIRST_DRAWS and not out):
+            raise RegionError(
+                f"after {drawn:,} uniform draws only {len(out):,} of {n:,} states lay in the region's domain "
+                "(the termination rule, the joint ranges or the region leave almost nothing of the box)"
+            )
+        batch = rng.uniform(d.lower, d.upper, (max(n, 1000), len(d.grid_vars)))
+        drawn += len(batch)
+        if keep is not None:  # cheap and vectorized: before the simulator's check of each state
+            batch = batch[keep(batch)]
+        alive = np.array([_possible(sim, d.to_plant(v, sim), est.grounded) for v in batch], dtype=bool)
+        out.extend(batch[alive][: n - len(out)])
+    return np.array(out).reshape(n, len(d.grid_vars))
+
+
+def _possible(sim: Any, x: np.ndarray, grounded: bool) -> bool:
+    """Whether the env can be in the state ``x``: within the joint ranges, not terminated."""
+    obs = sim.start(x, grounded=grounded)
+    return sim.within_limits() and not sim.terminated(obs)
+
+
+def _score(kind: str, inside: np.ndarray, rescued: np.ndarray) -> RegionScore:
+    n_in, held, rescuable = int(inside.sum()), int((inside & rescued).sum()), int(rescued.sum())
+    if n_in:
+        ci = binomtest(n_in - held, n_in).proportion_ci(0.95)
+        false, bounds = (n_in - held) / n_in, (float(ci.low), float(ci.high))
+    else:
+        false, bounds = float("nan"), (float("nan"), float("nan"))
+    return RegionScore(kind, n_in, held, held / rescuable if rescuable else 0.0, false, bounds)
+
+
+def measure_domain_coverage(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    settings: DomainSettings,
+    workers: int | None = None,
+    progress: Progress | None = None,
+) -> DomainCoverage:
+    """Score ``spec``'s regions over the domain of ``settings`` (see the module docstring).
+
+    Parameters
+    ----------
+    spec : CoachSpec
+        The coach; its certified core (``[bounds]``) is where a rescue ends.
+    loaded : LoadedModel
+        The model of ``spec.env_id``, with a model card.
+    settings : DomainSettings
+    workers : int, optional
+        Worker processes for the simulations (default: the machine's cores).
+    progress : callable, optional
+        ``progress(stage, fraction)``.
+
+    Raises
+    ------
+    RegionError
+        A variable that is not a joint's position, sine or velocity; no certified core; a domain
+        the termination rule leaves (almost) empty.
+    """
+    t0 = time.perf_counter()
+    s = settings
+
+    def domain_of(card: Any, model: LoadedModel, y_op: np.ndarray) -> Any:
+        return state_domain(s.variables, s.half_range, card, model, y_op)
+
+    with simulations(spec, loaded, s, domain_of, workers, progress) as (est, _, _):
+        states = draw_states(est, s.states)
+        rescued, obs = est.rescued(states, "labelling")
+        names = est.pool.sim.card.observation_names
+        grounded = est.grounded
+        sims = est.simulations
+    scores = []
+    for key, kind in REGION_KINDS.items():
+        if key not in (spec.bounds or {}):
+            continue
+        region = region_from_bounds(spec.bounds, names, key, spec.name)
+        inside = np.array([region.contains(o) for o in obs], dtype=bool)
+        scores.append(_score(kind, inside, rescued))
+    return DomainCoverage(
+        str(spec.env_id), spec.name, s, grounded, int(rescued.sum()), tuple(scores), sims,
+        round(time.perf_counter() - t0, 1),
+    )  # fmt: skip

@@ -1,0 +1,155 @@
+"""Rescue coverage over a named domain (pidlab.region.coverage) and starts on the floor in the
+region estimates (pidlab.region.rescue).
+
+Real MuJoCo and the coach's real law; what is checked is mechanics (which states are drawn, what
+is counted, determinism), plus one reading that follows from the region's variables: a region
+over the torso's pitch alone claims states whose legs the coach cannot bring back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from scipy.stats import binomtest
+
+from pidlab.controller.spec import load_spec
+from pidlab.errors import RegionError
+from pidlab.region.coverage import DomainSettings, _score, draw_states, measure_domain_coverage
+from pidlab.region.rescue import _rescued, simulations, state_domain
+from tests.helpers import TUNING, cli_in_process
+
+IP, HOPPER = "InvertedPendulum-v5", "Hopper-v5"
+IP_DOMAIN = DomainSettings(("hinge_pos", "slider_pos", "hinge_vel", "slider_vel"), (0.2, 1.0, 4.0, 1.5), states=150)
+HOPPER_LEGS = ("rooty_pos", "thigh_joint_pos", "leg_joint_pos", "foot_joint_pos")
+
+
+def _spec(env: str, name: str = "pidlab-rescue"):
+    return load_spec(TUNING / f"{env}.{name}.toml")
+
+
+def _estimate(spec, loaded, settings):
+    def domain_of(card, model, y_op):
+        return state_domain(settings.variables, settings.half_range, card, model, y_op)
+
+    return simulations(spec, loaded, settings, domain_of, 1)
+
+
+def test_scores_are_counted_as_by_hand() -> None:
+    inside = np.array([1, 1, 1, 0, 0, 1], dtype=bool)
+    rescued = np.array([1, 0, 1, 1, 0, 1], dtype=bool)
+    s = _score("rescue region", inside, rescued)
+    ci = binomtest(1, 4).proportion_ci(0.95)
+    assert (s.inside, s.held, s.coverage, s.false_claims) == (4, 3, 0.75, 0.25)
+    assert s.false_claims_ci == pytest.approx((ci.low, ci.high))
+    empty = _score("box", np.zeros(6, dtype=bool), rescued)
+    assert empty.inside == 0 and empty.coverage == 0.0 and np.isnan(empty.false_claims)
+
+
+def test_the_same_seed_scores_the_same_states(models) -> None:
+    a = measure_domain_coverage(_spec(IP), models[IP], IP_DOMAIN, workers=1)
+    b = measure_domain_coverage(_spec(IP), models[IP], IP_DOMAIN, workers=1)
+    da, db = a.to_dict(), b.to_dict()
+    da.pop("elapsed_s"), db.pop("elapsed_s")
+    assert json.dumps(da) == json.dumps(db)  # (nan where a region holds no state)
+    assert [s.kind for s in a.scores] == ["rescue region", "certified core", "box"]
+    rescue = a.score("rescue region")
+    assert rescue is not None and rescue.held <= min(rescue.inside, a.rescuable)
+    assert a.simulations == IP_DOMAIN.states and not a.grounded
+    assert da["settings"]["domain"] == dict(zip(IP_DOMAIN.variables, IP_DOMAIN.half_range, strict=True))
+
+
+def test_draws_keep_the_joints_within_their_ranges(models) -> None:
+    """The cart's slide joint is limited to +-1 m: a box of +-3 m keeps only states within it."""
+    settings = dataclasses.replace(IP_DOMAIN, half_range=(0.2, 3.0, 4.0, 1.5))
+    with _estimate(_spec(IP), models[IP], settings) as (est, _, _):
+        states = draw_states(est, 300)
+    cart = states[:, settings.variables.index("slider_pos")]
+    assert np.all(np.abs(cart) <= 1.0) and np.abs(cart).max() > 0.8
+    assert np.all(np.abs(states[:, 0]) < 0.2)  # the pole within the termination limit
+
+
+def test_a_standing_robot_starts_on_the_floor_in_the_estimates(models) -> None:
+    """Hopper's rescue simulations put a tilted, crouched start on the floor; the pendulum's are as drawn."""
+    settings = DomainSettings(HOPPER_LEGS, (0.2, 0.5, 0.5, 0.5), states=10)
+    spec, loaded = _spec(HOPPER), models[HOPPER]
+    with _estimate(spec, loaded, settings) as (est, _, _):
+        assert est.grounded
+        sim = est.pool.sim
+        x = est.domain.to_plant(np.array([0.1, -0.4, -0.4, 0.2]), sim)
+        _, floor_obs = _rescued(sim, (x, None), 1, est.core, grounded=True)
+        _, air_obs = _rescued(sim, (x, None), 1, est.core, grounded=False)
+    z = loaded.require_card().observation_names.index("rootz_pos")
+    assert floor_obs[z] < air_obs[z] - 0.01  # a crouched hopper stands lower
+    with _estimate(_spec(IP), models[IP], IP_DOMAIN) as (est, _, _):
+        assert not est.grounded
+
+
+def test_a_pitch_only_region_claims_states_the_coach_cannot_rescue(models) -> None:
+    """Hopper's shipped region tests pitch and its rate; with the legs bent the coach falls from most."""
+    settings = DomainSettings(HOPPER_LEGS, (0.2, 2.62, 2.62, 0.79), states=60)
+    found = measure_domain_coverage(_spec(HOPPER), models[HOPPER], settings, workers=1)
+    rescue = found.score("rescue region")
+    assert found.grounded and rescue is not None
+    assert rescue.inside > 0 and rescue.false_claims > 0.5
+
+
+def test_a_spec_without_a_certified_core_is_refused(models) -> None:
+    with pytest.raises(RegionError, match=r"no certified core \(\[bounds\]\); run `pidlab bounds SPEC --write`"):
+        bare = dataclasses.replace(_spec(HOPPER, "pidlab-room"), bounds=None)
+        measure_domain_coverage(bare, models[HOPPER], DomainSettings(HOPPER_LEGS, (0.1,) * 4))
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--domain", "hinge_pos=0.2,nope_pos=1"], "'nope_pos' is not an observation variable of InvertedPendulum-v5"),
+        (["--domain", "hinge_pos=0.2", "--seed", "-1"], "--seed -1: expected an integer in [0, 4294967295]"),
+        (["--domain", "hinge_pos=-1"], "--domain 'hinge_pos=-1': expected VARIABLE=HALF-WIDTH with a half-width > 0"),
+        (["--domain", "hinge_pos=0.2", "--states", "0"], "--states 0: expected an integer in [1, 1000000]"),
+        (["--domain", "hinge_pos=0.2", "--horizon", "nan"], "--horizon nan: expected a finite number in (0, 600] (s)"),
+        (
+            ["--domain", "hinge_pos=0.2", str(TUNING / "Hopper-v5.pidlab-robust.toml")],
+            "coaches of Hopper-v5, InvertedPendulum-v5; expected",
+        ),
+    ],
+)
+def test_coverage_cli_refuses_bad_input_in_one_line(args, message) -> None:
+    code, err = cli_in_process("rescue-coverage", str(TUNING / "InvertedPendulum-v5.pidlab-rescue.toml"), *args)
+    assert code == 2 and message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_coverage_cli_prints_and_writes_the_figures(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from pidlab.cli import app
+
+    out_file = tmp_path / "coverage.json"
+    result = CliRunner().invoke(app, [
+        "rescue-coverage", str(TUNING / "InvertedPendulum-v5.pidlab-rescue.toml"),
+        str(TUNING / "InvertedPendulum-v5.pidlab-robust.toml"),
+        "--domain", "hinge_pos=0.2,slider_pos=1,hinge_vel=4,slider_vel=1.5", "--states", "40",
+        "--workers", "1", "--json", str(out_file),
+    ])  # fmt: skip
+    assert result.exit_code == 0, result.stderr
+    assert "rescue region" in result.stdout and "false claims" in result.stdout
+    data = json.loads(out_file.read_text())
+    assert [d["spec_name"] for d in data] == ["pidlab-rescue", "pidlab-robust"]
+    for d in data:
+        assert d["rescuable_share"] == d["rescuable"] / 40
+        for s in d["scores"]:
+            assert s["held"] <= min(s["inside"], d["rescuable"])
+
+
+def test_a_grid_estimate_on_a_standing_robot_records_starts_on_the_floor(models) -> None:
+    from pidlab.region.rescue import STARTS_ON_FLOOR, RescueSettings, estimate_rescue
+
+    settings = RescueSettings(("rooty_pos", "rooty_vel"), (0.02, 0.2), (2, 2), probes=1, horizon_s=0.5,
+                              validation=20, coverage=20)  # fmt: skip
+    found = estimate_rescue(_spec(HOPPER), models[HOPPER], settings, workers=1)
+    assert found.provenance["starts"] == STARTS_ON_FLOOR
+    ip = estimate_rescue(_spec(IP), models[IP], RescueSettings(("hinge_pos", "hinge_vel"), (0.02, 0.2), (2, 2),
+                         probes=1, horizon_s=0.5, validation=20, coverage=20), workers=1)  # fmt: skip
+    assert "starts" not in ip.provenance
