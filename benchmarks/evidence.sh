@@ -18,6 +18,8 @@
 #                                                     # (a teaching sweep copies the runs that the
 #                                                     # env's confirmatory and earlier teaching sweeps
 #                                                     # hold with the same settings: pidlab experiment --reuse)
+#   bash benchmarks/evidence.sh --teach7 InvertedDoublePendulum-v5  # Amendment 10: the demonstrations'
+#                                                     # weight held at 1 (fresh seeds 110-119)
 #   bash benchmarks/evidence.sh --sac InvertedPendulum-v5    # Amendment 8: plain SAC beside plain PPO
 #                                                     # (the pendulums; `none` reused from the confirmation)
 #   bash benchmarks/evidence.sh --full InvertedDoublePendulum-v5  # Amendment 9: the classifier region
@@ -46,6 +48,7 @@ case "${1:-}" in
     --teach4) mode=teach4; shift ;;
     --teach5) mode=teach5; shift ;;
     --teach6) mode=teach6; shift ;;
+    --teach7) mode=teach7; shift ;;
     --model) mode=model; shift ;;
     --sac) mode=sac; shift ;;
     --full) mode=full; shift ;;
@@ -60,7 +63,7 @@ rescue=none,paper,rescue,rescue-penalty,rescue-terminal,rescue-fading
 design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
     case $mode in
         confirm) confirm_design "$1"; return ;;
-        teach|teach2|teach3|teach4|teach5|teach6) teach_design "$1"; return ;;
+        teach|teach2|teach3|teach4|teach5|teach6|teach7) teach_design "$1"; return ;;
         model) model_design "$1"; return ;;
         sac) sac_design "$1"; return ;;
         full) full_design "$1"; return ;;
@@ -101,6 +104,10 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
                     Hopper-v5|Walker2d-v5) echo "$1-teach6 none,rescue-terminal,warm-start-keep-shield-short $steps $seeds" ;;
                     *) echo "evidence.sh: --teach6 is for Hopper-v5 and Walker2d-v5 (docs/analysis-plan.md, Amendment 7)" >&2; exit 2 ;;
                 esac ;;
+        teach7) case $1 in   # Amendment 10: the demonstrations' weight held, on fresh seeds
+                    InvertedDoublePendulum-v5) echo "$1-teach7 none,warm-start-hold $steps 110-119" ;;
+                    *) echo "evidence.sh: --teach7 is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 10)" >&2; exit 2 ;;
+                esac ;;
     esac
 }
 
@@ -140,7 +147,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 model sac full; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

@@ -346,7 +346,7 @@ CLASSIFIER_FIELDS = ("shape", "trigger", "action_fraction", "variables", "lower"
                      "threshold", "coach", "provenance")  # fmt: skip
 """The fields of a ``[bounds.rescue]`` table whose region is a classifier (``shape = "classifier"``)."""
 
-MAX_CLASSIFIER_VARIABLES = 12
+MAX_CLASSIFIER_VARIABLES = 24
 """The most state variables a classifier region may test."""
 
 MAX_WIDTH = 512

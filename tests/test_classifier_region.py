@@ -73,7 +73,7 @@ def _table(**change: object) -> dict:
         ({"trigger": "reactive"}, r"trigger: 'reactive'; a classifier region is for 'predictive'"),
         ({"action_fraction": 0.5}, r"action_fraction: 0.5; expected 0"),
         ({"action_fraction": False}, r"action_fraction: False; expected 0"),
-        ({"variables": []}, r"variables: expected 1 to 12"),
+        ({"variables": []}, r"variables: expected 1 to 24"),
         ({"lower": [1.0]}, r"expected lower < upper"),
         ({"layers": [{"weights": [[1.0]], "bias": [0.0]}]}, r"layers: expected 2 to 4 layers"),
         ({"layers": [{"weights": [[1.0, 2.0]], "bias": [0.0, 0.0]}, {"weights": [[1.0]], "bias": [0.0]}]},
@@ -209,7 +209,7 @@ def test_the_model_predictor_refuses_a_classifier_region(idp_classifier: tuple) 
 
 
 def test_settings_out_of_range_are_refused() -> None:
-    with pytest.raises(RegionError, match="expected 1 to 12 distinct variables"):
+    with pytest.raises(RegionError, match="expected 1 to 24 distinct variables"):
         ClassifierSettings(("a", "a"), (1.0, 1.0))
     with pytest.raises(RegionError, match="half-range of a"):
         ClassifierSettings(("a",), (0.0,))

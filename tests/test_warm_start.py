@@ -240,14 +240,22 @@ KEEP = {"shape": "linear", "start": 1.0, "end": 0.0, "begin": 0.0, "finish": 1.0
 
 @pytest.mark.parametrize(
     ("keep", "message"),
-    [(0.5, "must fade to 0"), ({"shape": "linear", "start": 1.0, "end": 0.2}, "must fade to 0"),
-     ({"shape": "linear", "start": -1.0, "end": 0.0}, "warm_start.keep")],
+    [({"shape": "linear", "start": -1.0, "end": 0.0}, "schedule start = -1.0: expected a finite number >= 0"),
+     ({"shape": "sideways"}, "schedule shape 'sideways'"), ("1", "expected a number >= 0 or a table")],
 )  # fmt: skip
-def test_a_kept_demonstration_weight_that_does_not_fade_is_refused(keep, message: str) -> None:
+def test_a_bad_kept_demonstration_weight_is_refused(keep, message: str) -> None:
     coaching = {"demonstrations": {"steps": 100}, "warm_start": {"keep": keep}}
     with pytest.raises(RecipeError, match="warm_start.keep") as err:
         parse_recipe(_recipe_data(1000, coaching))
     assert message in str(err.value)
+
+
+@pytest.mark.parametrize("keep", [0.5, {"shape": "constant", "start": 1.0, "end": 1.0}])
+def test_a_kept_demonstration_weight_may_stay_above_zero(keep) -> None:
+    """A loss on the demonstrations, not a coach's action: it need not fade (unlike blend and residual)."""
+    coaching = {"demonstrations": {"steps": 100}, "warm_start": {"keep": keep}}
+    kept = parse_recipe(_recipe_data(1000, coaching)).coaching.warm_start.keep
+    assert kept is not None and kept(1.0) > 0.0 and kept(0.0) == kept(1.0)
 
 
 def _kept_run(folder: Path, steps: int) -> Path:

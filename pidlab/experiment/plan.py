@@ -98,6 +98,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
         8, ("none-sac",), envs=("InvertedPendulum-v5", "InvertedDoublePendulum-v5"), algorithms=("sac",)
     ),
     Amendment(9, ("rescue-terminal-full",), envs=("InvertedDoublePendulum-v5",)),
+    Amendment(10, ("warm-start-hold",), envs=("InvertedDoublePendulum-v5",), seeds=tuple(range(110, 120))),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 

@@ -747,6 +747,20 @@ def _fading(c: dict[str, Any], key: str, w: str, what: str, high: float | None) 
     return value
 
 
+def _keep(t: dict[str, Any], w: str) -> Schedule | None:
+    """``warm_start.keep``: the behaviour-cloning term's weight, any schedule >= 0 (None when absent).
+
+    Unlike ``blend`` and ``residual`` it need not fade to 0: it weighs a loss on the demonstrations
+    in the agent's own updates, and the coach acts in no step of the agent's.
+    """
+    if "keep" not in t:
+        return None
+    try:
+        return parse_schedule(t["keep"], f"{w}.keep")
+    except ScheduleError as exc:
+        raise RecipeError(str(exc)) from None
+
+
 def _rollin(c: dict[str, Any], w: str) -> RollIn | None:
     """``[coaching] rollin = { stages, tolerance }`` (an empty table takes the defaults)."""
     if "rollin" not in c:
@@ -806,7 +820,7 @@ def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
             )
         critic = _bool(t["critic"], f"{w}.warm_start.critic") if "critic" in t else True
         epochs = _int(t, "epochs", f"{w}.warm_start", 30, low=1, high=10**5)
-        keep = _fading(t, "keep", f"{w}.warm_start", "the behaviour-cloning term's weight", high=None)
+        keep = _keep(t, f"{w}.warm_start")
         out["warm_start"] = WarmStart(epochs=epochs, critic=critic, keep=keep)
     return out
 
