@@ -1,7 +1,7 @@
 """Write the tables of docs/results/README.md from the committed experiment reports.
 
 Four blocks, each between its own markers: the couplings against none (:func:`teaching_tables`: the
-sweeps of the plan's Amendments 1-5 and 7-9, `benchmarks/evidence.sh --teach` to `--teach6`,
+sweeps of the plan's Amendments 1-5 and 7-10, `benchmarks/evidence.sh --teach` to `--teach7`,
 `--sac` and `--full`), the
 confirmation (:data:`CONFIRM`: the sweeps of docs/analysis-plan.md on fresh seeds,
 `benchmarks/evidence.sh --confirm`), the pilot evidence at budgets where the uncoached agent
@@ -232,8 +232,8 @@ def tables(block: Block = EARLY) -> str:
 
 TEACH_BEGIN = "<!-- teaching: begin (benchmarks/results_table.py) -->"
 TEACH_END = "<!-- teaching: end -->"
-TEACH_SWEEPS = ("teach", "teach2", "teach3", "teach4", "teach5", "teach6", "sac", "full")
-"""The folders ENV-teach, ... ENV-teach6 (the plan's Amendments 1-5 and 7), ENV-sac (Amendment 8: plain
+TEACH_SWEEPS = ("teach", "teach2", "teach3", "teach4", "teach5", "teach6", "teach7", "sac", "full")
+"""The folders ENV-teach, ... ENV-teach7 (the plan's Amendments 1-5, 7 and 10), ENV-sac (Amendment 8: plain
 SAC beside plain PPO) and ENV-full (Amendment 9: the rescue region over the full state) of each env."""
 AIM = {"falls": 0.9, "env_steps_to_alone_target": 0.5}
 """Issue 35's aim as savings of the median against none: at least 90 % fewer falls, half the env steps."""
