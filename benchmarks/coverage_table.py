@@ -79,6 +79,8 @@ COACHES = {
     "Hopper-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Hopper-v5-rescue", "rescue-terminal")),
         Coach("room coach (gains searched on the env), no region", "tuning/Hopper-v5.pidlab-room.toml"),
+        Coach("room coach, classifier over pitch, legs and rates (thigh within 0.6 rad, knee 0.8 rad)",
+              "tuning/Hopper-v5.pidlab-room-full.toml"),
     ),
     "Walker2d-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Walker2d-v5-evidence", "rescue-terminal")),
