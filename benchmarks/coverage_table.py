@@ -20,6 +20,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import tomllib
+
 from pidlab.controller.spec import load_spec
 from pidlab.files import write_json
 from pidlab.plant.model import load_model
@@ -114,6 +116,9 @@ def training(env: str, folder: str, condition: str) -> Training:
     per_run, falls, coach_steps, env_steps = [], 0, 0, 0
     paths = sorted(_runs(folder, env, condition).glob("seed-*/episodes.csv"))
     for path in paths:
+        coaching = tomllib.loads((path.parent / "config.toml").read_text())["recipe"]["coaching"]
+        if coaching.get("view") != "terminal":  # elsewhere a takeover does not end the agent's episode
+            raise SystemExit(f"{path.parent}: falls under the coach are counted for the terminal view only")
         with open(path, newline="", encoding="utf-8") as fh:
             rows = list(csv.DictReader(fh))
         per_run.append(sum(int(r["fell"]) and int(r["interventions"]) > 0 for r in rows))

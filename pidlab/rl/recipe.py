@@ -727,14 +727,21 @@ def _residual(c: dict[str, Any], w: str) -> Schedule | None:
     return _fading(c, "residual", w, "the coach's weight", high=1.0)
 
 
-def _fading(c: dict[str, Any], key: str, w: str, what: str, high: float | None) -> Schedule | None:
-    """A schedule field that must reach 0 by the end of the budget (None when absent)."""
+def _schedule(c: dict[str, Any], key: str, w: str) -> Schedule | None:
+    """A schedule field (None when absent); a bad one is a :class:`RecipeError` naming it."""
     if key not in c:
         return None
     try:
-        value = parse_schedule(c[key], f"{w}.{key}")
+        return parse_schedule(c[key], f"{w}.{key}")
     except ScheduleError as exc:
         raise RecipeError(str(exc)) from None
+
+
+def _fading(c: dict[str, Any], key: str, w: str, what: str, high: float | None) -> Schedule | None:
+    """A schedule field that must reach 0 by the end of the budget (None when absent)."""
+    value = _schedule(c, key, w)
+    if value is None:
+        return None
     if high is not None and (value.start > high or value.end > high):
         raise RecipeError(
             f"{w}.{key}: {what} cannot exceed {high:g}; expected start and end in [0, {high:g}]"
@@ -745,20 +752,6 @@ def _fading(c: dict[str, Any], key: str, w: str, what: str, high: float | None) 
             "up acting alone; expected end = 0 (and finish <= 1)"
         )
     return value
-
-
-def _keep(t: dict[str, Any], w: str) -> Schedule | None:
-    """``warm_start.keep``: the behaviour-cloning term's weight, any schedule >= 0 (None when absent).
-
-    Unlike ``blend`` and ``residual`` it need not fade to 0: it weighs a loss on the demonstrations
-    in the agent's own updates, and the coach acts in no step of the agent's.
-    """
-    if "keep" not in t:
-        return None
-    try:
-        return parse_schedule(t["keep"], f"{w}.keep")
-    except ScheduleError as exc:
-        raise RecipeError(str(exc)) from None
 
 
 def _rollin(c: dict[str, Any], w: str) -> RollIn | None:
@@ -820,7 +813,9 @@ def _teaching(c: dict[str, Any], w: str) -> dict[str, Any]:
             )
         critic = _bool(t["critic"], f"{w}.warm_start.critic") if "critic" in t else True
         epochs = _int(t, "epochs", f"{w}.warm_start", 30, low=1, high=10**5)
-        keep = _keep(t, f"{w}.warm_start")
+        # unlike blend and residual, keep need not fade to 0: it weighs a loss on the demonstrations
+        # in the agent's own updates, and the coach acts in no step of the agent's
+        keep = _schedule(t, "keep", f"{w}.warm_start")
         out["warm_start"] = WarmStart(epochs=epochs, critic=critic, keep=keep)
     return out
 
