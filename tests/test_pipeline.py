@@ -311,6 +311,33 @@ def test_the_report_says_why_with_the_published_numbers():
     assert "No published experiment" in "\n".join(evidence_section(facts))
 
 
+@pytest.mark.parametrize(
+    ("env_id", "folder"),
+    [
+        ("InvertedPendulum-v5", "docs/results/InvertedPendulum-v5-teach4"),
+        ("InvertedDoublePendulum-v5", "docs/results/InvertedDoublePendulum-v5-teach7"),
+    ],
+)
+def test_the_pendulums_main_job_uses_the_coupling_its_confirmation_supports(env_id, folder):
+    """Each pendulum's recipe names a condition its fresh-seed sweep found safer and on no primary measure worse."""
+    import csv
+
+    from pidlab.pipeline import published_evidence, settings_for
+
+    condition = settings_for(env_id).condition
+    ev = published_evidence(env_id, condition)
+    assert ev is not None and ev.folder == folder
+    primary = ("falls", "env_steps_to_alone_target", "final_score")
+    with open(ROOT / folder / "summary.csv", newline="") as f:
+        verdicts = {
+            r["metric"]: r["verdict"]
+            for r in csv.DictReader(f)
+            if r["condition"] == condition and r["env"] == env_id and r["metric"] in primary
+        }
+    assert set(verdicts) == set(primary)
+    assert verdicts["falls"] == "better" and "worse" not in verdicts.values()
+
+
 def test_the_main_job_warm_starts_with_the_recipes_condition(tmp_path):
     """The recipe's condition: the coach demonstrates, the agent is cloned, the report cites its evidence."""
     out = tmp_path / "ws"
