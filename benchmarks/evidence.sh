@@ -22,8 +22,9 @@
 #                                                     # weight held at 1 (fresh seeds 110-119)
 #   bash benchmarks/evidence.sh --sac InvertedPendulum-v5    # Amendment 8: plain SAC beside plain PPO
 #                                                     # (the pendulums; `none` reused from the confirmation)
-#   bash benchmarks/evidence.sh --full InvertedDoublePendulum-v5  # Amendment 9: the classifier region
-#                                                     # over the full state (rescue-terminal-full)
+#   bash benchmarks/evidence.sh --full InvertedDoublePendulum-v5  # Amendments 9 and 11: the classifier
+#                                                     # region over the full state (rescue-terminal-full;
+#                                                     # also InvertedPendulum-v5)
 #   bash benchmarks/evidence.sh --model InvertedPendulum-v5  # the model predictor in training
 #                                                     # (exploratory; none and rescue-terminal reused
 #                                                     # from the confirmatory sweep)
@@ -120,10 +121,11 @@ sac_design() {  # Amendment 8: the plain SAC baseline beside plain PPO, on the p
     esac
 }
 
-full_design() {  # Amendment 9: the rescue region over the full state (a classifier)
+full_design() {  # Amendments 9 and 11: the rescue region over the full state (a classifier)
     case $1 in
+        InvertedPendulum-v5) echo "$1-full none,rescue-terminal,rescue-terminal-full 50000 100-109" ;;
         InvertedDoublePendulum-v5) echo "$1-full none,rescue-terminal,rescue-terminal-full 200000 100-109" ;;
-        *) echo "evidence.sh: --full is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 9)" >&2; exit 2 ;;
+        *) echo "evidence.sh: --full is for the pendulums (docs/analysis-plan.md, Amendments 9 and 11)" >&2; exit 2 ;;
     esac
 }
 

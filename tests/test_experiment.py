@@ -66,7 +66,8 @@ SAC_ONLY = (
     "rescue-propose",
 )  # the coach's transitions feed an off-policy agent's replay
 IP_ONLY = ("rescue-terminal-model",)  # the model predictor: on the other envs its error leaves no region
-IDP_ONLY = ("rescue-terminal-full",)  # the classifier region over the full state: fitted on IDP only
+FULL_ENVS = (IP, "InvertedDoublePendulum-v5")  # rescue-terminal-full: a classifier region fitted on the pendulums
+FULL_ONLY = ("rescue-terminal-full",)
 
 
 def test_a_condition_names_its_algorithm_for_every_env_or_one():
@@ -114,7 +115,7 @@ def test_shipped_conditions_resolve_on_all_four_envs():
     for env in (IP, "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5"):
         recipe = load_recipe(ROOT / "coach" / f"{env}.toml")
         for name, cond in conditions.items():
-            if (name in IP_ONLY and env != IP) or (name in IDP_ONLY and env != "InvertedDoublePendulum-v5"):
+            if (name in IP_ONLY and env != IP) or (name in FULL_ONLY and env not in FULL_ENVS):
                 continue
             given = with_overrides(recipe, algo="sac") if name in SAC_ONLY else recipe
             r, spec, _source = resolve(cond, given)
@@ -123,7 +124,7 @@ def test_shipped_conditions_resolve_on_all_four_envs():
         for name in IP_ONLY if env != IP else ():  # the linear forecast's error leaves no region
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: .*use predictor = 'exact'"):
                 resolve(conditions[name], recipe)
-        for name in IDP_ONLY if env != "InvertedDoublePendulum-v5" else ():
+        for name in FULL_ONLY if env not in FULL_ENVS else ():
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: coach 'pidlab-rescue-full' not found"):
                 resolve(conditions[name], recipe)
         for name in (*SAC_ONLY, "none-sac"):  # they name SAC themselves, whatever the recipe's algorithm
