@@ -72,6 +72,7 @@ def _runs(folder: str, env: str, condition: str) -> Path:
 COACHES = {
     "InvertedPendulum-v5": (
         Coach("room coach, lookup grid", runs=("InvertedPendulum-v5-rescue", "rescue-terminal")),
+        Coach("room coach, classifier", runs=("InvertedPendulum-v5-full", "rescue-terminal-full")),
     ),
     "InvertedDoublePendulum-v5": (
         Coach("room coach, lookup grid + guard box",
@@ -215,8 +216,9 @@ def _coverage_of(d: dict) -> DomainCoverage:
         tuple(s["variables"]), tuple(s["half_range"]), s["states"], s["horizon_s"], s["seed"]
     )
     scores = tuple(
-        RegionScore(x["kind"], x["inside"], x["held"], x["coverage"], x["false_claims"],
-                    tuple(x["false_claims_ci"]))
+        RegionScore(
+            x["kind"], x["inside"], x["held"], x["coverage"], x["false_claims"], tuple(x["false_claims_ci"])
+        )
         for x in d["scores"]
     )
     return DomainCoverage(d["env_id"], d["spec_name"], settings, d["grounded"], d["rescuable"], scores,

@@ -303,3 +303,26 @@ def test_the_published_forecast_tables_are_the_files_own() -> None:
         text=True,
     )
     assert done.returncode == 0, done.stderr
+
+
+@pytest.mark.parametrize("lean", [0.195, -0.195])
+def test_both_predictors_say_when_the_next_state_is_one_the_env_ends(lean):
+    """A state past a termination limit lies in no rescue region: each look-ahead flags it."""
+    from pidlab.rl.predict import Predictor, observed_limits
+
+    loaded = load_model(IP)
+    card = loaded.require_card()
+    assert [(card.observation_names[i], k.signal) for i, k in observed_limits(card)] == [
+        ("hinge_pos", "hinge_pos")
+    ]
+    env = gym.make(IP)
+    env.reset(seed=0)
+    exact, model = Predictor(env, card), ModelPredictor(env, loaded)
+    d = env.unwrapped.data
+    hinge = card.observation_names.index("hinge_pos")
+    for rate, ends in ((0.0, False), (np.sign(lean) * 3.0, True)):  # 3 rad/s outward: past 0.2 rad in 0.04 s
+        d.qpos[:] = [0.0, lean]
+        d.qvel[:] = [0.0, rate]
+        for p in (exact, model):
+            obs = p.predict(np.zeros(1))
+            assert p.terminal is ends and bool(abs(obs[hinge]) > 0.2) is ends

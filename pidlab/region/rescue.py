@@ -306,6 +306,8 @@ def _rescued(
     x, v = item
     obs0 = sim.start(x, grounded=grounded)
     m, d, card, frame_skip = sim.m, sim.d, sim.fast, sim.loaded.frame_skip
+    if card.terminated(d, obs0):  # the env would have ended it: no rescue starts there
+        return False, obs0
     obs = obs0
     if v is not None:
         d.ctrl[:] = sim.lin.op.ctrl + v

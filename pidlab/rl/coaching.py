@@ -674,7 +674,10 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """The predictive trigger: whether ``action`` would leave the region (and the coin says act)."""
         if self._predictor is None or self.region is None or self.intervention_probability() <= 0.0:
             return False
-        return not self.region.contains(self._predictor.predict(action)) and self._coin()
+        obs = self._predictor.predict(action)
+        # a state the env's termination rule ends lies in no rescue region, whatever a region's
+        # membership test says of it (a classifier's box may reach past a limit)
+        return (self._predictor.terminal or not self.region.contains(obs)) and self._coin()
 
     def _coach_run(self, obs: Any, limit: int | None = None) -> _Run:
         """The coach acts from ``obs``: until hand-back (takeover) or ``nudge_steps``, or the episode ends.

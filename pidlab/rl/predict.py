@@ -76,6 +76,8 @@ class Predictor:
         self._predicted = False
         self._action: Any = None
         self._listeners: list[Callable[[Any, Any, np.ndarray], None]] = []
+        self.terminal = False
+        """Whether the env's termination rule ends the last predicted state (then no region holds it)."""
 
     def listen(self, listener: Callable[[Any, Any, np.ndarray], None]) -> None:
         """Call ``listener(data, action, obs)`` at each prediction (``data``: the env's data before it)."""
@@ -90,6 +92,7 @@ class Predictor:
         self._predicted = True
         self._action = action
         obs = self._card.observe(d)
+        self.terminal = self._card.terminated(d, obs)
         for listener in self._listeners:
             listener(self._env.data, action, obs)
         return obs
@@ -128,6 +131,23 @@ class Predictor:
 
 
 _FORECASTS: dict[str, LinearForecast] = {}
+
+
+def observed_limits(card: ModelCard) -> tuple[tuple[int, Any], ...]:
+    """The card's termination limits on a variable the observation holds as it is: (its index, the limit).
+
+    A forecast observation can be tested against these; a limit on a site, or on a variable observed
+    through a sine or cosine, is not among them.
+    """
+    source = {"pos": "qpos", "vel": "qvel"}
+    plain = {(v.joint, v.source): i for i, v in enumerate(card.observation) if v.transform == "identity"}
+    found = []
+    for limit in card.termination:
+        joint, _, kind = limit.signal.rpartition("_")
+        i = plain.get((joint, source.get(kind, "")))
+        if not limit.signal.startswith("site:") and i is not None:
+            found.append((i, limit))
+    return tuple(found)
 
 
 def forecast_of(loaded: LoadedModel) -> LinearForecast:
@@ -172,11 +192,17 @@ class ModelPredictor:
         self._env = u
         self._model = loaded.model
         self.forecast = forecast_of(loaded)
+        self._limits = observed_limits(loaded.require_card())
+        self.terminal = False
+        """Whether a termination limit on an observed variable ends the last forecast state."""
 
     def predict(self, action: Any) -> np.ndarray:
         """The forecast observation after ``action`` (NaN where no joint state gives a column)."""
         d = self._env.data
-        return self.forecast.observation(self._model, d.qpos, d.qvel, d.act, action)
+        obs = self.forecast.observation(self._model, d.qpos, d.qvel, d.act, action)
+        ends = (not (np.isnan(obs[i]) or limit.healthy(float(obs[i]))) for i, limit in self._limits)
+        self.terminal = any(ends)
+        return obs
 
     def discard(self) -> None:
         """Nothing to forget: the forecast holds no simulated state."""
