@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import csv
 import math
+import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
 from pidlab.experiment.analysis import recipes_of_runs
-from pidlab.experiment.plan import ALONE_TARGETS
+from pidlab.experiment.plan import ALONE_TARGETS, PlainLearner, best_plain_baseline
 from pidlab.experiment.stats import Estimate
 from pidlab.experiment.sweep import finished
 from pidlab.files import atomic_write_text, read_json
@@ -291,12 +292,75 @@ def teaching_tables() -> str:
     return "\n".join(["### The couplings against none", "", *out, "", "### How they were run", "", *how])
 
 
+BASE_BEGIN = "<!-- baselines: begin (benchmarks/results_table.py) -->"
+BASE_END = "<!-- baselines: end -->"
+PLAIN = ("none", "none-sac")
+"""The plain learners of Amendment 8: PPO and SAC alone."""
+
+
+def _learners(name: str) -> list[PlainLearner]:
+    """The plain learners of a published sweep, per run from its ``metrics.csv``."""
+    runs: dict[str, list[dict[str, str]]] = {}
+    with open(RESULTS / name / "metrics.csv", newline="") as fh:
+        for r in csv.DictReader(fh):
+            runs.setdefault(r["condition"], []).append(r)
+
+    def value(text: str) -> float:
+        return float(text) if text not in ("", "nan") else float("inf")
+
+    return [
+        PlainLearner(c, tuple(value(r["env_steps_to_alone_target"]) for r in runs[c]),
+                     tuple(float(r["final_score"]) for r in runs[c]))
+        for c in PLAIN if c in runs
+    ]  # fmt: skip
+
+
+def _median_text(values: tuple[float, ...]) -> str:
+    m = statistics.median(values)
+    return "not reached" if math.isinf(m) else f"{m:,.0f}"
+
+
+def _plain_row(
+    env: str, x: PlainLearner, rows: dict[tuple[str, str], dict[str, str]], best: bool, verdict: str
+) -> str:
+    def cell(metric: str, to_target: bool = False) -> str:
+        return _cell(rows.get((x.condition, metric)), to_target)
+
+    sac = x.condition == "none-sac"
+    cells = [env, "none-sac (SAC)" if sac else "none (PPO)", _median_text(x.steps_to_target),
+             cell("env_steps_to_alone_target", True), cell("falls"), cell("final_score"),
+             cell("wall_s_to_alone_target"), "**yes**" if best else "", verdict if sac else "-"]  # fmt: skip
+    return "| " + " | ".join(cells) + " |"
+
+
+def baselines() -> str:
+    """Each env's best plain baseline by Amendment 8's rule, with the numbers it was read from."""
+    head = ["env", "plain learner", "median env steps to the agent-alone target (rule)",
+            "env steps to the target, IQM (reached)", "falls during training", "final agent-alone score",
+            "wall time to the target (s)", "best plain baseline",
+            "SAC against PPO on env steps (Holm)"]  # fmt: skip
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for env in ENVS:
+        loaded = _load(f"{env}-sac")
+        if loaded is None:
+            why = "not run yet (Amendment 8)" if env in ENVS[:2] else "not run (no amendment governs it)"
+            out.append(f"| {env} | none (PPO) | - | - | - | - | - | none (PPO): plain SAC {why} | - |")
+            continue
+        rows, _ = loaded
+        learners = _learners(f"{env}-sac")
+        best = best_plain_baseline(learners)
+        test = rows.get(("none-sac", "env_steps_to_alone_target"))
+        verdict = "-" if test is None else f"{test['verdict']} (Holm {p_text(float(test['p_holm']))})"
+        out += [_plain_row(env, x, rows, x is best, verdict) for x in learners]
+    return "\n".join(out)
+
+
 def main() -> None:
     """Replace the marked blocks of docs/results/README.md."""
     readme = RESULTS / "README.md"
     text = readme.read_text()
     for begin, end, body in [(b.begin, b.end, tables(b)) for b in BLOCKS] + [
-        (TEACH_BEGIN, TEACH_END, teaching_tables())
+        (TEACH_BEGIN, TEACH_END, teaching_tables()), (BASE_BEGIN, BASE_END, baselines())
     ]:
         a, b = text.index(begin) + len(begin), text.index(end)
         text = text[:a] + "\n\n" + body + "\n\n" + text[b:]

@@ -188,3 +188,24 @@ def test_the_runs_say_which_agents_a_sweep_trained(tmp_path):
     assert run_algorithms(tmp_path, [env], ["missing"]) == ()
     sweep = ["none", "none-sac"]
     assert plan.role(range(100, 110), sweep, run_algorithms(tmp_path, [env], sweep)) == "exploratory"
+
+
+def test_the_best_plain_baseline_follows_amendment_8_by_hand():
+    """Smaller median env steps (never reached = inf); then the larger median final score; then none."""
+    inf = float("inf")
+    ppo = plan.PlainLearner("none", (10_000.0, 12_500.0, 7_500.0), (1000.0, 1000.0, 1000.0))
+    sac = plan.PlainLearner("none-sac", (15_000.0, 17_500.0, 5_000.0), (1000.0, 1000.0, 1000.0))
+    assert plan.best_plain_baseline([sac, ppo]) is ppo  # medians 10,000 against 15,000
+    fast = plan.PlainLearner("none-sac", (inf, 2_500.0, 5_000.0, inf, 2_500.0), (1.0,) * 5)
+    assert plan.best_plain_baseline([ppo, fast]) is fast  # median 5,000 (two never reached) against 10,000
+    never = plan.PlainLearner("none-sac", (inf, inf, 5_000.0), (1000.0,) * 3)
+    assert plan.best_plain_baseline([ppo, never]) is ppo  # median inf
+    even = plan.PlainLearner("none-sac", (5_000.0, 15_000.0), (900.0, 1000.0))  # median 10,000 (mean of two)
+    assert plan.best_plain_baseline([even, ppo]) is ppo  # tie on steps: final 1000 against 950
+    same = plan.PlainLearner("none-sac", (12_500.0, 7_500.0, 10_000.0), (1000.0, 1000.0, 1000.0))
+    assert plan.best_plain_baseline([same, ppo]) is ppo  # a full tie goes to none
+    both_never = plan.PlainLearner("none", (inf, inf), (5.0, 7.0))
+    sac_never = plan.PlainLearner("none-sac", (inf, inf), (6.0, 9.0))
+    assert plan.best_plain_baseline([both_never, sac_never]) is sac_never  # inf = inf: final 7.5 against 6
+    with pytest.raises(ValueError, match="at least one learner"):
+        plan.best_plain_baseline([])

@@ -220,3 +220,55 @@ def citation(
         f" **Pilot (exploratory) sweep**: these seeds are not the plan's confirmatory seeds {fresh}, so its "
         "verdicts describe these runs and confirm nothing."
     )
+
+
+@dataclass(frozen=True)
+class PlainLearner:
+    """A plain learner's runs, as Amendment 8's rule reads them.
+
+    Attributes
+    ----------
+    condition : str
+        ``none`` (PPO) or ``none-sac``.
+    steps_to_target : tuple of float
+        Per run, env steps to the agent-alone target, reached and kept (``inf``: never reached).
+    final_scores : tuple of float
+        Per run, the final agent-alone score.
+    """
+
+    condition: str
+    steps_to_target: tuple[float, ...]
+    final_scores: tuple[float, ...]
+
+
+def _median(values: Sequence[float]) -> float:
+    ordered = sorted(values)
+    n = len(ordered)
+    if n == 0:
+        return float("nan")
+    mid = n // 2
+    if n % 2:
+        return ordered[mid]
+    low, high = ordered[mid - 1], ordered[mid]
+    return high if low == high else (low + high) / 2.0
+
+
+def best_plain_baseline(learners: Sequence[PlainLearner]) -> PlainLearner:
+    """The best plain baseline by Amendment 8's rule (docs/analysis-plan.md).
+
+    The learner with the smaller median env steps to the agent-alone target (a run that never
+    reached it counts as +inf); on a tie, the larger median final agent-alone score; then ``none``.
+    The rule picks one whether or not a test separates them.
+
+    Raises
+    ------
+    ValueError
+        No learner, or a learner without runs.
+    """
+    if not learners or any(not x.steps_to_target or not x.final_scores for x in learners):
+        raise ValueError("best_plain_baseline: expected at least one learner, each with runs")
+
+    def key(x: PlainLearner) -> tuple[float, float, int]:
+        return (_median(x.steps_to_target), -_median(x.final_scores), 0 if x.condition == "none" else 1)
+
+    return min(learners, key=key)
