@@ -353,3 +353,19 @@ def test_the_main_job_warm_starts_with_the_recipes_condition(tmp_path):
     report = (out / "report.md").read_text()
     assert f"condition `{settings.condition}`" in report
     assert "docs/results/InvertedPendulum-v5-teach4" in report  # its confirmation, on seeds 110-119
+
+
+@pytest.mark.parametrize(
+    ("keep", "says"),
+    [
+        ({"shape": "constant", "start": 1.0, "end": 1.0}, "at a weight held at 1 for the whole budget"),
+        ({"shape": "linear", "start": 1.0, "end": 0.0, "begin": 0.0, "finish": 1.0}, "fades from 1 to 0"),
+        ({"shape": "linear", "start": 1.0, "end": 0.5, "begin": 0.0, "finish": 1.0}, "goes from 1 to 0.5"),
+    ],
+)
+def test_the_report_says_how_the_demonstrations_weigh_in_the_updates(keep, says):
+    from pidlab.report.pipeline import _teaching_text
+
+    text = _teaching_text({"demonstrations": {"steps": 20000, "noise": 0.1}, "warm_start": {"keep": keep}})
+    assert "demonstrates for 20,000 env steps" in text and says in text
+    assert ("fades" in text) is (keep["end"] == 0.0 and keep["start"] != 0.0)

@@ -378,9 +378,21 @@ def _teaching_text(c: dict[str, Any]) -> str:
             f"noise of {float(demos.get('noise', 0.1)):g} of half the actuator range")  # fmt: skip
     if isinstance(warm, dict):
         text += ", and the agent is behaviour-cloned on its demonstrations"
-        if warm.get("keep") is not None:
-            text += ", which stay in its updates with a weight that fades to 0 (the demonstrations kept)"
+        keep = warm.get("keep")
+        if isinstance(keep, dict):
+            text += f", which stay in its updates {_keep_text(keep)}"
     return text + "."
+
+
+def _keep_text(keep: dict[str, Any]) -> str:
+    """The weight of the demonstrations in the agent's updates, as the schedule says."""
+    start = float(keep.get("start", 1.0))
+    end = float(keep.get("end", start))
+    if keep.get("shape") == "constant" or start == end:
+        return f"at a weight held at {start:g} for the whole budget (the demonstrations held)"
+    if end == 0.0:
+        return f"with a weight that fades from {start:g} to 0 (the demonstrations kept)"
+    return f"with a weight that goes from {start:g} to {end:g} (the demonstrations kept)"
 
 
 def _training(f: PipelineFacts) -> list[str]:
@@ -400,14 +412,18 @@ def _training(f: PipelineFacts) -> list[str]:
         "and the agent's next episode starts from the rescued state",
     }.get(view, view)
     recipe = f.record.get("recipe", f"coach/{env}.toml")
+    how = (f"intervenes as the condition `{f.settings.condition}` of coach/conditions.toml says ({rule}, "
+           f"view {view}): {seen}.")  # fmt: skip
+    if c.get("off_after") == 0.0:  # the coach teaches only: no intervention in the agent's steps
+        how = (f"coaches as the condition `{f.settings.condition}` of coach/conditions.toml says: it never "
+               "intervenes in the agent's steps.")  # fmt: skip
     lines = [
         "## 4. Training with and without the coach",
         "",
         f"The recipe's agent ({recipe}), {_count(f.settings.seeds, 'seed')} per condition, "
         f"{budget:,} env steps per run (agent and coach steps both count; "
         f"{budget_share(a, env) or 'no shipped recipe'}). "
-        f"`coached`: the coach above intervenes as the condition `{f.settings.condition}` of "
-        f"coach/conditions.toml says ({rule}, view {view}): {seen}.{_teaching_text(c)} "
+        f"`coached`: the coach above {how}{_teaching_text(c)} "
         f"Target {a.targets.get(env, 0):g}.",
         "",
     ]
