@@ -103,6 +103,26 @@ def test_threshold_rules_computed_by_hand() -> None:
     assert raised_threshold(0.6, np.array([0.5])) == np.nextafter(0.6, np.inf)
 
 
+def test_the_edge_band_computed_by_hand() -> None:
+    """From the threshold to the share's quantile of the scores inside (numpy's linear quantile)."""
+    from pidlab.region.classifier import edge_width
+
+    scores = np.array([0.5, 1.0, 2.0, 3.0, 4.5])  # quantile 0.25: position 1 -> 1.0
+    assert edge_width(0.4, scores, 0.25) == pytest.approx(0.6)
+    assert edge_width(0.4, scores, 0.5) == pytest.approx(1.6)  # the median, 2.0
+    assert edge_width(0.4, scores, 0.0) == 0.0 and edge_width(0.4, np.array([]), 0.05) == 0.0
+    assert edge_width(3.0, scores, 0.25) == 0.0  # never below the threshold
+
+
+def test_no_edge_share_means_no_edge_draw() -> None:
+    from types import SimpleNamespace
+
+    from pidlab.region.classifier import _validate_edge
+
+    work = SimpleNamespace(settings=_small(edge_share=0.0))  # nothing simulated: no estimate is needed
+    assert _validate_edge(work, _tiny(0.0), np.array([1.0, 2.0]))[1] == (0, 0, 0.0)
+
+
 def test_the_fit_is_deterministic_and_learns_a_separable_rule() -> None:
     rng = np.random.default_rng(0)
     x = rng.uniform(-1, 1, (2000, 2))
@@ -175,7 +195,9 @@ def test_classifier_accounts_add_up(idp_classifier: tuple) -> None:
     assert p["coverage_rescue"] == r.coverage and 0.0 <= r.coverage <= 1.0
     assert r.coverage_grid is not None and 0.0 <= r.coverage_grid <= 1.0  # the shipped grid, same states
     assert 0.0 < r.volume <= 1.0 and 0.0 < r.rescued_fraction < 1.0
-    assert p["simulations"] >= 10000 + 2000 + 200 + 600
+    assert p["simulations"] >= 10000 + 2000 + 200 + 200 + 600  # labels, validation, its edge, coverage
+    assert p["edge_samples"] == 200 and p["edge_share"] == 0.05 and p["edge_band"] > 0.0
+    assert p["edge_rounds"] == r.edge_rounds >= 1 and p["edge_failures_removed"] == r.edge_failures_removed
     assert r.classifier.coach == law_digest(spec)
     lo, hi = np.array(r.classifier.lower), np.array(r.classifier.upper)
     assert hi - lo == pytest.approx(2 * np.array(HALF))
@@ -215,6 +237,9 @@ def test_settings_out_of_range_are_refused() -> None:
         ClassifierSettings(("a",), (0.0,))
     with pytest.raises(RegionError, match="samples"):
         _small(samples=10)
+    for share in (-0.1, 1.5, math.nan):
+        with pytest.raises(RegionError, match="edge_share"):
+            _small(edge_share=share)
 
 
 @pytest.mark.parametrize(
@@ -228,6 +253,7 @@ def test_settings_out_of_range_are_refused() -> None:
         (["--domain", "slider_constraint=1"], "slider_constraint: a rescue region's variable must be"),
         (["--domain", "hinge_sin=1", "--samples", "5"], "--samples 5: expected an integer in [100, 2000000]"),
         (["--domain", "hinge_sin=1", "--write", "-o", "x.toml"], "--write and --output: choose one"),
+        (["--domain", "hinge_sin=1", "--edge-share", "2"], "--edge-share 2"),
     ],
 )
 def test_the_command_refuses_bad_input_in_one_line(args: list[str], message: str) -> None:

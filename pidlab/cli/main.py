@@ -1012,6 +1012,13 @@ def rescue_classifier(
         int, typer.Option(help="Further labelled states that set its threshold.")
     ] = 25_000,
     validation: Annotated[int, typer.Option(help="Fresh states per validation draw.")] = 2000,
+    edge_share: Annotated[
+        float,
+        typer.Option(
+            help="The share of the region, its lowest scores, that a second validation draws from: its "
+            "edge, where the trigger meets it (0: no edge draw)."
+        ),
+    ] = 0.05,
     coverage: Annotated[int, typer.Option(help="Fresh states over the domain for the coverage.")] = 20_000,
     width: Annotated[int, typer.Option(help="Units per hidden layer (two hidden layers).")] = 64,
     epochs: Annotated[int, typer.Option(help="Passes over the labelled states.")] = 100,
@@ -1044,7 +1051,7 @@ def rescue_classifier(
     box = _domain_box(domain)
     settings = ClassifierSettings(
         tuple(box), tuple(box.values()), samples=samples, calibration=calibration, validation=validation,
-        coverage=coverage, width=width, epochs=epochs, horizon_s=horizon, seed=seed,
+        coverage=coverage, width=width, epochs=epochs, horizon_s=horizon, seed=seed, edge_share=edge_share,
     )  # fmt: skip
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:

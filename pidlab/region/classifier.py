@@ -21,6 +21,12 @@ of the states the coach rescues. A **classifier region** covers all of them:
    region are simulated; a failure raises the threshold past its score and a new fresh draw
    follows, until a draw has none (rule of three: a failure rate below ``3 / validation`` with
    95 % confidence).
+   **At the edge**: the trigger meets the region at its edge, where an agent's actions take the
+   state, and a thin sliver of false claims there (a pole near its limit, moving out) escapes a
+   uniform draw. So ``validation`` more fresh states are drawn inside the region *among its
+   lowest-scoring* ``edge_share`` (scores from the threshold to the ``edge_share`` quantile of the
+   uniform draw's), and validated the same way: a failure raises the threshold, a new edge draw
+   follows, until one has none (``edge_share = 0``: no edge draw).
 6. **Coverage**: ``coverage`` fresh states over the domain tell which are rescuable; the coverage
    is the share of those the region holds. The spec's grid region, if it has one, is scored on the
    same states, so the two are compared over the same termination domain.
@@ -81,6 +87,8 @@ class ClassifierSettings:
     horizon_s : float
         Simulated time per rescue.
     seed : int
+    edge_share : float
+        The share of the region, its lowest scores, that the edge validation draws from (0: none).
     """
 
     variables: tuple[str, ...]
@@ -94,6 +102,7 @@ class ClassifierSettings:
     negative_weight: float = 3.0
     horizon_s: float = 3.0
     seed: int = 0
+    edge_share: float = 0.05
 
     def __post_init__(self) -> None:
         """Refuse settings out of range at once (:class:`RegionError` naming the field)."""
@@ -115,6 +124,7 @@ def _check_settings(s: ClassifierSettings) -> None:
     integer(s.epochs, "epochs", RegionError, low=1, high=10_000, param="epochs")
     number(s.negative_weight, "negative_weight", RegionError, low=0.0, low_open=True, high=1e6)
     number(s.horizon_s, "horizon_s", RegionError, low=0.0, low_open=True, high=600.0)
+    number(s.edge_share, "edge_share", RegionError, low=0.0, high=1.0, param="edge_share")
     check_seed(s.seed, "seed", RegionError, param="seed")
 
 
@@ -138,6 +148,10 @@ class ClassifierRescue:
         Draws until one had no failure.
     failures_removed : int
         Failures found (and excluded by a higher threshold) in the earlier draws.
+    edge_rounds : int
+        Edge draws until one had no failure (0: no edge validation).
+    edge_failures_removed : int
+        Failures the edge draws found (and excluded by a higher threshold).
     calibration_accuracy : float
         Share of calibration states the network's sign classifies right (score >= 0: rescued).
     provenance : dict
@@ -151,6 +165,8 @@ class ClassifierRescue:
     volume: float
     validation_rounds: int
     failures_removed: int
+    edge_rounds: int
+    edge_failures_removed: int
     calibration_accuracy: float
     provenance: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
 
@@ -311,16 +327,19 @@ def estimate_classifier(
         scores = replace(unfitted, layers=layers).scores(labelled[s.samples :])
         accuracy = float(np.mean((scores >= 0.0) == rescued[s.samples :]))
         clf = replace(unfitted, layers=layers, threshold=calibrated_threshold(scores, rescued[s.samples :]))
-        clf, rounds, removed = _validate(work, clf, s.validation)
-        return _scored(spec, work, clf, (rounds, removed, accuracy))
+        clf, rounds, removed, scores_inside = _validate(work, clf, s.validation)
+        clf, edge = _validate_edge(work, clf, scores_inside)
+        return _scored(spec, work, clf, (rounds, removed, *edge, accuracy))
 
 
 def _box(d: _Domain) -> tuple[tuple[float, ...], tuple[float, ...]]:
     return tuple(float(v) for v in d.lower), tuple(float(v) for v in d.upper)
 
 
-def _validate(work: _Work, clf: RescueClassifier, n: int) -> tuple[RescueClassifier, int, int]:
-    """Fresh draws inside until one has no failure: the classifier with its final threshold."""
+def _validate(
+    work: _Work, clf: RescueClassifier, n: int
+) -> tuple[RescueClassifier, int, int, np.ndarray]:
+    """Fresh draws inside until one has no failure: the classifier, rounds, failures, the draw's scores."""
     centre = ((np.array(clf.lower) + np.array(clf.upper)) / 2.0)[None, :]
     removed = 0
     for k in range(1, MAX_ROUNDS + 1):
@@ -332,14 +351,46 @@ def _validate(work: _Work, clf: RescueClassifier, n: int) -> tuple[RescueClassif
         inside = draw_states(work.est, n, keep=clf.inside)
         ok, _ = work.est.rescued(inside, f"validation {k}")
         if ok.all():
-            return clf, k, removed
+            return clf, k, removed, clf.scores(inside)
         removed += int((~ok).sum())
         clf = replace(clf, threshold=raised_threshold(clf.threshold, clf.scores(inside[~ok])))
     raise RegionError(f"the classifier region still failed validation after {MAX_ROUNDS} draws")
 
 
+def edge_width(threshold: float, scores_inside: np.ndarray, share: float) -> float:
+    """The width of the region's edge in score: from the threshold to the ``share`` quantile of the scores."""
+    if share <= 0.0 or not scores_inside.size:
+        return 0.0
+    return max(float(np.quantile(scores_inside, share)) - threshold, 0.0)
+
+
+def _validate_edge(
+    work: _Work, clf: RescueClassifier, scores_inside: np.ndarray
+) -> tuple[RescueClassifier, tuple[int, int, float]]:
+    """Fresh draws at the region's edge until one has no failure: the classifier, (rounds, failures, band)."""
+    s = work.settings
+    width = edge_width(clf.threshold, scores_inside, s.edge_share)
+    if width <= 0.0:
+        return clf, (0, 0, 0.0)
+    removed = 0
+    for k in range(1, MAX_ROUNDS + 1):
+        low = clf.threshold
+
+        def at_edge(v: np.ndarray, c: RescueClassifier = clf, low: float = low) -> np.ndarray:
+            scores = c.scores(v)
+            return c.inside(v) & (scores <= low + width)
+
+        edge = draw_states(work.est, s.validation, keep=at_edge)
+        ok, _ = work.est.rescued(edge, f"edge {k}")
+        if ok.all():
+            return clf, (k, removed, width)
+        removed += int((~ok).sum())
+        clf = replace(clf, threshold=raised_threshold(clf.threshold, clf.scores(edge[~ok])))
+    raise RegionError(f"the classifier region still failed at its edge after {MAX_ROUNDS} draws")
+
+
 def _scored(
-    spec: CoachSpec, work: _Work, clf: RescueClassifier, how: tuple[int, int, float]
+    spec: CoachSpec, work: _Work, clf: RescueClassifier, how: tuple[int, int, int, int, float, float]
 ) -> ClassifierRescue:
     """Coverage over fresh domain states, the spec's grid region on the same ones, and the provenance."""
     s, est = work.settings, work.est
@@ -353,13 +404,16 @@ def _scored(
     def share(mask: np.ndarray) -> float:
         return float((mask & rescued).sum()) / held if held else 0.0
 
-    rounds, removed, accuracy = how
+    rounds, removed, edge_rounds, edge_removed, band, accuracy = how
     result = ClassifierRescue(
         clf, s, share(inside), None if in_grid is None else share(in_grid), float(rescued.mean()),
-        float(inside.mean()), rounds, removed, accuracy,
+        float(inside.mean()), rounds, removed, edge_rounds, edge_removed, accuracy,
     )  # fmt: skip
     elapsed = round(time.perf_counter() - work.started, 1)
     facts: dict[str, Any] = {"simulations": est.simulations, "elapsed_s": elapsed, "coverage_rescuable": held}
+    if edge_rounds:
+        facts |= {"edge_share": s.edge_share, "edge_band": band, "edge_samples": s.validation,
+                  "edge_rounds": edge_rounds, "edge_failures_removed": edge_removed}  # fmt: skip
     if est.grounded:
         facts["starts"] = STARTS_ON_FLOOR
     return replace(result, provenance=_provenance(result, facts))

@@ -496,6 +496,12 @@ def classifier_view(r: Any, spec_name: str, env_id: str, units: dict[str, str]) 
         f"(failure rate < {r.failure_bound_95:.2%} at 95 %); {r.validation_rounds} draw(s), "
         f"{r.failures_removed} failure(s) found and excluded on the way\n"
     )
+    if r.edge_rounds:
+        head.append(
+            f"at its edge (its lowest-scoring {s.edge_share:.0%}): {s.validation:,} fresh states, 0 not "
+            f"rescued; {r.edge_rounds} draw(s), {r.edge_failures_removed} failure(s) found and excluded on "
+            "the way\n"
+        )
     t = Table(title="Domain: this box, states the env's termination rule ends dropped", title_justify="left")
     for col in ("variable", "low", "high"):
         t.add_column(col, justify="left" if col == "variable" else "right")
