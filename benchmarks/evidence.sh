@@ -25,6 +25,8 @@
 #   bash benchmarks/evidence.sh --full InvertedDoublePendulum-v5  # Amendments 9 and 11: the classifier
 #                                                     # region over the full state (rescue-terminal-full;
 #                                                     # also InvertedPendulum-v5)
+#   bash benchmarks/evidence.sh --edge InvertedPendulum-v5  # Amendment 12: that region validated at
+#                                                     # its edge too (rescue-terminal-edge)
 #   bash benchmarks/evidence.sh --model InvertedPendulum-v5  # the model predictor in training
 #                                                     # (exploratory; none and rescue-terminal reused
 #                                                     # from the confirmatory sweep)
@@ -53,6 +55,7 @@ case "${1:-}" in
     --model) mode=model; shift ;;
     --sac) mode=sac; shift ;;
     --full) mode=full; shift ;;
+    --edge) mode=edge; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -68,6 +71,7 @@ design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
         model) model_design "$1"; return ;;
         sac) sac_design "$1"; return ;;
         full) full_design "$1"; return ;;
+        edge) edge_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -129,6 +133,13 @@ full_design() {  # Amendments 9 and 11: the rescue region over the full state (a
     esac
 }
 
+edge_design() {  # Amendment 12: the classifier region validated at its edge, after the trigger's terminal rule
+    case $1 in
+        InvertedPendulum-v5) echo "$1-edge none,rescue-terminal,rescue-terminal-edge 50000 100-109" ;;
+        *) echo "evidence.sh: --edge is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment 12)" >&2; exit 2 ;;
+    esac
+}
+
 model_design() {  # the model predictor in training (issue 38): exploratory, on the confirmatory seeds
     case $1 in
         InvertedPendulum-v5) echo "$1-model none,rescue-terminal,rescue-terminal-model 50000 100-109" ;;
@@ -149,7 +160,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

@@ -233,9 +233,10 @@ def tables(block: Block = EARLY) -> str:
 
 TEACH_BEGIN = "<!-- teaching: begin (benchmarks/results_table.py) -->"
 TEACH_END = "<!-- teaching: end -->"
-TEACH_SWEEPS = ("teach", "teach2", "teach3", "teach4", "teach5", "teach6", "teach7", "sac", "full")
+TEACH_SWEEPS = ("teach", "teach2", "teach3", "teach4", "teach5", "teach6", "teach7", "sac", "full", "edge")
 """The folders ENV-teach, ... ENV-teach7 (the plan's Amendments 1-5, 7 and 10), ENV-sac (Amendment 8: plain
-SAC beside plain PPO) and ENV-full (Amendment 9: the rescue region over the full state) of each env."""
+SAC beside plain PPO), ENV-full (Amendments 9 and 11: the rescue region over the full state) and ENV-edge
+(Amendment 12: that region validated at its edge) of each env."""
 AIM = {"falls": 0.9, "env_steps_to_alone_target": 0.5}
 """Issue 35's aim as savings of the median against none: at least 90 % fewer falls, half the env steps."""
 

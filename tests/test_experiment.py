@@ -68,6 +68,7 @@ SAC_ONLY = (
 IP_ONLY = ("rescue-terminal-model",)  # the model predictor: on the other envs its error leaves no region
 FULL_ENVS = (IP, "InvertedDoublePendulum-v5")  # rescue-terminal-full: a classifier region fitted on the pendulums
 FULL_ONLY = ("rescue-terminal-full",)
+EDGE_ONLY = ("rescue-terminal-edge",)  # the classifier validated at its edge: fitted on InvertedPendulum
 
 
 def test_a_condition_names_its_algorithm_for_every_env_or_one():
@@ -115,7 +116,11 @@ def test_shipped_conditions_resolve_on_all_four_envs():
     for env in (IP, "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5"):
         recipe = load_recipe(ROOT / "coach" / f"{env}.toml")
         for name, cond in conditions.items():
-            if (name in IP_ONLY and env != IP) or (name in FULL_ONLY and env not in FULL_ENVS):
+            if (
+                (name in IP_ONLY and env != IP)
+                or (name in FULL_ONLY and env not in FULL_ENVS)
+                or (name in EDGE_ONLY and env != IP)
+            ):
                 continue
             given = with_overrides(recipe, algo="sac") if name in SAC_ONLY else recipe
             r, spec, _source = resolve(cond, given)
@@ -123,6 +128,9 @@ def test_shipped_conditions_resolve_on_all_four_envs():
             assert r.steps == recipe.steps and r.algorithms == recipe.algorithms  # same agent everywhere
         for name in IP_ONLY if env != IP else ():  # the linear forecast's error leaves no region
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: .*use predictor = 'exact'"):
+                resolve(conditions[name], recipe)
+        for name in EDGE_ONLY if env != IP else ():
+            with pytest.raises(ConditionError, match=f"condition {name} on {env}: coach 'pidlab-rescue-edge' not found"):
                 resolve(conditions[name], recipe)
         for name in FULL_ONLY if env not in FULL_ENVS else ():
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: coach 'pidlab-rescue-full' not found"):
