@@ -73,6 +73,8 @@ COACHES = {
     "InvertedPendulum-v5": (
         Coach("room coach, lookup grid", runs=("InvertedPendulum-v5-rescue", "rescue-terminal")),
         Coach("room coach, classifier", runs=("InvertedPendulum-v5-full", "rescue-terminal-full")),
+        Coach("room coach, classifier validated at its edge",
+              runs=("InvertedPendulum-v5-edge", "rescue-terminal-edge")),
     ),
     "InvertedDoublePendulum-v5": (
         Coach("room coach, lookup grid + guard box",
