@@ -666,9 +666,10 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
     """The published experiment that compares ``condition`` with ``none`` on ``env_id``.
 
     Read from ``docs/results/*/summary.csv`` of a source checkout: among the folders that ran
-    the analysis plan's confirmatory seeds for their conditions, the one with the fewest conditions
-    (the smallest Holm family: the plan's own sweep before a later one that repeats its runs beside
-    more conditions), the last in name order among equals; else the last such pilot folder; else None.
+    the analysis plan's confirmatory seeds for their conditions, one that trained ``condition``'s
+    runs itself before one that copied them from an earlier sweep (``reused.json``), then the one
+    with the fewest conditions (the smallest Holm family), the last in name order among equals;
+    else the last such pilot folder; else None.
     """
     import csv
 
@@ -679,7 +680,7 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
     root = source_root()
     if root is None:
         return None
-    found: dict[str, tuple[int, Evidence]] = {}
+    found: dict[str, tuple[tuple[int, int], Evidence]] = {}
     for path in sorted((root / "docs" / "results").glob("*/summary.csv")):
         with open(path, newline="") as f:
             rows = {(r["condition"], r["metric"]): r for r in csv.DictReader(f) if r.get("env") == env_id}
@@ -693,11 +694,18 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
             kind = role(
                 seeds, conds, _algorithms(path.parent, identity), envs if isinstance(envs, list) else [env_id]
             )
-            size = len(conds) if kind == "confirmatory" else 0
+            copied = _copied(path.parent, env_id, condition)
+            size = (int(copied), len(conds) if kind == "confirmatory" else 0)
             if kind not in found or size <= found[kind][0]:
                 found[kind] = (size, Evidence(f"docs/results/{path.parent.name}", kept))
     best = found.get("confirmatory", found.get("pilot", found.get("exploratory")))
     return None if best is None else best[1]
+
+
+def _copied(folder: Path, env_id: str, condition: str) -> bool:
+    """Whether every published run of ``condition`` in ``folder`` was copied from an earlier sweep."""
+    runs = list((folder / "runs" / env_id / condition).glob("seed-*"))
+    return bool(runs) and all((run / "reused.json").exists() for run in runs)
 
 
 def _algorithms(folder: Path, identity: dict[str, Any]) -> tuple[str, ...]:
