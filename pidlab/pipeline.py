@@ -704,8 +704,10 @@ def published_evidence(env_id: str, condition: str) -> Evidence | None:
 
 def _copied(folder: Path, env_id: str, condition: str) -> bool:
     """Whether every published run of ``condition`` in ``folder`` was copied from an earlier sweep."""
+    from pidlab.experiment.reuse import REUSED_NAME
+
     runs = list((folder / "runs" / env_id / condition).glob("seed-*"))
-    return bool(runs) and all((run / "reused.json").exists() for run in runs)
+    return bool(runs) and all((run / REUSED_NAME).exists() for run in runs)
 
 
 def _algorithms(folder: Path, identity: dict[str, Any]) -> tuple[str, ...]:

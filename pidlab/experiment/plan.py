@@ -8,6 +8,7 @@ checks that the document says the same.
 
 from __future__ import annotations
 
+import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -242,18 +243,6 @@ class PlainLearner:
     final_scores: tuple[float, ...]
 
 
-def _median(values: Sequence[float]) -> float:
-    ordered = sorted(values)
-    n = len(ordered)
-    if n == 0:
-        return float("nan")
-    mid = n // 2
-    if n % 2:
-        return ordered[mid]
-    low, high = ordered[mid - 1], ordered[mid]
-    return high if low == high else (low + high) / 2.0
-
-
 def best_plain_baseline(learners: Sequence[PlainLearner]) -> PlainLearner:
     """The best plain baseline by Amendment 8's rule (docs/analysis-plan.md).
 
@@ -270,6 +259,7 @@ def best_plain_baseline(learners: Sequence[PlainLearner]) -> PlainLearner:
         raise ValueError("best_plain_baseline: expected at least one learner, each with runs")
 
     def key(x: PlainLearner) -> tuple[float, float, int]:
-        return (_median(x.steps_to_target), -_median(x.final_scores), 0 if x.condition == "none" else 1)
+        median = statistics.median
+        return (median(x.steps_to_target), -median(x.final_scores), 0 if x.condition == "none" else 1)
 
     return min(learners, key=key)

@@ -341,20 +341,35 @@ def _validate(
 ) -> tuple[RescueClassifier, int, int, np.ndarray]:
     """Fresh draws inside until one has no failure: the classifier, rounds, failures, the draw's scores."""
     centre = ((np.array(clf.lower) + np.array(clf.upper)) / 2.0)[None, :]
-    removed = 0
-    for k in range(1, MAX_ROUNDS + 1):
-        if not clf.inside(centre)[0]:
+
+    def inside(c: RescueClassifier) -> Callable[[np.ndarray], np.ndarray]:
+        if not c.inside(centre)[0]:
             raise RegionError(
                 "the classifier region leaves out the operating point (where the coach hands back): a "
                 "failure scores as high as it; fit on more samples (--samples) or longer (--epochs)"
             )
-        inside = draw_states(work.est, n, keep=clf.inside)
-        ok, _ = work.est.rescued(inside, f"validation {k}")
+        return c.inside
+
+    return _until_clean(work, clf, n, inside, "validation")
+
+
+def _until_clean(
+    work: _Work, clf: RescueClassifier, n: int, keep_of: Callable[[RescueClassifier], Callable], label: str
+) -> tuple[RescueClassifier, int, int, np.ndarray]:
+    """Draws of ``n`` states that ``keep_of(clf)`` keeps, until one has no failure.
+
+    Each failure raises the threshold past its score. Returns the classifier, the rounds, the
+    failures found and the clean draw's scores.
+    """
+    removed = 0
+    for k in range(1, MAX_ROUNDS + 1):
+        drawn = draw_states(work.est, n, keep=keep_of(clf))
+        ok, _ = work.est.rescued(drawn, f"{label} {k}")
         if ok.all():
-            return clf, k, removed, clf.scores(inside)
+            return clf, k, removed, clf.scores(drawn)
         removed += int((~ok).sum())
-        clf = replace(clf, threshold=raised_threshold(clf.threshold, clf.scores(inside[~ok])))
-    raise RegionError(f"the classifier region still failed validation after {MAX_ROUNDS} draws")
+        clf = replace(clf, threshold=raised_threshold(clf.threshold, clf.scores(drawn[~ok])))
+    raise RegionError(f"the classifier region still failed {label} after {MAX_ROUNDS} draws")
 
 
 def edge_width(threshold: float, scores_inside: np.ndarray, share: float) -> float:
@@ -372,21 +387,12 @@ def _validate_edge(
     width = edge_width(clf.threshold, scores_inside, s.edge_share)
     if width <= 0.0:
         return clf, (0, 0, 0.0)
-    removed = 0
-    for k in range(1, MAX_ROUNDS + 1):
-        low = clf.threshold
 
-        def at_edge(v: np.ndarray, c: RescueClassifier = clf, low: float = low) -> np.ndarray:
-            scores = c.scores(v)
-            return c.inside(v) & (scores <= low + width)
+    def at_edge(c: RescueClassifier) -> Callable[[np.ndarray], np.ndarray]:
+        return lambda v: c.inside(v) & (c.scores(v) <= c.threshold + width)
 
-        edge = draw_states(work.est, s.validation, keep=at_edge)
-        ok, _ = work.est.rescued(edge, f"edge {k}")
-        if ok.all():
-            return clf, (k, removed, width)
-        removed += int((~ok).sum())
-        clf = replace(clf, threshold=raised_threshold(clf.threshold, clf.scores(edge[~ok])))
-    raise RegionError(f"the classifier region still failed at its edge after {MAX_ROUNDS} draws")
+    clf, rounds, removed, _ = _until_clean(work, clf, s.validation, at_edge, "edge validation")
+    return clf, (rounds, removed, width)
 
 
 def _scored(
