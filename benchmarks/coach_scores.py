@@ -5,13 +5,13 @@ Writes docs/coach-scores.md. Run: .venv/bin/python benchmarks/coach_scores.py [-
 
 from __future__ import annotations
 
-import argparse
 import math
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
+from bench_cli import Parser, count, run
 
 from pidlab import __version__
 from pidlab.controller.analysis import analyze_coach
@@ -42,8 +42,8 @@ def fmt(x: float, digits: int = 1) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--episodes", type=int, default=20)
+    parser = Parser()
+    parser.add_argument("--episodes", type=count, default=20)
     args = parser.parse_args()
     loaded = {env: load_model(env) for env in ENVS}
 
@@ -105,4 +105,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -20,7 +20,6 @@ drifts of the machine hit all of them alike.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import platform
@@ -31,6 +30,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import torch
+from bench_cli import Parser, count, run
 from stable_baselines3 import PPO
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
@@ -131,9 +131,9 @@ def step_costs_us(stacks: dict, spec, loaded, steps: int = 1000, rounds: int = 6
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--steps", type=int, default=20000, help="agent steps per training run")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser = Parser()
+    parser.add_argument("--steps", type=count, default=20000, help="agent steps per training run")
+    parser.add_argument("--repeats", type=count, default=3)
     parser.add_argument("--envs", default="InvertedPendulum-v5,Hopper-v5")
     parser.add_argument("--out", default=str(ROOT / "docs" / "coaching-throughput.md"))
     args = parser.parse_args()
@@ -279,4 +279,4 @@ def _kept_section(page: Path) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

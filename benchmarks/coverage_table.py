@@ -14,13 +14,13 @@ Run: .venv/bin/python benchmarks/coverage_table.py [--envs Hopper-v5] [--states 
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import tomllib
+from bench_cli import Parser, count, names, run
 
 from pidlab.controller.spec import load_spec
 from pidlab.files import write_json
@@ -175,10 +175,12 @@ def measure(env: str, states: int, workers: int | None) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--envs", default=",".join(DOMAINS), help="Comma-separated envs (default: all four).")
-    parser.add_argument("--states", type=int, default=20_000, help="States per env (default 20,000).")
-    parser.add_argument("--workers", type=int, default=None, help="Worker processes (default: the cores).")
+    parser = Parser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--envs", type=names(DOMAINS), default=",".join(DOMAINS), help="Comma-separated envs (default: all)"
+    )
+    parser.add_argument("--states", type=count, default=20_000, help="States per env (default 20,000).")
+    parser.add_argument("--workers", type=count, default=None, help="Worker processes (default: the cores).")
     parser.add_argument("--table-only", action="store_true", help="Rebuild the table from the JSON files.")
     args = parser.parse_args()
     for env in [] if args.table_only else args.envs.split(","):
@@ -228,4 +230,4 @@ def _coverage_of(d: dict) -> DomainCoverage:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -18,6 +18,8 @@ import statistics
 import sys
 from pathlib import Path
 
+from bench_cli import run
+
 from pidlab.controller.spec import load_spec
 from pidlab.errors import CoachingError
 from pidlab.lookup import parse_lookup
@@ -127,4 +129,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    run(lambda: main(sys.argv[1:]))

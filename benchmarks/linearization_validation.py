@@ -11,6 +11,7 @@ from pathlib import Path
 
 import control as ct
 import numpy as np
+from bench_cli import run
 
 from pidlab import __version__, validate
 from pidlab.linear.linearize import linearize
@@ -163,4 +164,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -10,11 +10,11 @@ share of an untrained Gaussian policy's actions (clipped to the action range) at
 
 from __future__ import annotations
 
-import argparse
 import math
 
 import gymnasium as gym
 import numpy as np
+from bench_cli import Parser, positive, run
 
 from pidlab.controller.spec import load_spec
 from pidlab.region.takeover import load_region
@@ -52,9 +52,9 @@ def share_at_least(size: float, std: float) -> float:
 
 def main() -> None:
     """Print the table."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = Parser(description=__doc__.splitlines()[0])
     parser.add_argument("spec")
-    parser.add_argument("--policy-std", type=float, default=1.0, help="an untrained policy's std (SB3: 1)")
+    parser.add_argument("--policy-std", type=positive, default=1.0, help="an untrained policy's std (SB3: 1)")
     args = parser.parse_args()
     print(f"{args.spec}: one action from rest at the operating point (sizes: fractions of the half-range)")
     print("| size | inside after +size | inside after -size | in the hand-back region (0.5) | "
@@ -68,4 +68,4 @@ def main() -> None:
 
 if __name__ == "__main__":
     np.set_printoptions(precision=4)
-    main()
+    run(main)

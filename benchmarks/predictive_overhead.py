@@ -27,7 +27,6 @@ pure cost of the predictive trigger.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import platform
@@ -38,6 +37,7 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+from bench_cli import Parser, count, names, run
 
 from pidlab import __version__
 from pidlab.controller.spec import load_spec
@@ -177,10 +177,12 @@ def write_section(text: str) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--steps", type=int, default=2000, help="agent actions per round and stack")
-    parser.add_argument("--rounds", type=int, default=20)
-    parser.add_argument("--envs", default="IP,Hopper", help="IP and/or Hopper, comma-separated")
+    parser = Parser()
+    parser.add_argument("--steps", type=count, default=2000, help="agent actions per round and stack")
+    parser.add_argument("--rounds", type=count, default=20)
+    parser.add_argument(
+        "--envs", type=names(SHORT), default="IP,Hopper", help="IP and/or Hopper, comma-separated"
+    )
     parser.add_argument("--no-write", action="store_true", help="print only")
     args = parser.parse_args()
     envs = [SHORT.get(e, e) for e in args.envs.split(",")]
@@ -198,4 +200,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

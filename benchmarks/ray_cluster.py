@@ -16,13 +16,14 @@ Exit status: 0 the logs are identical, 1 they differ, 2 the cluster or a sweep f
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from bench_cli import Parser, run
 
 from pidlab.files import atomic_write_text
 
@@ -65,7 +66,7 @@ def _sweep(out: Path, backend: list[str]) -> tuple[list[str], subprocess.Complet
 
 def main(argv: list[str]) -> int:
     """Run the check; write and print the page."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = Parser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/ray-cluster", help="folder for the two sweeps")
     out = ROOT / parser.parse_args(argv).out
     head = [str(BIN / "ray"), "start", "--head", f"--port={PORT}", "--num-cpus=2",
@@ -129,4 +130,4 @@ def _page(head: list[str], start_s: float, on_ray: tuple, on_pool: tuple, stop_c
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    run(lambda: main(sys.argv[1:]))

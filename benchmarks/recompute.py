@@ -31,6 +31,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from bench_cli import run
 
 from pidlab.errors import PidlabError
 from pidlab.experiment.analysis import Analysis, analyze, recipes_of_runs
@@ -185,4 +186,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    run(lambda: main(sys.argv[1:]))

@@ -10,9 +10,10 @@ Run: .venv/bin/python benchmarks/recovery_table.py [--envs Hopper-v5,Walker2d-v5
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
+
+from bench_cli import Parser, names, run
 
 from pidlab.controller.spec import load_spec
 from pidlab.plant.model import load_model
@@ -50,8 +51,10 @@ def rows(env: str) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--envs", default=",".join(ENVS), help="Comma-separated envs (default: all four).")
+    parser = Parser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--envs", type=names(ENVS), default=",".join(ENVS), help="Comma-separated envs (default: all four)."
+    )
     args = parser.parse_args()
     head = [
         "| env | coach | reach on each side (every probe up to it recovered) "
@@ -68,4 +71,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -11,12 +11,13 @@ Run: .venv/bin/python benchmarks/region_speed.py [--envs InvertedPendulum-v5,Hop
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import time
 from pathlib import Path
 from typing import Any
+
+from bench_cli import Parser, counts, names, run
 
 from pidlab import __version__
 from pidlab.controller import autotune
@@ -119,17 +120,17 @@ def write_section(rows: list[str], load: float) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--envs", default=",".join(ENVS))
-    parser.add_argument("--workers", default="1,2")
+    parser = Parser()
+    parser.add_argument("--envs", type=names(ENVS), default=",".join(ENVS))
+    parser.add_argument("--workers", type=counts, default="1,2")
     parser.add_argument("--no-write", action="store_true", help="Print the table only.")
     args = parser.parse_args()
     load = os.getloadavg()[0]
-    rows = measure(args.envs.split(","), [int(w) for w in args.workers.split(",")])
+    rows = measure(args.envs.split(","), args.workers)
     if not args.no_write:
         write_section(rows, load)
         print(f"wrote {DOC.relative_to(ROOT)}")
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -13,7 +13,6 @@ Run: .venv/bin/python benchmarks/rescue_settle.py Walker2d-v5 tuning/Walker2d-v5
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from pidlab.region.coverage import DomainSettings, draw_states
 from pidlab.region.rescue import simulations, state_domain
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_cli import Parser, count, positive, run
 from coverage_table import DOMAINS
 
 SHORT_S = 3.0
@@ -50,11 +50,11 @@ def run_out(sim, x: np.ndarray, grounded: bool, short: int, long: int, pitch: tu
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = Parser(description=__doc__.splitlines()[0])
     parser.add_argument("env", choices=("Hopper-v5", "Walker2d-v5"))
     parser.add_argument("spec", help="The coach spec (TOML).")
-    parser.add_argument("--states", type=int, default=3000, help="States drawn (default 3,000).")
-    parser.add_argument("--long", type=float, default=10.0, help="The longer horizon, s (default 10).")
+    parser.add_argument("--states", type=count, default=3000, help="States drawn (default 3,000).")
+    parser.add_argument("--long", type=positive, default=10.0, help="The longer horizon, s (default 10).")
     args = parser.parse_args()
     box = DOMAINS[args.env]
     settings = DomainSettings(tuple(box), tuple(box.values()), states=args.states)
@@ -84,4 +84,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -21,6 +21,8 @@ import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
+from bench_cli import run
+
 from pidlab.experiment.analysis import recipes_of_runs
 from pidlab.experiment.plan import ALONE_TARGETS, PlainLearner, best_plain_baseline
 from pidlab.experiment.stats import Estimate
@@ -370,4 +372,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

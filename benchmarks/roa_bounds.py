@@ -5,12 +5,12 @@ Writes docs/bounds-results.md. Run: .venv/bin/python benchmarks/roa_bounds.py [-
 
 from __future__ import annotations
 
-import argparse
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
+from bench_cli import Parser, count, run
 
 from pidlab import __version__
 from pidlab.controller.analysis import analyze_coach
@@ -87,8 +87,8 @@ def kept_section(path: Path) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--samples", type=int, default=10000)
+    parser = Parser()
+    parser.add_argument("--samples", type=count, default=10000)
     args = parser.parse_args()
     lines = [
         "# Regions of attraction and critical bounds: measured",
@@ -149,4 +149,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -33,6 +33,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from bench_cli import Parser, count, run
+
 from pidlab.controller.rollout import coach_alone
 from pidlab.controller.spec import load_spec
 from pidlab.errors import RegionError
@@ -179,11 +181,11 @@ def section(env_id: str, args: argparse.Namespace, presets: list[str], choices: 
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = Parser(description=__doc__.splitlines()[0])
     p.add_argument("--env", default="InvertedPendulum-v5")
-    p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--steps", type=int, default=20000)
-    p.add_argument("--episodes", type=int, default=10)
+    p.add_argument("--seeds", type=count, default=3)
+    p.add_argument("--steps", type=count, default=20000)
+    p.add_argument("--episodes", type=count, default=10)
     args = p.parse_args()
     presets = preset_rows(args.env, args.episodes)
     out = run_choices(args.env, args.seeds, args.steps)
@@ -199,4 +201,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

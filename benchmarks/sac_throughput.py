@@ -38,6 +38,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench_cli import EXIT_BAD_INPUT, Parser, count, fail, run
+
 ROOT = Path(__file__).resolve().parents[1]
 WARMUP = 1000
 ARMS = ("raw", "pidlab", "sbx", "raw2")
@@ -136,7 +138,10 @@ def run_arm(arm: str, env_id: str, steps: int) -> float:
         env=env, capture_output=True, text=True, check=False,
     )  # fmt: skip
     if out.returncode != 0:
-        raise RuntimeError(f"{arm} {env_id}: {out.stderr.strip().splitlines()[-1:]}")
+        last = (out.stderr.strip().splitlines() or ["no output"])[-1]
+        if out.returncode == EXIT_BAD_INPUT:  # the child's one line: bad input, said once
+            fail(last.split(": error: ", 1)[-1])
+        raise RuntimeError(f"{arm} {env_id}: {last}")
     return steps / float(json.loads(out.stdout.strip().splitlines()[-1])["seconds"])
 
 
@@ -210,10 +215,10 @@ def report(rates: dict[str, dict[str, list[float]]], steps: int, repeats: int, s
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=3)
+    parser = Parser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=count, default=3)
     parser.add_argument("--envs", default="Hopper-v5")
-    parser.add_argument("--steps", type=int, default=4000)
+    parser.add_argument("--steps", type=count, default=4000)
     parser.add_argument("--arm", choices=ARMS, help=argparse.SUPPRESS)
     parser.add_argument("--out", default=str(ROOT / "docs" / "sac-throughput.md"))
     args = parser.parse_args()
@@ -243,4 +248,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

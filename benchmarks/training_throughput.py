@@ -23,7 +23,6 @@ and the bare Gymnasium env with random actions. torch runs on one thread everywh
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import platform
@@ -37,6 +36,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 import torch
+from bench_cli import Parser, count, names, run
 from stable_baselines3 import PPO
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
@@ -260,9 +260,9 @@ def report(figs: list[EnvFigures], repeats: int) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--envs", default=",".join(STEPS))
+    parser = Parser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=count, default=2)
+    parser.add_argument("--envs", type=names(STEPS), default=",".join(STEPS))
     args = parser.parse_args()
     torch.set_num_threads(1)
     figs = [measure(env_id, STEPS[env_id], args.repeats) for env_id in args.envs.split(",")]
@@ -272,4 +272,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

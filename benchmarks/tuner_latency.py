@@ -13,13 +13,14 @@ Writes ``docs/tuner-latency.md`` (the table) and ``docs/images/tuner-ENV.png`` (
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import platform
 import re
 import statistics
 import tempfile
 from pathlib import Path
+
+from bench_cli import Parser, count, names, run, seconds
 
 from pidlab.app.browser import CHROMIUM, CHROMIUM_ARGS, PAGE_JS, free_port, start_server, stop_server
 from pidlab.files import atomic_write_text
@@ -62,10 +63,10 @@ def pct(values: list[float], q: float) -> float:
 
 def main() -> None:
     """Run the measurement and write the docs page and screenshots."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--presses", type=int, default=30)
-    ap.add_argument("--gap", type=float, default=1.0, help="seconds between presses")
-    ap.add_argument("--envs", default=",".join(ENVS))
+    ap = Parser(description=__doc__.splitlines()[0])
+    ap.add_argument("--presses", type=count, default=30)
+    ap.add_argument("--gap", type=seconds, default=1.0, help="seconds between presses")
+    ap.add_argument("--envs", type=names(ENVS), default=",".join(ENVS))
     ap.add_argument("--out", default=str(ROOT / "docs"))
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
@@ -142,4 +143,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

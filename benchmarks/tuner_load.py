@@ -34,6 +34,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bench_cli import Parser, count, positive, seconds
+from bench_cli import run as run_script
+
 from pidlab.app.browser import TunerClient, free_port, start_server, stop_server
 from pidlab.files import atomic_write_text
 from pidlab.provenance import git_state
@@ -270,13 +273,13 @@ def summary(r: Results, args: argparse.Namespace) -> list[str]:
 
 def main() -> None:
     """Run the phases and write the docs page."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tabs", type=int, default=5, help="tabs opened at the same moment, in each phase")
-    ap.add_argument("--moves", type=int, default=5, help="slider moves per tab")
-    ap.add_argument("--clients", type=int, default=20, help="HTTP clients of the flood")
-    ap.add_argument("--seconds", type=float, default=20.0, help="length of the flood")
+    ap = Parser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tabs", type=count, default=5, help="tabs opened at the same moment, in each phase")
+    ap.add_argument("--moves", type=count, default=5, help="slider moves per tab")
+    ap.add_argument("--clients", type=count, default=20, help="HTTP clients of the flood")
+    ap.add_argument("--seconds", type=positive, default=20.0, help="length of the flood")
     ap.add_argument(
-        "--settle", type=float, default=20.0, help="seconds after the flood before memory is read"
+        "--settle", type=seconds, default=20.0, help="seconds after the flood before memory is read"
     )
     ap.add_argument("--out", default=str(ROOT / "docs"))
     ap.add_argument(
@@ -344,4 +347,4 @@ def write_page(out: Path, rows: list[str], r: Results, args: argparse.Namespace,
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -17,8 +17,6 @@ interval, and the exact two-sided rank-sum p-value.
 
 from __future__ import annotations
 
-import argparse
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +25,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from bench_cli import Parser, run
 
 from pidlab.experiment.analysis import RunData, load_run, rule_of
 from pidlab.experiment.comparison import Comparison, Measure, raw_comparison
@@ -242,7 +241,7 @@ def page(figures: dict[tuple[str, str], str]) -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = Parser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="exit 1 if docs/vectorization.md differs")
     args = parser.parse_args()
     figures = {(env_id, v): f"vectorization-{env_id}-{v}.png" for env_id, _, v, _ in DESIGN}
@@ -263,4 +262,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -1,0 +1,156 @@
+"""The benchmark scripts' command lines: bad input is one line and exit code 2 (benchmarks/bench_cli.py).
+
+The argument types are checked against hand-picked values; every script is run with an unknown flag
+and the scripts whose input pidlab itself checks with a value it refuses, in this process (runpy), so
+that no case pays for a fresh interpreter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import runpy
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "benchmarks"
+sys.path.insert(0, str(BENCH))
+
+import bench_cli  # noqa: E402
+
+SCRIPTS = sorted(
+    p for p in BENCH.glob("*.py") if p.name != "bench_cli.py" and '__name__ == "__main__"' in p.read_text()
+)
+PARSERS = [p for p in SCRIPTS if "Parser(" in p.read_text()]
+
+
+def _run(script: Path, args: list[str], monkeypatch, capsys) -> tuple[int, list[str]]:
+    """Run a script as ``python script args``; its exit code and its stderr's lines."""
+    monkeypatch.setattr(sys, "argv", [str(script), *args])
+    with pytest.raises(SystemExit) as stop:
+        runpy.run_path(str(script), run_name="__main__")
+    return stop.value.code, capsys.readouterr().err.strip().splitlines()
+
+
+@pytest.mark.parametrize(("text", "value"), [("1", 1), ("20000", 20000), ("+3", 3)])
+def test_count_accepts_whole_numbers_from_one(text, value):
+    assert bench_cli.count(text) == value
+
+
+@pytest.mark.parametrize("text", ["0", "-3", "2.5", "x", "", "nan"])
+def test_count_refuses_the_rest(text):
+    with pytest.raises(argparse.ArgumentTypeError, match="whole number >= 1"):
+        bench_cli.count(text)
+
+
+def test_counts_reads_a_comma_list_and_refuses_a_bad_item():
+    assert bench_cli.counts("1,2") == [1, 2]
+    assert bench_cli.counts(" 4 ") == [4]
+    with pytest.raises(argparse.ArgumentTypeError, match="'0'"):
+        bench_cli.counts("1,0")
+
+
+@pytest.mark.parametrize("text", ["0", "-1", "inf", "nan", "x"])
+def test_positive_refuses_zero_negatives_and_non_finite(text):
+    with pytest.raises(argparse.ArgumentTypeError, match="finite number > 0"):
+        bench_cli.positive(text)
+
+
+def test_seconds_takes_zero_but_not_negatives():
+    assert bench_cli.positive("0.5") == 0.5
+    assert bench_cli.seconds("0") == 0.0
+    for text in ("-0.1", "inf", "nan", "soon"):
+        with pytest.raises(argparse.ArgumentTypeError, match="seconds >= 0"):
+            bench_cli.seconds(text)
+
+
+def test_names_keeps_the_list_as_text_and_refuses_unknown_or_repeated_names():
+    parse = bench_cli.names(("IP", "Hopper"))
+    assert parse("IP, Hopper") == "IP,Hopper"
+    with pytest.raises(argparse.ArgumentTypeError, match="'Walker'"):
+        parse("IP,Walker")
+    with pytest.raises(argparse.ArgumentTypeError, match="twice"):
+        parse("IP,IP")
+
+
+def test_every_script_ends_through_bench_cli_run():
+    """A script whose ``__main__`` block bypasses :func:`bench_cli.run` would print tracebacks for bad input."""
+    for script in SCRIPTS:
+        tree = ast.parse(script.read_text())
+        block = next(n for n in tree.body if isinstance(n, ast.If) and "__main__" in ast.unparse(n.test))
+        calls = {ast.unparse(c.func) for c in ast.walk(block) if isinstance(c, ast.Call)}
+        assert calls & {"run", "run_script"}, f"{script.name}: its __main__ block does not call bench_cli.run"
+
+
+@pytest.mark.parametrize("script", PARSERS, ids=lambda p: p.name)
+def test_an_unknown_flag_is_one_line_and_exit_2(script, monkeypatch, capsys):
+    code, err = _run(script, ["--no-such-flag"], monkeypatch, capsys)
+    assert code == 2
+    assert len(err) == 1, err  # a script with a required argument names that first
+    assert err[0].startswith(f"{script.name}: error: ")
+    assert err[0].endswith(f"(see {script.name} --help)")
+    assert "unrecognized arguments: --no-such-flag" in err[0] or "arguments are required" in err[0]
+
+
+@pytest.mark.parametrize(
+    ("name", "args", "says"),
+    [
+        ("coach_scores.py", ["--episodes", "-3"], "argument --episodes: '-3': expected a whole number >= 1"),
+        ("coverage_table.py", ["--envs", "Foo-v5"], "argument --envs: 'Foo-v5': expected names among"),
+        ("region_speed.py", ["--workers", "1,x"], "argument --workers: 'x': expected a whole number >= 1"),
+        (
+            "tuner_load.py",
+            ["--settle", "-1"],
+            "argument --settle: '-1': expected a finite number of seconds >= 0",
+        ),
+        (
+            "one_step_room.py",
+            ["InvertedPendulum-v5", "x.toml", "--policy-std", "0"],
+            "expected a finite number > 0",
+        ),
+        # checked by pidlab itself, the error raised inside main()
+        (
+            "rescue_settle.py",
+            ["Hopper-v5", "/nonexistent/coach.toml"],
+            "cannot read coach spec '/nonexistent/coach.toml'",
+        ),
+        ("coaching_throughput.py", ["--envs", "Nope-v5"], "cannot read recipe"),
+        ("recompute.py", ["/nonexistent"], "/nonexistent: cannot be read"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(name, args, says, monkeypatch, capsys):
+    code, err = _run(BENCH / name, args, monkeypatch, capsys)
+    assert code == 2
+    assert len(err) == 1 and says in err[0], err
+    assert "Traceback" not in err[0]
+
+
+def test_a_child_process_error_is_said_once(tmp_path):
+    """sac_throughput.py measures in child processes: the child's one line becomes the script's."""
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(BENCH / "sac_throughput.py"),
+            "--envs",
+            "Nope-v5",
+            "--repeats",
+            "1",
+            "--steps",
+            "10",
+            "--out",
+            str(tmp_path / "page.md"),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=300,
+    )
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        f"sac_throughput.py: error: cannot read recipe '{ROOT / 'coach' / 'Nope-v5.toml'}': No such file or directory"
+    ]
+    assert not (tmp_path / "page.md").exists()
