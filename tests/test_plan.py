@@ -97,8 +97,22 @@ def test_amendment_8_governs_plain_sac_on_the_pendulums_only():
     assert plan.role(range(10), sweep, algos, ["InvertedPendulum-v5"]) == "pilot"
 
 
+def test_amendment_13_governs_the_off_policy_couplings_on_invertedpendulum_only():
+    sweep = ["none", "rescue-replay", "rescue-value", "rescue-propose", "warm-start-keep-shield-short"]
+    ip, idp = ["InvertedPendulum-v5"], ["InvertedDoublePendulum-v5"]
+    assert plan.role(range(100, 110), sweep, ["ppo", "sac"], ip) == "confirmatory"
+    assert plan.amendments_of(sweep, ip, range(100, 110)) == (13,)
+    assert "Amendment 13" in plan.citation(range(100, 110), sweep, ["ppo", "sac"], ip)
+    assert plan.role(range(100, 110), sweep, ["ppo", "sac"], idp) == "exploratory"
+    assert plan.ungoverned(sweep, idp) == ("rescue-replay", "rescue-value", "rescue-propose",
+                                           "warm-start-keep-shield-short")  # fmt: skip
+    # its PPO comparator keeps Amendment 4's seeds too; 13 governs it on InvertedPendulum's 100-109
+    assert plan.amendments_of(["warm-start-keep-shield-short"], ip, range(110, 120)) == (4,)
+
+
 def test_an_amendment_governs_only_its_envs_and_seeds():
-    short, hopper, ip = ["none", "warm-start-keep-shield-short"], ["Hopper-v5"], ["InvertedPendulum-v5"]
+    short, hopper = ["none", "warm-start-keep-shield-short"], ["Hopper-v5"]
+    idp = ["InvertedDoublePendulum-v5"]
     # Amendment 7: Hopper and Walker2d on the plan's seeds; Amendment 4: every env on 110-119
     assert plan.role(range(100, 110), short, envs=hopper) == "confirmatory"
     assert plan.amendments_of(short, hopper, range(100, 110)) == (7,)
@@ -106,11 +120,11 @@ def test_an_amendment_governs_only_its_envs_and_seeds():
     assert "Amendment 4" not in plan.citation(range(100, 110), short, envs=hopper)
     assert plan.role(range(110, 120), short, envs=hopper) == "confirmatory"
     assert plan.amendments_of(short, hopper, range(110, 120)) == (4,)
-    assert plan.role(range(100, 110), short, envs=ip) == "exploratory"
-    assert plan.ungoverned(short, ip) == ("warm-start-keep-shield-short",)
-    assert plan.role(range(110, 120), short, envs=ip) == "confirmatory"
+    assert plan.role(range(100, 110), short, envs=idp) == "exploratory"
+    assert plan.ungoverned(short, idp) == ("warm-start-keep-shield-short",)
+    assert plan.role(range(110, 120), short, envs=idp) == "confirmatory"
     # a sweep over both kinds of env is confirmatory only where every env is governed
-    assert plan.role(range(100, 110), short, envs=[*hopper, *ip]) == "exploratory"
+    assert plan.role(range(100, 110), short, envs=[*hopper, *idp]) == "exploratory"
     assert plan.fresh_seed_sets(short, hopper) == (tuple(range(100, 110)), tuple(range(110, 120)))
     assert "100-109 or 110-119" in plan.citation(range(5), short, envs=hopper)
 
@@ -170,7 +184,7 @@ def test_every_condition_an_amendment_governs_is_named_in_its_amendment():
     # Amendment 4 confirms on its own fresh seeds
     short = ["none", "warm-start-keep-shield-short"]
     assert plan.role(range(110, 120), short) == "confirmatory"
-    assert plan.role(range(100, 110), short, envs=["InvertedPendulum-v5"]) == "exploratory"
+    assert plan.role(range(100, 110), short, envs=["InvertedDoublePendulum-v5"]) == "exploratory"
     assert plan.role(range(120, 130), short) == "pilot"
     assert "seeds 110-119" in plan.citation(range(110, 120), short)
 

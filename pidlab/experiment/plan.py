@@ -102,6 +102,12 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
     Amendment(10, ("warm-start-hold",), envs=("InvertedDoublePendulum-v5",), seeds=tuple(range(110, 120))),
     Amendment(11, ("rescue-terminal-full",), envs=("InvertedPendulum-v5",)),
     Amendment(12, ("rescue-terminal-edge",), envs=("InvertedPendulum-v5",)),
+    Amendment(
+        13,
+        ("rescue-replay", "rescue-value", "rescue-propose", "warm-start-keep-shield-short"),
+        envs=("InvertedPendulum-v5",),
+        algorithms=("sac",),
+    ),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 

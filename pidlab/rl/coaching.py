@@ -117,7 +117,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -150,6 +150,32 @@ VIEWS = ("hidden", "penalty", "terminal")
 """What the agent sees of a takeover."""
 COST_STEPS = 10.0
 """The default cost of a takeover (``penalty`` view), in steps of the env's alive reward."""
+
+
+# ----------------------------------------------------------------- env steps of a step
+
+
+def step_env_steps(info: dict[str, Any]) -> tuple[int, int]:
+    """The agent's and the coach's env steps of one wrapper step (a roll-in before it excluded).
+
+    A vetoed agent action ran no env step, and a demonstration step is the coach's.
+    """
+    agent = 0 if info.get("vetoed", False) or info.get("demonstration", False) else 1
+    return agent, int(info.get("coach_steps", 0))
+
+
+def uncounted_env_steps(infos: Sequence[dict[str, Any]]) -> int:
+    """Env steps of one vector-env step that SB3's count (one per env) misses, or counts wrongly.
+
+    Per env: its agent and coach env steps (:func:`step_env_steps`) and a roll-in's coach steps
+    reported with it, less the one SB3 counted.
+    """
+    total = 0
+    for info in infos:
+        agent, coach = step_env_steps(info)
+        rollin = info.get("rollin")
+        total += agent + coach + (int(rollin["steps"]) if rollin is not None else 0) - 1
+    return total
 
 
 # ----------------------------------------------------------------- triggers

@@ -23,6 +23,8 @@ The TD target
     ``until`` on it is SAC's own. SAC's updates are otherwise SB3's, unchanged.
 Gradient steps
     SB3's: one per agent step on the shipped recipes; a picked proposal is an agent step.
+    ``learning_starts`` counts env steps, the coach's included (:mod:`pidlab.rl.envclock`), so the
+    critic starts judging after that many env steps, not agent actions.
 """
 
 from __future__ import annotations
@@ -31,7 +33,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from stable_baselines3 import SAC
+
+from pidlab.rl.envclock import CoachedSAC
 
 
 class _Stash:
@@ -67,6 +70,7 @@ class ProposalTarget:
 
     def __call__(self, obs: Any, actions: Any) -> tuple[Any, ...]:
         """One answer per target critic, each the better of the two actions' (smaller-twin) values."""
+
         def low(a: Any) -> Any:
             return torch.min(torch.cat(self.critic_target(obs, a), dim=1), dim=1, keepdim=True).values
 
@@ -78,7 +82,7 @@ class ProposalTarget:
         return self.critic_target.parameters()
 
 
-class ProposerSAC(SAC):
+class ProposerSAC(CoachedSAC):
     """SAC whose buffer holds the actions that ran and whose target weighs the coach's proposals."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:

@@ -63,7 +63,7 @@ from pidlab.rl.checkpoint import (
     save_agent,
     short_reason,
 )
-from pidlab.rl.coaching import CoachingWrapper
+from pidlab.rl.coaching import CoachingWrapper, step_env_steps
 from pidlab.rl.couplings import RollInCoupling, couplings_of
 from pidlab.rl.evaluation import AgentEvaluation, evaluate_agent, evaluation_envs, sb3_policy
 from pidlab.rl.recipe import LINEAR_SCHEDULES, Recipe, recipe_to_dict
@@ -247,7 +247,11 @@ def _algorithm_class(algo: str) -> Any:
 
 
 def new_model(recipe: Recipe, venv: Any) -> Any:
-    """A new agent of ``recipe`` on ``venv`` (SAC with a coach buffer: :mod:`pidlab.rl.replay`)."""
+    """A new agent of ``recipe`` on ``venv``.
+
+    SAC counts env steps (:mod:`pidlab.rl.envclock`); with a coach buffer it is
+    :mod:`pidlab.rl.replay`'s, with a proposer :mod:`pidlab.rl.proposer`'s.
+    """
     kwargs = {"policy": "MlpPolicy", "env": venv, "seed": recipe.seed, "device": "cpu", "verbose": 0,
               **sb3_arguments(recipe)}  # fmt: skip
     buffer = recipe.coaching.coach_buffer
@@ -259,6 +263,10 @@ def new_model(recipe: Recipe, venv: Any) -> Any:
         from pidlab.rl.proposer import ProposerSAC
 
         return ProposerSAC(**kwargs)
+    if recipe.algo == "sac":  # its clock is the run's env steps (pidlab.rl.envclock)
+        from pidlab.rl.envclock import CoachedSAC
+
+        return CoachedSAC(**kwargs)
     return _algorithm_class(recipe.algo)(**kwargs)
 
 
@@ -508,9 +516,7 @@ class _Trainer:
         for i, info in enumerate(infos):
             if "rollin" in info:
                 self.count_rollin(i, info["rollin"])
-            coach_steps = int(info.get("coach_steps", 0))
-            # a vetoed action ran no env step; a demonstration step is the coach's
-            agent = 0 if info.get("vetoed", False) or info.get("demonstration", False) else 1
+            agent, coach_steps = step_env_steps(info)
             c.agent_steps += agent
             c.coach_steps += coach_steps
             c.env_steps += agent + coach_steps
