@@ -316,10 +316,14 @@ def test_the_report_says_why_with_the_published_numbers():
     [
         ("InvertedPendulum-v5", "docs/results/InvertedPendulum-v5-teach4"),
         ("InvertedDoublePendulum-v5", "docs/results/InvertedDoublePendulum-v5-teach7"),
+        ("Hopper-v5", "docs/results/Hopper-v5-teach6"),
     ],
 )
-def test_the_pendulums_main_job_uses_the_coupling_its_confirmation_supports(env_id, folder):
-    """Each pendulum's recipe names a condition its fresh-seed sweep found safer and on no primary measure worse."""
+def test_the_main_job_uses_the_coupling_its_confirmation_supports(env_id, folder):
+    """The recipe names a condition its fresh-seed sweep found safer and on no primary measure worse.
+
+    Walker2d keeps the default: each coupling measured there is worse on an agent-alone measure.
+    """
     import csv
 
     from pidlab.pipeline import published_evidence, settings_for
@@ -369,3 +373,24 @@ def test_the_report_says_how_the_demonstrations_weigh_in_the_updates(keep, says)
     text = _teaching_text({"demonstrations": {"steps": 20000, "noise": 0.1}, "warm_start": {"keep": keep}})
     assert "demonstrates for 20,000 env steps" in text and says in text
     assert ("fades" in text) is (keep["end"] == 0.0 and keep["start"] != 0.0)
+
+
+def test_no_coupling_measured_on_walker2d_passes_the_main_jobs_rule():
+    """Walker2d's recipe keeps the default coaching because every measured coupling costs the agent."""
+    import csv
+
+    from pidlab.pipeline import settings_for
+
+    assert settings_for("Walker2d-v5").condition == "pidlab"
+    primary = ("falls", "env_steps_to_alone_target", "final_score")
+    seen = set()
+    for folder in ("Walker2d-v5-confirm", "Walker2d-v5-teach6"):
+        verdicts: dict[str, dict[str, str]] = {}
+        with open(ROOT / "docs" / "results" / folder / "summary.csv", newline="") as f:
+            for r in csv.DictReader(f):
+                if r["condition"] != "none" and r["metric"] in primary:
+                    verdicts.setdefault(r["condition"], {})[r["metric"]] = r["verdict"]
+        for condition, v in verdicts.items():
+            seen.add(condition)
+            assert v["falls"] != "better" or "worse" in v.values(), (folder, condition, v)
+    assert {"paper", "rescue-terminal", "warm-start-keep-shield-short"} <= seen
