@@ -154,3 +154,16 @@ def test_the_sac_sweep_is_for_the_pendulums_only(env):
         "evidence.sh: --sac is for InvertedPendulum-v5 and InvertedDoublePendulum-v5 "
         "(docs/analysis-plan.md, Amendment 8)"
     ]
+
+
+@pytest.mark.parametrize("env", ["InvertedDoublePendulum-v5", "Walker2d-v5"])
+def test_the_offpolicy_sweep_is_for_invertedpendulum_only(env):
+    """Amendment 13 governs the off-policy couplings on InvertedPendulum; other envs are refused at once."""
+    import subprocess
+
+    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), "--offpolicy", env],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.strip().splitlines() == [
+        "evidence.sh: --offpolicy is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment 13)"
+    ]
