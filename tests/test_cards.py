@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pidlab.errors import ModelCardError, UnknownSignalError
-from pidlab.plant.card import load_card, parse_card
+from pidlab.plant.card import Signal, load_card, parse_card, parse_signal
 from pidlab.plant.observation import CompiledCard, check_termination, observe
 from tests.helpers import PAPER_ENVS
 
@@ -156,3 +156,23 @@ def test_card_that_names_a_missing_joint(models, tmp_path):
     bad.write_text("schema = [", encoding="utf-8")
     with pytest.raises(ModelCardError, match="not valid TOML"):
         load_card(bad)
+
+
+@pytest.mark.parametrize(
+    ("text", "parsed"),
+    [
+        ("hinge_pos", Signal("pos", "hinge")),
+        ("hinge2_vel", Signal("vel", "hinge2")),
+        ("foot_left_joint_pos", Signal("pos", "foot_left_joint")),  # the last "_" splits
+        ("site:tip:z", Signal("site", "tip", 2)),
+        ("site:a:b:y", Signal("site", "a:b", 1)),  # the last ":" splits
+        ("hinge_acc", None),
+        ("_pos", None),
+        ("hinge", None),
+        ("site:tip:w", None),
+        ("site::x", None),
+        ("", None),
+    ],
+)
+def test_the_signal_syntax_by_hand(text, parsed):
+    assert parse_signal(text) == parsed

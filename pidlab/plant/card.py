@@ -146,6 +146,38 @@ class ObservationVariable:
 
 
 @dataclass(frozen=True)
+class Signal:
+    """A state signal named on a model card, parsed: a joint's position or rate, or a site's coordinate.
+
+    Attributes
+    ----------
+    kind : {"pos", "vel", "site"}
+    name : str
+        The joint's name (``pos``, ``vel``) or the site's (``site``).
+    axis : int
+        The site's coordinate (0: x, 1: y, 2: z); 0 for a joint.
+    """
+
+    kind: str
+    name: str
+    axis: int = 0
+
+
+def parse_signal(signal: str) -> Signal | None:
+    """``<joint>_pos``, ``<joint>_vel`` or ``site:<site>:x|y|z`` parsed (None for other text).
+
+    The one reading of the signal syntax: the card's checks, the observation's and the termination
+    rule's lookups and the forecast's limits all use it. Whether the joint or site exists in a model
+    is the caller's check.
+    """
+    if signal.startswith("site:"):
+        site, _, axis = signal[5:].rpartition(":")
+        return Signal("site", site, "xyz".index(axis)) if site and axis in ("x", "y", "z") else None
+    joint, _, kind = signal.rpartition("_")
+    return Signal(kind, joint) if joint and kind in ("pos", "vel") else None
+
+
+@dataclass(frozen=True)
 class TerminationLimit:
     """A healthy range of one signal; the env terminates when the signal leaves it.
 
@@ -448,17 +480,15 @@ def _joint_id(model: mujoco.MjModel, name: str, where: str) -> int:
 
 
 def _check_signal(model: mujoco.MjModel, signal: str, where: str) -> None:
-    if signal.startswith("site:"):
-        body, _, axis = signal[5:].rpartition(":")
-        if axis not in ("x", "y", "z"):
-            raise ModelCardError(f"{where}: expected site:<name>:x|y|z")
-        if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, body) < 0:
-            raise ModelCardError(f"{where}: no site {body!r} in the model")
-        return
-    joint, _, kind = signal.rpartition("_")
-    if kind not in ("pos", "vel"):
+    ref = parse_signal(signal)
+    if ref is None and signal.startswith("site:"):
+        raise ModelCardError(f"{where}: expected site:<name>:x|y|z")
+    if ref is None:
         raise ModelCardError(f"{where}: expected <joint>_pos, <joint>_vel or site:<name>:x|y|z")
-    _joint_id(model, joint, where)
+    if ref.kind == "site" and mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, ref.name) < 0:
+        raise ModelCardError(f"{where}: no site {ref.name!r} in the model")
+    if ref.kind != "site":
+        _joint_id(model, ref.name, where)
 
 
 def _require(table: dict[str, Any], key: str, typ: type | tuple[type, ...], where: str) -> Any:

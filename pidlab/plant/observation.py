@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 
 from pidlab.errors import UnknownSignalError
-from pidlab.plant.card import ModelCard, ObservationVariable, TerminationLimit
+from pidlab.plant.card import ModelCard, ObservationVariable, TerminationLimit, parse_signal
 
 
 def variable_address(model: mujoco.MjModel, var: ObservationVariable) -> int:
@@ -68,17 +68,16 @@ def signal_value(model: mujoco.MjModel, data: mujoco.MjData, signal: str) -> flo
     ------
     UnknownSignalError
     """
+    ref = parse_signal(signal)
     if signal.startswith("site:"):
-        site, _, axis = signal[5:].rpartition(":")
-        sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
-        if sid < 0 or axis not in ("x", "y", "z"):
+        sid = -1 if ref is None else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, ref.name)
+        if ref is None or sid < 0:
             raise UnknownSignalError(f"no site signal {signal!r}; expected site:<site>:x|y|z")
-        return float(data.site_xpos[sid]["xyz".index(axis)])
-    joint, _, kind = signal.rpartition("_")
-    jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
-    if jid < 0 or kind not in ("pos", "vel"):
+        return float(data.site_xpos[sid][ref.axis])
+    jid = -1 if ref is None else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, ref.name)
+    if ref is None or jid < 0:
         raise UnknownSignalError(f"no state signal {signal!r}; expected <joint>_pos or <joint>_vel")
-    if kind == "pos":
+    if ref.kind == "pos":
         return float(data.qpos[model.jnt_qposadr[jid]])
     return float(data.qvel[model.jnt_dofadr[jid]])
 
@@ -141,15 +140,16 @@ class CompiledCard:
         self._groups = {s: np.array([i for i in range(n) if self._source[i] == s]) for s in set(self._source)}
         limits = []
         for limit in card.termination:
-            if limit.signal.startswith("site:"):
-                site, _, axis = limit.signal[5:].rpartition(":")
-                sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
-                limits.append(("site", sid, "xyz".index(axis), limit))
+            ref = parse_signal(limit.signal)
+            if ref is None:  # a parsed card's limits parse (pidlab.plant.card._check_signal)
+                raise UnknownSignalError(f"no state signal {limit.signal!r}")
+            if ref.kind == "site":
+                sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, ref.name)
+                limits.append(("site", sid, ref.axis, limit))
             else:
-                joint, _, kind = limit.signal.rpartition("_")
-                jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
-                adr = int(model.jnt_qposadr[jid]) if kind == "pos" else int(model.jnt_dofadr[jid])
-                limits.append((kind, adr, 0, limit))
+                jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, ref.name)
+                adr = int(model.jnt_qposadr[jid]) if ref.kind == "pos" else int(model.jnt_dofadr[jid])
+                limits.append((ref.kind, adr, 0, limit))
         self._limits = limits
 
     def observe(self, data: mujoco.MjData) -> np.ndarray:

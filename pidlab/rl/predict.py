@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 
 from pidlab.errors import CoachingError
-from pidlab.plant.card import ModelCard
+from pidlab.plant.card import ModelCard, parse_signal
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import CompiledCard
 from pidlab.region.forecast import LinearForecast, linear_forecast
@@ -143,9 +143,9 @@ def observed_limits(card: ModelCard) -> tuple[tuple[int, Any], ...]:
     plain = {(v.joint, v.source): i for i, v in enumerate(card.observation) if v.transform == "identity"}
     found = []
     for limit in card.termination:
-        joint, _, kind = limit.signal.rpartition("_")
-        i = plain.get((joint, source.get(kind, "")))
-        if not limit.signal.startswith("site:") and i is not None:
+        ref = parse_signal(limit.signal)
+        i = None if ref is None else plain.get((ref.name, source.get(ref.kind, "")))
+        if i is not None:
             found.append((i, limit))
     return tuple(found)
 
