@@ -154,3 +154,39 @@ def test_a_child_process_error_is_said_once(tmp_path):
         f"sac_throughput.py: error: cannot read recipe '{ROOT / 'coach' / 'Nope-v5.toml'}': No such file or directory"
     ]
     assert not (tmp_path / "page.md").exists()
+
+
+def test_run_accounts_by_hand(tmp_path):
+    """benchmarks/run_accounts.py on two hand-written runs: the sums and ranges a reading cites."""
+    import json
+
+    import run_accounts
+
+    head = "episode,env_steps_so_far,agent_steps_so_far,agent_steps,coach_steps,interventions,agent_return,"
+    head += "total_return,terminated,env_index,env_end,fell,runs,longest_run\n"
+    # seed-0: a fall with no takeover, a fall after one, a takeover without a fall
+    first = ["0,10,10,10,0,0,10,10,1,0,1,1,1,10", "1,40,20,10,20,1,10,30,1,0,1,1,1,10"]
+    first.append("2,60,30,10,10,1,10,20,1,0,0,0,1,10")
+    runs = {
+        "seed-0": (first, 3, 60, 30, 5, 0, 12, 7.5),
+        "seed-1": (["0,20,20,20,0,0,20,20,1,0,1,1,1,20"], 1, 20, 0, 0, 4, 3, 2.5),
+    }
+    for seed, (rows, falls, env, coach, vetoes, picked, updates, wall) in runs.items():
+        d = tmp_path / "runs" / "X-v0" / "c" / seed
+        d.mkdir(parents=True)
+        (d / "episodes.csv").write_text(head + "\n".join(rows) + "\n")
+        (d / "summary.json").write_text(json.dumps({
+            "falls": falls, "env_steps": env, "coach_steps": coach, "value_vetoes": vetoes,
+            "proposals_taken": picked, "policy_updates": updates, "wall_s_total": wall,
+        }))  # fmt: skip
+    (tmp_path / "runs" / "X-v0" / "c" / "seed-2").mkdir()  # unfinished: no summary.json, left out
+    got = run_accounts.folder_accounts(tmp_path)
+    assert list(got) == [("X-v0", "c")]
+    a, b = got[("X-v0", "c")]
+    assert a == run_accounts.RunAccounts(3, 1, 60, 30, 5, 0, 12, 7.5)
+    assert b == run_accounts.RunAccounts(1, 0, 20, 0, 0, 4, 3, 2.5)
+    row = run_accounts.table(got)[2]
+    assert (
+        row
+        == "| X-v0 | c | 2 | 1 to 3 | 0 to 1 | 0.0 % to 50.0 % | 0 to 5 | 0 to 4 | 0.15 to 0.20 | 2 to 8 |"
+    )
