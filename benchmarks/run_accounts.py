@@ -47,9 +47,14 @@ def run_accounts(run_dir: Path) -> RunAccounts:
 
 
 def folder_accounts(folder: Path) -> dict[tuple[str, str], list[RunAccounts]]:
-    """(env, condition) -> the accounts of its finished runs (those with a ``summary.json``)."""
+    """(env, condition) -> the accounts of its finished runs (``summary.json`` says ``completed``).
+
+    A run that a signal stopped also writes a summary, with ``completed`` false: it is left out.
+    """
     out: dict[tuple[str, str], list[RunAccounts]] = {}
     for summary in sorted((folder / "runs").glob("*/*/seed-*/summary.json")):
+        if not json.loads(summary.read_text()).get("completed", False):
+            continue
         run_dir = summary.parent
         key = (run_dir.parent.parent.name, run_dir.parent.name)
         out.setdefault(key, []).append(run_accounts(run_dir))

@@ -176,10 +176,13 @@ def test_run_accounts_by_hand(tmp_path):
         d.mkdir(parents=True)
         (d / "episodes.csv").write_text(head + "\n".join(rows) + "\n")
         (d / "summary.json").write_text(json.dumps({
-            "falls": falls, "env_steps": env, "coach_steps": coach, "value_vetoes": vetoes,
+            "completed": True, "falls": falls, "env_steps": env, "coach_steps": coach, "value_vetoes": vetoes,
             "proposals_taken": picked, "policy_updates": updates, "wall_s_total": wall,
         }))  # fmt: skip
     (tmp_path / "runs" / "X-v0" / "c" / "seed-2").mkdir()  # unfinished: no summary.json, left out
+    stopped = tmp_path / "runs" / "X-v0" / "c" / "seed-3"  # stopped by a signal: completed false, left out
+    stopped.mkdir()
+    (stopped / "summary.json").write_text(json.dumps({"completed": False, "falls": 99}))
     got = run_accounts.folder_accounts(tmp_path)
     assert list(got) == [("X-v0", "c")]
     a, b = got[("X-v0", "c")]
