@@ -21,6 +21,7 @@ from pathlib import Path
 
 import tomllib
 from bench_cli import Parser, count, names, run
+from run_accounts import falls_under_coach
 
 from pidlab.controller.spec import load_spec
 from pidlab.files import write_json
@@ -124,7 +125,7 @@ def training(env: str, folder: str, condition: str) -> Training:
             raise SystemExit(f"{path.parent}: falls under the coach are counted for the terminal view only")
         with open(path, newline="", encoding="utf-8") as fh:
             rows = list(csv.DictReader(fh))
-        per_run.append(sum(int(r["fell"]) and int(r["interventions"]) > 0 for r in rows))
+        per_run.append(falls_under_coach(rows))
         falls += sum(int(r["fell"]) for r in rows)
         coach_steps += sum(int(r["coach_steps"]) for r in rows)
         env_steps += sum(int(r["coach_steps"]) + int(r["agent_steps"]) for r in rows)

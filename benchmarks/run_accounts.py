@@ -6,7 +6,9 @@ while the coach acted: under the ``terminal`` view a takeover ends the agent's e
 fall came under the coach; demonstration steps are not takeovers), the coach's share of the env
 steps, the value trigger's vetoes, the proposals the critic picked, the gradient steps per env
 step, and the training wall time. The experiment reports do not tabulate the last four; the
-readings of the off-policy couplings (Amendment 13) cite this table.
+readings of the off-policy couplings (Amendment 13) cite this table. Under another view a takeover
+does not end the agent's episode, so the falls while the coach acted cannot be told apart: a run
+with takeovers under another view shows "-" there.
 
 Run: .venv/bin/python benchmarks/run_accounts.py docs/results/InvertedPendulum-v5-offpolicy [...]
 """
@@ -18,6 +20,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import tomllib
 from bench_cli import Parser, fail, run
 
 
@@ -26,13 +29,30 @@ class RunAccounts:
     """One run's accounts (see the module docstring)."""
 
     falls: int
-    falls_under_coach: int
+    falls_under_coach: int | None
     env_steps: int
     coach_steps: int
     value_vetoes: int
     proposals_taken: int
     policy_updates: int
-    wall_s: float
+    wall_s: float | None
+
+
+def falls_under_coach(rows: list[dict[str, str]]) -> int:
+    """Falls in the agent episodes (rows of ``episodes.csv``) in which the coach took over.
+
+    Under the ``terminal`` view a takeover ends the agent's episode, so such a fall came while the
+    coach acted; under another view it may have come later, from the agent.
+    """
+    return sum(int(r["fell"]) and int(r["interventions"]) > 0 for r in rows)
+
+
+def _view(run_dir: Path) -> str | None:
+    """The run's takeover view (its ``config.toml``), or None when it does not say."""
+    config = run_dir / "config.toml"
+    if not config.is_file():
+        return None
+    return tomllib.loads(config.read_text()).get("recipe", {}).get("coaching", {}).get("view")
 
 
 def run_accounts(run_dir: Path) -> RunAccounts:
@@ -40,10 +60,11 @@ def run_accounts(run_dir: Path) -> RunAccounts:
     s = json.loads((run_dir / "summary.json").read_text())
     with open(run_dir / "episodes.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    under = sum(int(r["fell"]) and int(r["interventions"]) > 0 for r in rows)
+    takeovers = any(int(r["interventions"]) > 0 for r in rows)
+    under = falls_under_coach(rows) if _view(run_dir) == "terminal" or not takeovers else None
     return RunAccounts(int(s["falls"]), under, int(s["env_steps"]), int(s["coach_steps"]),
                        int(s.get("value_vetoes", 0)), int(s.get("proposals_taken", 0)),
-                       int(s["policy_updates"]), float(s.get("wall_s_total", float("nan"))))  # fmt: skip
+                       int(s["policy_updates"]), s.get("wall_s_total"))  # fmt: skip
 
 
 def folder_accounts(folder: Path) -> dict[tuple[str, str], list[RunAccounts]]:
@@ -66,6 +87,12 @@ def _span(values: list[float], fmt: str = "{:,.0f}") -> str:
     return lo if lo == hi else f"{lo} to {hi}"
 
 
+def _known(values: list[float | None]) -> str:
+    """The range, or "-" when a run does not say (a view that hides it, a log without the figure)."""
+    known = [v for v in values if v is not None]
+    return _span(known) if known and len(known) == len(values) else "-"
+
+
 def table(accounts: dict[tuple[str, str], list[RunAccounts]]) -> list[str]:
     """A Markdown table: one row per env and condition, each cell the range over its runs."""
     head = ["env", "condition", "runs", "falls", "falls while the coach acted",
@@ -74,11 +101,11 @@ def table(accounts: dict[tuple[str, str], list[RunAccounts]]) -> list[str]:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for (env, condition), runs in accounts.items():
         cells = [env, condition, str(len(runs)), _span([r.falls for r in runs]),
-                 _span([r.falls_under_coach for r in runs]),
+                 _known([r.falls_under_coach for r in runs]),
                  _span([100 * r.coach_steps / r.env_steps for r in runs], "{:.1f} %"),
                  _span([r.value_vetoes for r in runs]), _span([r.proposals_taken for r in runs]),
                  _span([r.policy_updates / r.env_steps for r in runs], "{:.2f}"),
-                 _span([r.wall_s for r in runs])]  # fmt: skip
+                 _known([r.wall_s for r in runs])]  # fmt: skip
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 

@@ -175,6 +175,7 @@ def test_run_accounts_by_hand(tmp_path):
         d = tmp_path / "runs" / "X-v0" / "c" / seed
         d.mkdir(parents=True)
         (d / "episodes.csv").write_text(head + "\n".join(rows) + "\n")
+        (d / "config.toml").write_text('[recipe.coaching]\nview = "terminal"\n')
         (d / "summary.json").write_text(json.dumps({
             "completed": True, "falls": falls, "env_steps": env, "coach_steps": coach, "value_vetoes": vetoes,
             "proposals_taken": picked, "policy_updates": updates, "wall_s_total": wall,
