@@ -447,3 +447,28 @@ def test_an_unknown_condition_with_a_long_name_is_one_short_line():
     with pytest.raises(ConditionError) as err:
         select(load_conditions(), ["none", "z" * 100_000], "coach/conditions.toml")
     assert err.value.param == "condition_names" and len(str(err.value)) < 400
+
+
+@pytest.mark.parametrize(
+    ("name", "kwargs"),
+    [
+        ("pidlab-robust", {}),
+        ("pidlab-rescue", {"region": "rescue", "trigger": "predictive"}),
+        ("pidlab-rescue-edge", {"region": "rescue", "trigger": "predictive"}),
+        ("pidlab-rescue-model", {"region": "rescue", "trigger": "predictive", "predictor": "model"}),
+    ],
+    ids=["box", "grid", "classifier", "grid-model"],
+)
+def test_progress_moves_every_region_kind(name, kwargs):
+    # coach_env's users call set_progress every step; a classifier region once had no scale and
+    # raised AttributeError there (the trainer calls it only with a schedule)
+    from pidlab.rl.schedule import Schedule
+
+    spec = load_spec(TUNING / f"{IP}.{name}.toml")
+    env = CoachingWrapper(gym.make(IP), spec, mode="takeover", **kwargs)
+    for p in (0.0, 0.5, 1.0):
+        env.set_progress(p)
+        assert env.region.scale == 1.0 and env.progress == p
+    ones = CoachingWrapper(gym.make(IP), spec, mode="takeover", width=Schedule("linear", 1.0, 1.0), **kwargs)
+    ones.set_progress(0.7)
+    assert ones.region.scale == 1.0

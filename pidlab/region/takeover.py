@@ -41,6 +41,8 @@ class Region(Protocol):
 
     kind: str
     variables: tuple[str, ...]
+    scale: float
+    """Its width (1: as estimated); only a box or an ellipsoid is scaled, a rescue region stays at 1."""
 
     def contains(self, obs: np.ndarray) -> bool:
         """Whether the observation ``obs`` lies in the region (where the agent acts freely)."""
@@ -321,6 +323,7 @@ class ClassifierRegion:
             operating_score = float(classifier.scores(((self._lo + self._hi) / 2.0)[None, :])[0])
         self.operating_score = operating_score
         self.fraction = fraction
+        self.scale = 1.0  # a rescue region is not scaled (a width schedule on one is refused)
         t = classifier.threshold
         self.threshold = t + (1.0 - fraction) * max(operating_score - t, 0.0)
 
