@@ -29,6 +29,8 @@
 #                                                     # its edge too (rescue-terminal-edge)
 #   bash benchmarks/evidence.sh --offpolicy InvertedPendulum-v5  # Amendment 13: SAC learning from the
 #                                                     # coach (rescue-replay, rescue-value, rescue-propose)
+#   bash benchmarks/evidence.sh --edgemodel InvertedPendulum-v5  # Amendment 14: the model predictor
+#                                                     # on that region (rescue-terminal-edge-model)
 #   bash benchmarks/evidence.sh --model InvertedPendulum-v5  # the model predictor in training
 #                                                     # (exploratory; none and rescue-terminal reused
 #                                                     # from the confirmatory sweep)
@@ -59,6 +61,7 @@ case "${1:-}" in
     --full) mode=full; shift ;;
     --edge) mode=edge; shift ;;
     --offpolicy) mode=offpolicy; shift ;;
+    --edgemodel) mode=edgemodel; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -76,6 +79,7 @@ design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
         full) full_design "$1"; return ;;
         edge) edge_design "$1"; return ;;
         offpolicy) offpolicy_design "$1"; return ;;
+        edgemodel) edgemodel_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -144,6 +148,13 @@ edge_design() {  # Amendment 12: the classifier region validated at its edge, af
     esac
 }
 
+edgemodel_design() {  # Amendment 14: the model predictor on the classifier region validated at its edge
+    case $1 in
+        InvertedPendulum-v5) echo "$1-edgemodel none,rescue-terminal-edge,rescue-terminal-edge-model 50000 100-109" ;;
+        *) echo "evidence.sh: --edgemodel is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment 14)" >&2; exit 2 ;;
+    esac
+}
+
 offpolicy_design() {  # Amendment 13: SAC that learns from the coach, against the best plain baseline
     case $1 in
         InvertedPendulum-v5) echo "$1-offpolicy none,rescue-replay,rescue-value,rescue-propose,warm-start-keep-shield-short 50000 100-109" ;;
@@ -171,7 +182,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge offpolicy; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge offpolicy edgemodel; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

@@ -1,10 +1,11 @@
 """The model predictor's tables in docs/rescue.md, from the shipped model specs and the published runs.
 
 The forecast's error, the vetoes it agrees on and the share of the region left are read from each
-``tuning/ENV.pidlab-rescue-model.toml`` (its ``[bounds.forecast]``, as ``pidlab forecast`` wrote it;
+spec of :data:`SPECS` (``tuning/ENV.pidlab-rescue-model.toml``, and InvertedPendulum's
+``pidlab-rescue-edge-model``, a classifier region; its ``[bounds.forecast]``, as ``pidlab forecast`` wrote it;
 the share is :func:`pidlab.region.forecast.kept_share`, a seeded sample). Whether a run can use the
 model predictor is asked of :func:`pidlab.rl.coaching.model_region`, as a run asks it. The falls in
-training are read from the per-run ``summary.json`` files of ``docs/results/InvertedPendulum-v5-model``.
+training are read from the per-run ``summary.json`` files of the published folders of :data:`TRAINED`.
 The tables sit in docs/rescue.md between ``<!-- forecast-table -->`` and ``<!-- /forecast-table -->``.
 
 Run: .venv/bin/python benchmarks/forecast_table.py [--check]
@@ -22,17 +23,26 @@ from bench_cli import run
 
 from pidlab.controller.spec import load_spec
 from pidlab.errors import CoachingError
-from pidlab.lookup import parse_lookup
 from pidlab.plant.model import load_model
 from pidlab.region.forecast import kept_share, spec_forecast
-from pidlab.region.takeover import GridRegion
+from pidlab.region.takeover import region_from_bounds
 from pidlab.rl.coaching import model_region
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "docs" / "rescue.md"
-ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")
-RUNS = ROOT / "docs" / "results" / "InvertedPendulum-v5-model"
-CONDITIONS = ("none", "rescue-terminal", "rescue-terminal-model")
+SPECS = (
+    ("InvertedPendulum-v5", "pidlab-rescue-model", "lookup grid"),
+    ("InvertedPendulum-v5", "pidlab-rescue-edge-model", "classifier validated at its edge"),
+    ("InvertedDoublePendulum-v5", "pidlab-rescue-model", "lookup grid + guard box"),
+    ("Hopper-v5", "pidlab-rescue-model", "lookup grid over pitch"),
+    ("Walker2d-v5", "pidlab-rescue-model", "lookup grid over pitch"),
+)
+"""(env, the spec with its measurement in tuning/, its rescue region) per row of the error table."""
+TRAINED = (
+    ("InvertedPendulum-v5-model", ("none", "rescue-terminal", "rescue-terminal-model")),
+    ("InvertedPendulum-v5-edgemodel", ("rescue-terminal-edge", "rescue-terminal-edge-model")),
+)
+"""(published folder, its conditions) per block of the training table (unpublished: skipped)."""
 START, END = "<!-- forecast-table -->", "<!-- /forecast-table -->"
 
 
@@ -47,13 +57,13 @@ def _error_cell(f, units: dict[str, str]) -> str:
     )
 
 
-def row(env: str) -> str:
-    """One env's row: the error per variable, the escapes, the vetoes, the region left, usable or not."""
-    spec = load_spec(ROOT / "tuning" / f"{env}.pidlab-rescue-model.toml")
+def row(env: str, name: str, shape: str) -> str:
+    """One spec's row: the error per variable, the escapes, the vetoes, the region left, usable or not."""
+    spec = load_spec(ROOT / "tuning" / f"{env}.{name}.toml")
     loaded = load_model(env)
     card = loaded.require_card()
     f = spec_forecast(spec.bounds, spec.name)
-    region = GridRegion(parse_lookup(spec.bounds["rescue"]), card.observation_names)
+    region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
     try:
         model_region(spec, loaded, region)
         usable = "yes"
@@ -62,7 +72,7 @@ def row(env: str) -> str:
     a = f.agreement
     units = {v.name: v.unit for v in card.observation}
     return (
-        f"| {env} | {_error_cell(f, units)} | {f.escapes} of {f.held_out:,} | {a['both']:,} | "
+        f"| {env} | {shape} | {_error_cell(f, units)} | {f.escapes} of {f.held_out:,} | {a['both']:,} | "
         f"{a['exact_only']:,} | {a['model_only']:,} | {a['neither']:,} | "
         f"**{100 * f.veto_agreement:.1f} %** | "
         f"{100 * kept_share(region, f.margin):.1f} % | {usable} |"
@@ -70,39 +80,41 @@ def row(env: str) -> str:
 
 
 def error_table() -> str:
-    """The forecast's error and vetoes, one row per env."""
+    """The forecast's error and vetoes, one row per spec."""
     head = (
-        "| env | error per variable: median / 99th percentile / margin (largest) | held-out states outside "
-        "the margins | both veto | exact only | model only | neither | veto agreement | region whose margin "
-        "box fits | model predictor usable |\n|---|---|---|---|---|---|---|---|---|---|"
+        "| env | rescue region | error per variable: median / 99th percentile / margin (largest) | "
+        "held-out states outside the margins | both veto | exact only | model only | neither | "
+        "veto agreement | region whose margin box fits | model predictor usable |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|"
     )
-    return "\n".join([head, *(row(env) for env in ENVS)])
+    return "\n".join([head, *(row(*spec) for spec in SPECS)])
 
 
-def _summaries(condition: str) -> list[dict]:
-    folder = RUNS / "runs" / "InvertedPendulum-v5" / condition
-    return [json.loads(p.read_text()) for p in sorted(folder.glob("seed-*/summary.json"))]
+def _summaries(folder: str, condition: str) -> list[dict]:
+    runs = ROOT / "docs" / "results" / folder / "runs" / "InvertedPendulum-v5" / condition
+    return [json.loads(p.read_text()) for p in sorted(runs.glob("seed-*/summary.json"))]
 
 
 def training_table() -> str:
     """Falls, coach share and the agent-alone score per condition, from the published runs."""
     head = (
-        "| condition | runs | falls per run: median [min, max] | coach's share of env steps (median) | "
-        "agent-alone final score (median) |\n|---|---|---|---|---|"
+        "| sweep | condition | runs | falls per run: median [min, max] | "
+        "coach's share of env steps (median) | agent-alone final score (median) |\n|---|---|---|---|---|---|"
     )
     rows = []
-    for cond in CONDITIONS:
-        s = [x for x in _summaries(cond) if x.get("completed")]
-        if not s:
-            rows.append(f"| {cond} | 0 | — | — | — |")
+    for folder, conditions in TRAINED:
+        if not (ROOT / "docs" / "results" / folder / "experiment.json").exists():
             continue
-        falls = [x["falls"] for x in s]
-        share = statistics.median(x.get("coach_step_fraction", 0.0) for x in s)
-        score = statistics.median(x["final_evaluation"]["mean"] for x in s)
-        rows.append(
-            f"| {cond} | {len(s)} | {statistics.median(falls):g} [{min(falls)}, {max(falls)}] | "
-            f"{100 * share:.1f} % | {score:.0f} |"
-        )
+        for cond in conditions:
+            s = [x for x in _summaries(folder, cond) if x.get("completed")]
+            if not s:
+                rows.append(f"| {folder} | {cond} | 0 | — | — | — |")
+                continue
+            falls = [x["falls"] for x in s]
+            share = statistics.median(x.get("coach_step_fraction", 0.0) for x in s)
+            score = statistics.median(x["final_evaluation"]["mean"] for x in s)
+            spread = f"{statistics.median(falls):g} [{min(falls)}, {max(falls)}]"
+            rows.append(f"| {folder} | {cond} | {len(s)} | {spread} | {100 * share:.1f} % | {score:.0f} |")
     return "\n".join([head, *rows])
 
 

@@ -403,6 +403,32 @@ class RescueClassifier:
                 h = np.tanh(h)
         return h[:, 0]
 
+    def lowest_scores(self, points: np.ndarray, margins: np.ndarray) -> np.ndarray:
+        """A lower bound of the score over each box ``points +- margins``, shape ``(n,)``.
+
+        Interval arithmetic through the network: a linear layer maps a box of centre ``c`` and
+        half-widths ``r`` into the box of centre ``c W + b`` and half-widths ``r |W|``, and ``tanh``,
+        being increasing, maps an interval's ends to its image's. No state of the box scores below
+        the bound; with zero margins it is the score itself.
+
+        Parameters
+        ----------
+        points : ndarray
+            Box centres, shape ``(n, k)`` (the classifier's variables, in observation units).
+        margins : ndarray
+            Half-widths per variable, shape ``(k,)`` or ``(n, k)``.
+        """
+        lo, hi = np.array(self.lower), np.array(self.upper)
+        c = self.scaled(points)
+        r = np.broadcast_to(2.0 * np.abs(np.asarray(margins, dtype=float)) / (hi - lo), c.shape)
+        last = len(self.layers) - 1
+        for i, (w, b) in enumerate(self.layers):
+            c, r = c @ w + b, r @ np.abs(w)
+            if i < last:
+                low, high = np.tanh(c - r), np.tanh(c + r)
+                c, r = (low + high) / 2.0, (high - low) / 2.0
+        return (c - r)[:, 0]
+
     def inside(self, points: np.ndarray, threshold: float | None = None) -> np.ndarray:
         """Whether each row of ``points`` is in the domain box with a score of at least the threshold."""
         p = np.atleast_2d(np.asarray(points, dtype=float))

@@ -18,6 +18,20 @@ DATA = Path(__file__).resolve().parent / "data"
 PAPER_ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")
 
 
+def benchmark(name: str):
+    """The module ``benchmarks/NAME.py``, imported as its scripts import each other (their folder on ``sys.path``).
+
+    Whatever the order the tests run in: a script imports its siblings (``bench_cli``) by name.
+    """
+    import importlib
+    import sys
+
+    folder = str(ROOT / "benchmarks")
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+    return importlib.import_module(name)
+
+
 def cli_in_process(*args: str) -> tuple[int, str]:
     """Run the ``pidlab`` command line in this process: (exit code, stderr).
 

@@ -219,14 +219,14 @@ def test_written_into_a_spec_it_is_the_takeover_region_and_refused_for_another_c
         loads_spec(other)
 
 
-def test_the_model_predictor_refuses_a_classifier_region(idp_classifier: tuple) -> None:
+def test_the_model_predictor_asks_a_classifier_region_for_its_measurement(idp_classifier: tuple) -> None:
     from pidlab.rl.coaching import model_region
 
     spec, r = idp_classifier
     new = with_classifier(spec, r)
     loaded = load_model(IDP)
     region = load_region(new)
-    with pytest.raises(CoachingError, match="this spec's region is a classifier: use predictor = 'exact'"):
+    with pytest.raises(CoachingError, match="no \\[bounds.forecast\\].*pidlab forecast SPEC --write"):
         model_region(new, loaded, region)
 
 
@@ -309,12 +309,9 @@ def test_a_domain_the_termination_rule_leaves_empty_is_refused_in_one_line() -> 
 
 def test_one_step_room_is_read_from_the_spec_s_region() -> None:
     """benchmarks/one_step_room.py: the shipped full-state region holds a small first action, not a full one."""
-    import importlib.util
+    from tests.helpers import benchmark
 
-    path = TUNING.parent / "benchmarks" / "one_step_room.py"
-    module_spec = importlib.util.spec_from_file_location("one_step_room", path)
-    room = importlib.util.module_from_spec(module_spec)
-    module_spec.loader.exec_module(room)
+    room = benchmark("one_step_room")
     rows = {size: (plus, minus) for size, plus, minus, _ in room.one_step_inside(
         str(TUNING / f"{IDP}.pidlab-rescue-full.toml"), (0.05, 1.0))}  # fmt: skip
     assert rows[0.05] == (True, True) and rows[1.0] == (False, False)

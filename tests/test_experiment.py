@@ -68,7 +68,7 @@ SAC_ONLY = (
 IP_ONLY = ("rescue-terminal-model",)  # the model predictor: on the other envs its error leaves no region
 FULL_ENVS = (IP, "InvertedDoublePendulum-v5")  # rescue-terminal-full: a classifier region fitted on the pendulums
 FULL_ONLY = ("rescue-terminal-full",)
-EDGE_ONLY = ("rescue-terminal-edge",)  # the classifier validated at its edge: fitted on InvertedPendulum
+EDGE_ONLY = ("rescue-terminal-edge", "rescue-terminal-edge-model")  # the classifier validated at its edge: fitted on InvertedPendulum
 
 
 def test_a_condition_names_its_algorithm_for_every_env_or_one():
@@ -130,7 +130,8 @@ def test_shipped_conditions_resolve_on_all_four_envs():
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: .*use predictor = 'exact'"):
                 resolve(conditions[name], recipe)
         for name in EDGE_ONLY if env != IP else ():
-            with pytest.raises(ConditionError, match=f"condition {name} on {env}: coach 'pidlab-rescue-edge' not found"):
+            coach = conditions[name].for_env(env).coach
+            with pytest.raises(ConditionError, match=f"condition {name} on {env}: coach '{coach}' not found"):
                 resolve(conditions[name], recipe)
         for name in FULL_ONLY if env not in FULL_ENVS else ():
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: coach 'pidlab-rescue-full' not found"):

@@ -16,11 +16,28 @@ import pytest
 
 from pidlab.controller.spec import load_spec, save_spec
 from pidlab.errors import CoachingError, SpecError
-from pidlab.lookup import ForecastError, LookupGrid, parse_forecast, parse_lookup, region_digest
+from pidlab.lookup import (
+    ForecastError,
+    LookupGrid,
+    RescueClassifier,
+    parse_forecast,
+    parse_lookup,
+    parse_rescue,
+    region_digest,
+)
 from pidlab.plant.model import load_model
 from pidlab.plant.operating_point import resolve_operating_point
-from pidlab.region.forecast import MarginRegion, check_forecastable, forecastable, kept_share, spec_forecast
-from pidlab.region.takeover import GridRegion
+from pidlab.region.forecast import (
+    ClassifierMarginRegion,
+    MarginRegion,
+    box_in_classifier,
+    check_forecastable,
+    forecastable,
+    kept_share,
+    margin_region,
+    spec_forecast,
+)
+from pidlab.region.takeover import ClassifierRegion, GridRegion, region_from_bounds
 from pidlab.rl.calibrate import measure_forecast
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.predict import ModelPredictor, forecast_of
@@ -28,6 +45,7 @@ from tests.helpers import TUNING, cli_in_process
 
 IP = "InvertedPendulum-v5"
 RESCUE = TUNING / f"{IP}.pidlab-rescue.toml"
+EDGE = TUNING / f"{IP}.pidlab-rescue-edge.toml"  # a classifier region
 
 
 @pytest.fixture(scope="module")
@@ -150,6 +168,108 @@ def test_the_kept_share_of_a_full_grid_is_the_shrunk_volume() -> None:
     expected = (0.32 / 0.4) * (3.0 / 4.0) * (0.1 / 0.2)  # each range less twice its margin
     assert kept_share(region, margins, samples=40000) == pytest.approx(expected, abs=0.01)
     assert kept_share(region, {**margins, "slider_pos": 0.1}) == 0.0
+
+
+# ----------------------------------------------------------------------------- a classifier region
+
+
+def _net(w1, b1, w2, b2, lower=(-1.0,), upper=(1.0,), threshold=0.0) -> RescueClassifier:
+    layers = ((np.array(w1, dtype=float), np.array(b1, dtype=float)),
+              (np.array(w2, dtype=float), np.array(b2, dtype=float)))  # fmt: skip
+    return RescueClassifier(("hinge_pos",), lower, upper, layers, threshold)
+
+
+def test_the_score_bound_of_a_monotone_network_is_its_value_at_the_box_end() -> None:
+    # score = tanh(2 x) on [-1, 1] (scaled x is x): over 0.5 +- 0.25 the lowest is tanh(0.5)
+    up = _net([[2.0]], [0.0], [[1.0]], [0.0])
+    assert up.lowest_scores(np.array([[0.5]]), np.array([0.25]))[0] == pytest.approx(np.tanh(0.5), abs=1e-12)
+    down = _net([[2.0]], [0.0], [[-1.0]], [0.0])  # -tanh(2 x): the lowest at the upper end
+    assert down.lowest_scores(np.array([[0.5]]), np.array([0.25]))[0] == pytest.approx(-np.tanh(1.5), abs=1e-12)
+    points = np.array([[-0.7], [0.1], [0.9]])
+    assert np.array_equal(up.lowest_scores(points, np.zeros(1)), up.scores(points))  # no margin: the score
+
+
+def test_halving_proves_a_box_the_interval_bound_alone_cannot() -> None:
+    # score = tanh(3 x) + tanh(-3 x) = 0 everywhere; the interval bound over x in [-0.5, 0.5] is
+    # -2 tanh(1.5) < -0.1, over each of 256 pieces -2 tanh(3 * 0.5 / 256) > -0.1
+    flat = _net([[3.0, -3.0]], [0.0, 0.0], [[1.0], [1.0]], [0.0])
+    centre, margin = np.array([0.0]), np.array([0.5])
+    assert flat.lowest_scores(centre[None, :], margin)[0] == pytest.approx(-2 * np.tanh(1.5))
+    assert not box_in_classifier(flat, centre, margin, -0.1, splits=0)
+    assert box_in_classifier(flat, centre, margin, -0.1, splits=8)
+    assert not box_in_classifier(flat, centre, margin, 0.1, splits=8)  # no state scores 0.1: never proven
+    bump = _net([[2.0]], [0.0], [[1.0]], [0.0])  # tanh(2 x): a piece's centre below the threshold fails
+    assert not box_in_classifier(bump, np.array([0.0]), np.array([0.3]), 0.0, splits=8)
+
+
+def test_a_proven_box_holds_no_state_below_the_threshold() -> None:
+    spec = load_spec(EDGE)
+    clf = parse_rescue(spec.bounds["rescue"])
+    lo, hi = np.array(clf.lower), np.array(clf.upper)
+    rng = np.random.default_rng(1)
+    margins = (hi - lo) * 0.02
+    proven = 0
+    for centre in lo + margins + (hi - lo - 2 * margins) * rng.random((300, len(lo))):
+        if box_in_classifier(clf, centre, margins, clf.threshold):
+            proven += 1
+            inside = centre + margins * rng.uniform(-1, 1, size=(200, len(lo)))
+            corners = centre + margins * rng.choice([-1.0, 1.0], size=(64, len(lo)))
+            assert clf.scores(np.vstack([inside, corners])).min() >= clf.threshold
+    assert proven > 0
+
+
+def test_the_classifier_margin_region_asks_the_whole_box(ip) -> None:
+    spec = load_spec(EDGE)
+    names = ip.require_card().observation_names
+    region = region_from_bounds(spec.bounds, names, "rescue", spec.name)
+    assert isinstance(region, ClassifierRegion)
+    none = {v: 0.0 for v in region.variables}
+    exact = margin_region(region, none)
+    assert isinstance(exact, ClassifierMarginRegion)
+    rng = np.random.default_rng(2)
+    clf = region.classifier
+    lo, hi = np.array(clf.lower), np.array(clf.upper)
+    for y in lo + (hi - lo) * rng.random((200, len(lo))):
+        obs = np.zeros(len(names))
+        obs[[names.index(v) for v in clf.variables]] = y
+        assert exact.contains(obs) == region.contains(obs)  # zero margins: the region itself
+    wide = margin_region(region, {v: 0.5 * (h - lo_) * 0.1 for v, lo_, h in zip(clf.variables, lo, hi, strict=True)})
+    assert wide.inner(0.5).threshold == region.inner(0.5).threshold  # the hand-back: real states
+    assert not wide.contains(np.full(len(names), np.nan)) and wide.scale == 1.0
+    with pytest.raises(CoachingError, match="hinge_pos.*at least half.*predictor = 'exact'"):
+        margin_region(region, {**none, "hinge_pos": 0.2})
+    assert kept_share(region, none, samples=2000) == 1.0
+    assert 0.0 < kept_share(region, {v: 0.02 * (h - lo_) for v, lo_, h in zip(clf.variables, lo, hi, strict=True)},
+                            samples=2000) < 1.0  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def edge_measured(ip):
+    """The classifier spec of IP and a small forecast measurement of it."""
+    spec = load_spec(EDGE)
+    return spec, measure_forecast(spec, ip, transitions=300, held_out=200, seed=3)
+
+
+def test_the_model_shield_proves_each_forecasts_box_in_a_classifier_region(ip, edge_measured) -> None:
+    spec, found = edge_measured
+    assert found.variables == tuple(spec.bounds["rescue"]["variables"])
+    assert sum(found.agreement.values()) == 200
+    env = _shield(_with(spec, found), ip, predictor="model")
+    assert isinstance(env.region, ClassifierMarginRegion) and env.region.margins == found.margin
+    rng = np.random.default_rng(0)
+    env.reset(seed=0)
+    vetoes = 0
+    for _ in range(300):
+        action = rng.uniform(-3, 3, size=1).astype(np.float32)
+        outside = not env.region.contains(env.lookahead.predict(action))
+        terminal = env.lookahead.terminal  # a forecast state the env's termination rule ends
+        _, _, terminated, truncated, info = env.step(action)
+        assert info["vetoed"] == (outside or terminal)
+        vetoes += int(info["vetoed"])
+        if terminated or truncated:
+            env.reset()
+    assert vetoes > 0 and env.total_falls == 0
+    env.close()
 
 
 # ----------------------------------------------------------------------------- the measurement

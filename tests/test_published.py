@@ -156,14 +156,15 @@ def test_the_sac_sweep_is_for_the_pendulums_only(env):
     ]
 
 
+@pytest.mark.parametrize(("sweep", "amendment"), [("offpolicy", 13), ("edgemodel", 14)])
 @pytest.mark.parametrize("env", ["InvertedDoublePendulum-v5", "Walker2d-v5"])
-def test_the_offpolicy_sweep_is_for_invertedpendulum_only(env):
-    """Amendment 13 governs the off-policy couplings on InvertedPendulum; other envs are refused at once."""
+def test_the_invertedpendulum_sweeps_refuse_other_envs(env, sweep, amendment):
+    """Amendments 13 and 14 govern their couplings on InvertedPendulum; other envs are refused at once."""
     import subprocess
 
-    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), "--offpolicy", env],
+    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), f"--{sweep}", env],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip().splitlines() == [
-        "evidence.sh: --offpolicy is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment 13)"
+        f"evidence.sh: --{sweep} is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment {amendment})"
     ]

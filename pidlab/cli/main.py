@@ -1227,10 +1227,9 @@ def forecast(
 ) -> None:  # fmt: skip
     """Measure the model predictor's forecast error on a spec's rescue region, and its vetoes."""
     from pidlab.controller.spec import editing_spec, save_spec, writing_spec
-    from pidlab.lookup import parse_lookup
     from pidlab.plant.model import load_model
     from pidlab.region.forecast import kept_share
-    from pidlab.region.takeover import GridRegion
+    from pidlab.region.takeover import region_from_bounds
     from pidlab.report.console import forecast_view, wide_console
     from pidlab.rl.calibrate import measure_forecast
 
@@ -1247,7 +1246,7 @@ def forecast(
         card = loaded.require_card()
         units = {v.name: v.unit for v in card.observation}
         con = wide_console()
-        region = GridRegion(parse_lookup((spec.bounds or {}).get("rescue")), card.observation_names)
+        region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
         con.print(forecast_view(found, units, kept_share(region, found.margin)))
         new = _with_forecast(spec, found)
         if write:

@@ -108,6 +108,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
         envs=("InvertedPendulum-v5",),
         algorithms=("sac",),
     ),
+    Amendment(14, ("rescue-terminal-edge-model",), envs=("InvertedPendulum-v5",)),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 

@@ -13,9 +13,11 @@ variables read from ``qpos`` or ``qvel`` can be forecast (a constraint force can
 
 The forecast is wrong by some amount. :class:`ForecastError` is that amount per region variable,
 measured on recorded transitions (:func:`pidlab.rl.calibrate.measure_forecast`), and
-:class:`MarginRegion` asks the rescue region about the whole box of that size about a forecast:
-when every state within the error of the forecast is inside the region, the rescue region's
-guarantee holds for the real next state whenever the error holds. A spec keeps the measurement
+:func:`margin_region` asks the rescue region about the whole box of that size about a forecast
+(:class:`MarginRegion` for a lookup grid, :class:`ClassifierMarginRegion` for a classifier, which
+bounds the network's score over the box): when every state within the error of the forecast is
+inside the region, the rescue region's guarantee holds for the real next state whenever the error
+holds. A spec keeps the measurement
 in its ``[bounds.forecast]`` table, with the digest of the rescue region it was measured on; a
 forecast of another region is refused.
 """
@@ -29,10 +31,13 @@ import mujoco
 import numpy as np
 
 from pidlab.errors import CoachingError, SpecError
-from pidlab.lookup import ForecastError, parse_forecast, region_digest
+from pidlab.lookup import ForecastError, RescueClassifier, parse_forecast, region_digest
 from pidlab.plant.card import ModelCard
 from pidlab.plant.observation import variable_address
-from pidlab.region.takeover import GridRegion
+from pidlab.region.takeover import ClassifierRegion, GridRegion, checked_observation, observation_indices
+
+SPLITS = 8
+"""How many times :func:`box_in_classifier` halves a box whose interval bound is inconclusive."""
 
 SOURCES = ("qpos", "qvel")
 """The observation sources a forecast of the joint state can give."""
@@ -254,6 +259,128 @@ class MarginRegion(GridRegion):
         return bool(self._table[tuple(cells)].all())
 
 
+def box_in_classifier(
+    classifier: RescueClassifier, centre: np.ndarray, margins: np.ndarray, threshold: float,
+    splits: int = SPLITS,
+) -> bool:  # fmt: skip
+    """Whether every state of the box ``centre +- margins`` scores at least ``threshold``.
+
+    :meth:`~pidlab.lookup.RescueClassifier.lowest_scores` bounds the score over a box from below;
+    where the bound falls short, the box is halved along its widest side (in the network's scaled
+    units) and each half asked again, ``splits`` times at most. A box any of whose pieces' centres
+    scores below the threshold fails at once (that state is outside); one still unproven after the
+    last halving fails too. So a True is proof (every state of the box is inside) and a False may be
+    a box that is inside but too close to the edge to prove it. The domain box is not checked here.
+    """
+    c = np.atleast_2d(np.asarray(centre, dtype=float))
+    m = np.atleast_2d(np.asarray(margins, dtype=float)).copy()
+    width = np.array(classifier.upper) - np.array(classifier.lower)
+    for level in range(splits + 1):
+        if bool((classifier.scores(c) < threshold).any()):
+            return False
+        proven = classifier.lowest_scores(c, m) >= threshold
+        c, m = c[~proven], m[~proven]
+        if not len(c):
+            return True
+        if level == splits:
+            return False
+        rows = np.arange(len(m))
+        side = np.argmax(m / width, axis=1)
+        m[rows, side] /= 2.0
+        step = np.zeros_like(m)
+        step[rows, side] = m[rows, side]
+        c, m = np.concatenate([c - step, c + step]), np.concatenate([m, m])
+    return False  # never reached: the last level returns
+
+
+class ClassifierMarginRegion:
+    """A classifier rescue region asked of a forecast: whether every state within its margins is inside.
+
+    A forecast ``g`` passes when the box ``[g - m, g + m]`` lies in the classifier's domain box and
+    :func:`box_in_classifier` proves that every state in it scores at least the region's threshold.
+    Then the true next state, wherever it lies within the margins of the forecast, is in the rescue
+    region, and the region's guarantee holds for it. The hand-back (:meth:`inner`) is the rescue
+    region's own: it is asked of real states.
+
+    Parameters
+    ----------
+    region : ClassifierRegion
+        The rescue region (its observation layout and threshold).
+    margins : dict
+        ``variable -> margin`` for every variable the classifier tests.
+
+    Raises
+    ------
+    CoachingError
+        A domain range no wider than twice its margin (no box fits).
+    """
+
+    kind = "rescue"
+    trigger = "predictive"
+
+    def __init__(self, region: ClassifierRegion, margins: dict[str, float]) -> None:
+        clf = region.classifier
+        self.region = region
+        self.classifier = clf
+        self.variables = clf.variables
+        self.observation_names = region.observation_names
+        self.threshold = region.threshold
+        self.scale = 1.0
+        self.margins = {v: float(margins[v]) for v in clf.variables}
+        self._m = np.array([self.margins[v] for v in clf.variables])
+        for v, m, lo, hi in zip(clf.variables, self._m, clf.lower, clf.upper, strict=True):
+            _check_room(v, float(m), lo, hi)
+        names = region.observation_names
+        self._idx = np.array(observation_indices(clf.variables, names, "bounds.rescue.variables"))
+        self._lo = np.array(clf.lower) + self._m
+        self._hi = np.array(clf.upper) - self._m
+
+    def contains(self, obs: np.ndarray) -> bool:
+        """Whether the box of the margins about ``obs`` lies in the region (proven, see the class).
+
+        Raises
+        ------
+        CoachingError
+            ``obs`` is not an observation of the env (another length, not numbers).
+        """
+        return checked_observation(obs, len(self.observation_names), self._contains)
+
+    def _contains(self, obs: np.ndarray) -> bool:
+        return self.holds(np.asarray(obs, dtype=float)[self._idx])
+
+    def holds(self, y: np.ndarray) -> bool:
+        """:meth:`contains` of the classifier's variables ``y`` alone (in its order)."""
+        if not (np.all(y >= self._lo) and np.all(y <= self._hi)):  # also False for NaN
+            return False
+        return box_in_classifier(self.classifier, y, self._m, self.threshold)
+
+    def inner(self, fraction: float) -> ClassifierRegion:
+        """The rescue region's own hand-back region (asked of real states)."""
+        return self.region.inner(fraction)
+
+
+def margin_region(region: Any, margins: dict[str, float]) -> MarginRegion | ClassifierMarginRegion:
+    """The rescue region ``region`` asked of a forecast with ``margins`` (a grid's or a classifier's).
+
+    Raises
+    ------
+    CoachingError
+        ``region`` is no rescue region, or a margin leaves nothing of it.
+    """
+    if isinstance(region, ClassifierRegion):
+        return ClassifierMarginRegion(region, margins)
+    if isinstance(region, GridRegion):
+        return MarginRegion(region, margins)
+    raise CoachingError(f"the model predictor narrows a rescue region, not a {type(region).__name__}")
+
+
+def margin_variables(region: Any) -> tuple[str, ...]:
+    """The variables a rescue region tests (a grid's and its guard's, or a classifier's)."""
+    if isinstance(region, GridRegion):
+        return (*region.grid.variables, *region.grid.guard)
+    return tuple(region.variables)
+
+
 def _check_room(name: str, margin: float, lo: float, hi: float) -> None:
     if 2.0 * margin >= hi - lo:
         raise CoachingError(
@@ -262,21 +389,26 @@ def _check_room(name: str, margin: float, lo: float, hi: float) -> None:
         )
 
 
-def kept_share(region: GridRegion, margins: dict[str, float], samples: int = 20000, seed: int = 0) -> float:
+def kept_share(region: Any, margins: dict[str, float], samples: int = 20000, seed: int = 0) -> float:
     """The share of the rescue region whose margin box fits in it (a Monte Carlo estimate).
 
-    ``samples`` points drawn uniformly in the region (a marked cell, then a point in it, and the
-    guard's ranges); 0 when no box fits at all.
+    ``samples`` points drawn uniformly in the region (a grid: a marked cell, then a point in it, and
+    the guard's ranges; a classifier: points of its domain box that it holds, drawn until
+    ``samples`` are found or ``50 * samples`` drawn); 0 when no box fits at all.
     """
     try:
-        shrunk = MarginRegion(region, margins)
+        shrunk = margin_region(region, margins)
     except CoachingError:
         return 0.0
+    rng = np.random.default_rng(seed)
+    if isinstance(region, ClassifierRegion):
+        assert isinstance(shrunk, ClassifierMarginRegion)
+        points = _classifier_points(region.classifier, region.threshold, samples, rng)
+        return float(np.mean([shrunk.holds(p) for p in points])) if len(points) else 0.0
     grid = region.grid
     marked = np.argwhere(np.asarray(grid.table, dtype=bool))
     if len(marked) == 0:
         return 0.0
-    rng = np.random.default_rng(seed)
     cells = marked[rng.integers(len(marked), size=samples)]
     points = np.array(grid.lower) + (cells + rng.random(cells.shape)) * grid.widths
     obs = np.zeros((samples, len(region.observation_names)))
@@ -286,3 +418,19 @@ def kept_share(region: GridRegion, margins: dict[str, float], samples: int = 200
     for v, (lo, hi) in grid.guard.items():
         obs[:, names.index(v)] = rng.uniform(lo, hi, size=samples)
     return float(np.mean([shrunk.contains(o) for o in obs]))
+
+
+def _classifier_points(
+    clf: RescueClassifier, threshold: float, samples: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Up to ``samples`` points drawn uniformly in a classifier region (rejection from its domain box)."""
+    lo, hi = np.array(clf.lower), np.array(clf.upper)
+    found: list[np.ndarray] = []
+    drawn = kept = 0
+    while kept < samples and drawn < 50 * samples:
+        batch = lo + (hi - lo) * rng.random((samples, len(lo)))
+        drawn += samples
+        inside = batch[clf.inside(batch, threshold)]
+        found.append(inside)
+        kept += len(inside)
+    return np.concatenate(found)[:samples] if found else np.zeros((0, len(lo)))

@@ -8,7 +8,8 @@ the MuJoCo data) gives the true next observation and :class:`~pidlab.region.fore
 its forecast from the same joint state. The first ``transitions`` set the margins (the largest
 error per region variable); the next ``held_out`` check them: how many true next observations fall
 outside the margins of their forecast (``escapes``), and how often the two predictors agree on a
-veto (the model's asked of the margin box about its forecast, :class:`MarginRegion`).
+veto (the model's asked of the margin box about its forecast, :func:`margin_region`: a lookup grid's
+or a classifier's rescue region).
 """
 
 from __future__ import annotations
@@ -23,10 +24,16 @@ from pidlab.checks import integer
 from pidlab.checks import seed as checked_seed
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
-from pidlab.lookup import AGREEMENT, ForecastError, is_classifier, parse_lookup, region_digest
+from pidlab.lookup import AGREEMENT, ForecastError, region_digest
 from pidlab.plant.model import LoadedModel, load_model
-from pidlab.region.forecast import MarginRegion, check_forecastable
-from pidlab.region.takeover import GridRegion, observation_indices
+from pidlab.region.forecast import (
+    ClassifierMarginRegion,
+    MarginRegion,
+    check_forecastable,
+    margin_region,
+    margin_variables,
+)
+from pidlab.region.takeover import Region, observation_indices, region_from_bounds
 from pidlab.rl.coaching import CoachingWrapper
 from pidlab.rl.predict import Predictor, forecast_of
 
@@ -110,13 +117,8 @@ def measure_forecast(
         raise CoachingError(
             f"{spec.name}: the spec has no rescue region; run `pidlab rescue SPEC --write` first"
         )
-    if is_classifier(rescue):
-        raise CoachingError(
-            f"{spec.name}: pidlab forecast measures the error on a lookup-grid rescue region; "
-            "this spec's region is a classifier, which the model predictor cannot narrow"
-        )
-    region = GridRegion(parse_lookup(rescue), card.observation_names)
-    names = (*region.grid.variables, *region.grid.guard)
+    region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
+    names = margin_variables(region)
     check_forecastable(card, names, f"{spec.name}: pidlab forecast")
     cols = observation_indices(names, card.observation_names, "bounds.rescue")
     total = int(transitions) + int(held_out)
@@ -144,7 +146,7 @@ def measure_forecast(
 
 
 def _agreement(
-    region: GridRegion,
+    region: Region,
     margins: dict[str, float],
     names: tuple[str, ...],
     truth: np.ndarray,
@@ -152,7 +154,7 @@ def _agreement(
 ) -> dict[str, int]:
     """Veto by veto: the exact look-ahead's state in the region, the forecast's margin box in it."""
     try:
-        shrunk: MarginRegion | None = MarginRegion(region, margins)
+        shrunk: MarginRegion | ClassifierMarginRegion | None = margin_region(region, margins)
     except CoachingError:  # nothing fits: the model vetoes every action
         shrunk = None
     counts = dict.fromkeys(AGREEMENT, 0)

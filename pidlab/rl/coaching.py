@@ -38,7 +38,7 @@ What the agent sees of a takeover (``view``)
     (``predictor = "exact"``, a copy of the env's MuJoCo data) or
     :class:`pidlab.rl.predict.ModelPredictor` (``"model"``: the discrete linear model; the whole
     box of the forecast's measured error, ``[bounds.forecast]``, about the forecast must lie in the
-    rescue region, :class:`pidlab.region.forecast.MarginRegion`).
+    rescue region: :func:`pidlab.region.forecast.margin_region`, a lookup grid's or a classifier's).
 
 Rewards
     By default the agent is given its own step's reward only; the coach's rewards are reported
@@ -129,7 +129,14 @@ from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
 from pidlab.plant.model import LoadedModel, load_model
-from pidlab.region.forecast import MarginRegion, check_forecastable, spec_forecast
+from pidlab.region.forecast import (
+    ClassifierMarginRegion,
+    MarginRegion,
+    check_forecastable,
+    margin_region,
+    margin_variables,
+    spec_forecast,
+)
 from pidlab.region.takeover import (
     KINDS,
     ClassifierRegion,
@@ -272,8 +279,13 @@ def _check_predictor(predictor: object, trigger: object) -> None:
         )
 
 
-def model_region(spec: CoachSpec, loaded: LoadedModel, region: Region) -> MarginRegion:
+def model_region(
+    spec: CoachSpec, loaded: LoadedModel, region: Region
+) -> MarginRegion | ClassifierMarginRegion:
     """The rescue region the model predictor asks: of the box of the measured error about a forecast.
+
+    A lookup grid is narrowed by the margins (:class:`MarginRegion`); a classifier's score is
+    bounded over the box (:class:`ClassifierMarginRegion`).
 
     Raises
     ------
@@ -286,16 +298,10 @@ def model_region(spec: CoachSpec, loaded: LoadedModel, region: Region) -> Margin
     from pidlab.plant.operating_point import resolve_operating_point
 
     card = loaded.require_card()
-    if not isinstance(region, GridRegion):
-        raise CoachingError(
-            f"{spec.name}: predictor 'model' narrows a lookup-grid rescue region by the forecast's error; "
-            "this spec's region is a classifier: use predictor = 'exact'"
-        )
-    grid = region.grid
-    check_forecastable(card, (*grid.variables, *grid.guard), f"{spec.name}: predictor 'model'")
+    check_forecastable(card, margin_variables(region), f"{spec.name}: predictor 'model'")
     forecast = spec_forecast(spec.bounds, spec.name)
     try:
-        shrunk = MarginRegion(region, forecast.margin)
+        shrunk = margin_region(region, forecast.margin)
     except CoachingError as exc:
         raise CoachingError(f"{spec.name}: {exc}") from None
     op = resolve_operating_point(loaded)
