@@ -256,20 +256,7 @@ def test_the_model_shield_proves_each_forecasts_box_in_a_classifier_region(ip, e
     assert sum(found.agreement.values()) == 200
     env = _shield(_with(spec, found), ip, predictor="model")
     assert isinstance(env.region, ClassifierMarginRegion) and env.region.margins == found.margin
-    rng = np.random.default_rng(0)
-    env.reset(seed=0)
-    vetoes = 0
-    for _ in range(300):
-        action = rng.uniform(-3, 3, size=1).astype(np.float32)
-        outside = not env.region.contains(env.lookahead.predict(action))
-        terminal = env.lookahead.terminal  # a forecast state the env's termination rule ends
-        _, _, terminated, truncated, info = env.step(action)
-        assert info["vetoed"] == (outside or terminal)
-        vetoes += int(info["vetoed"])
-        if terminated or truncated:
-            env.reset()
-    assert vetoes > 0 and env.total_falls == 0
-    env.close()
+    _vetoes_exactly_the_boxes_that_leave(env, 300)
 
 
 # ----------------------------------------------------------------------------- the measurement
@@ -344,15 +331,21 @@ def test_the_model_shield_vetoes_exactly_the_forecasts_whose_box_leaves_the_regi
     env = _shield(_with(spec, found), ip, predictor="model")
     assert isinstance(env.lookahead, ModelPredictor)
     assert isinstance(env.region, MarginRegion) and env.region.margins == found.margin
+    _vetoes_exactly_the_boxes_that_leave(env, 400)
+
+
+def _vetoes_exactly_the_boxes_that_leave(env, steps: int) -> None:
+    """Random actions: each is vetoed exactly when its forecast's box leaves the region (or the env ends it)."""
     rng = np.random.default_rng(0)
     env.reset(seed=0)
     vetoes = 0
-    for _ in range(400):
+    for _ in range(steps):
         action = rng.uniform(-3, 3, size=1).astype(np.float32)
         outside = not env.region.contains(env.lookahead.predict(action))
+        terminal = env.lookahead.terminal  # a forecast state the env's termination rule ends
         _, _, terminated, truncated, info = env.step(action)
-        assert info["vetoed"] == outside
-        vetoes += int(outside)
+        assert info["vetoed"] == (outside or terminal)
+        vetoes += int(info["vetoed"])
         if terminated or truncated:
             env.reset()
     assert vetoes > 0 and env.total_falls == 0
