@@ -31,6 +31,8 @@
 #                                                     # coach (rescue-replay, rescue-value, rescue-propose)
 #   bash benchmarks/evidence.sh --edgemodel InvertedPendulum-v5  # Amendment 14: the model predictor
 #                                                     # on that region (rescue-terminal-edge-model)
+#   bash benchmarks/evidence.sh --learned InvertedDoublePendulum-v5  # Amendment 15: a learned one-step
+#                                                     # model on the full-state region (rescue-terminal-full-learned)
 #   bash benchmarks/evidence.sh --model InvertedPendulum-v5  # the model predictor in training
 #                                                     # (exploratory; none and rescue-terminal reused
 #                                                     # from the confirmatory sweep)
@@ -62,6 +64,7 @@ case "${1:-}" in
     --edge) mode=edge; shift ;;
     --offpolicy) mode=offpolicy; shift ;;
     --edgemodel) mode=edgemodel; shift ;;
+    --learned) mode=learned; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -80,6 +83,7 @@ design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
         edge) edge_design "$1"; return ;;
         offpolicy) offpolicy_design "$1"; return ;;
         edgemodel) edgemodel_design "$1"; return ;;
+        learned) learned_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -155,6 +159,13 @@ edgemodel_design() {  # Amendment 14: the model predictor on the classifier regi
     esac
 }
 
+learned_design() {  # Amendment 15: a learned one-step model on the full-state region of InvertedDoublePendulum
+    case $1 in
+        InvertedDoublePendulum-v5) echo "$1-learned none,rescue-terminal-full,rescue-terminal-full-learned 200000 100-109" ;;
+        *) echo "evidence.sh: --learned is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 15)" >&2; exit 2 ;;
+    esac
+}
+
 offpolicy_design() {  # Amendment 13: SAC that learns from the coach, against the best plain baseline
     case $1 in
         InvertedPendulum-v5) echo "$1-offpolicy none,rescue-replay,rescue-value,rescue-propose,warm-start-keep-shield-short 50000 100-109" ;;
@@ -182,7 +193,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge offpolicy edgemodel; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge offpolicy edgemodel learned; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

@@ -34,6 +34,7 @@ SPECS = (
     ("InvertedPendulum-v5", "pidlab-rescue-model", "lookup grid"),
     ("InvertedPendulum-v5", "pidlab-rescue-edge-model", "classifier validated at its edge"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-model", "lookup grid + guard box"),
+    ("InvertedDoublePendulum-v5", "pidlab-rescue-full-learned", "classifier over the full state"),
     ("Hopper-v5", "pidlab-rescue-model", "lookup grid over pitch"),
     ("Walker2d-v5", "pidlab-rescue-model", "lookup grid over pitch"),
 )
@@ -41,6 +42,7 @@ SPECS = (
 TRAINED = (
     ("InvertedPendulum-v5-model", ("none", "rescue-terminal", "rescue-terminal-model")),
     ("InvertedPendulum-v5-edgemodel", ("rescue-terminal-edge", "rescue-terminal-edge-model")),
+    ("InvertedDoublePendulum-v5-learned", ("rescue-terminal-full", "rescue-terminal-full-learned")),
 )
 """(published folder, its conditions) per block of the training table (unpublished: skipped)."""
 START, END = "<!-- forecast-table -->", "<!-- /forecast-table -->"
@@ -72,7 +74,8 @@ def row(env: str, name: str, shape: str) -> str:
     a = f.agreement
     units = {v.name: v.unit for v in card.observation}
     return (
-        f"| {env} | {shape} | {_error_cell(f, units)} | {f.escapes} of {f.held_out:,} | {a['both']:,} | "
+        f"| {env} | {shape} | {f.model} | {_error_cell(f, units)} | {f.escapes} of {f.held_out:,} | "
+        f"{a['both']:,} | "
         f"{a['exact_only']:,} | {a['model_only']:,} | {a['neither']:,} | "
         f"**{100 * f.veto_agreement:.1f} %** | "
         f"{100 * kept_share(region, f.margin):.1f} % | {usable} |"
@@ -82,16 +85,17 @@ def row(env: str, name: str, shape: str) -> str:
 def error_table() -> str:
     """The forecast's error and vetoes, one row per spec."""
     head = (
-        "| env | rescue region | error per variable: median / 99th percentile / margin (largest) | "
-        "held-out states outside the margins | both veto | exact only | model only | neither | "
+        "| env | rescue region | forecast | error per variable: median / 99th percentile / margin "
+        "(largest) | held-out states outside the margins | both veto | exact only | model only | neither | "
         "veto agreement | region whose margin box fits | model predictor usable |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|"
     )
     return "\n".join([head, *(row(*spec) for spec in SPECS)])
 
 
 def _summaries(folder: str, condition: str) -> list[dict]:
-    runs = ROOT / "docs" / "results" / folder / "runs" / "InvertedPendulum-v5" / condition
+    env = folder.rsplit("-", 1)[0]
+    runs = ROOT / "docs" / "results" / folder / "runs" / env / condition
     return [json.loads(p.read_text()) for p in sorted(runs.glob("seed-*/summary.json"))]
 
 

@@ -19,8 +19,9 @@ import numpy as np
 from pidlab.errors import SpecError
 from pidlab.provenance import digest
 
-MODELS = ("linear",)
-"""The forecast models: the discrete linear model at the card's operating point."""
+MODELS = ("linear", "learned")
+"""The forecast models: the discrete linear model at the card's operating point, and that model
+corrected by a network fitted on recorded transitions (:class:`ResidualNet`)."""
 
 TRIGGERS = ("reactive", "predictive")
 """What a rescue region was derived for: a check after the agent's step, or one before it."""
@@ -152,7 +153,7 @@ LOOKUP_FIELDS = ("trigger", "action_fraction", "variables", "lower", "upper", "c
                  "provenance")  # fmt: skip
 """The fields of a ``[bounds.rescue]`` table."""
 FORECAST_FIELDS = ("model", "region", "transitions", "held_out", "escapes", "seed", "margins", "median",
-                   "p99", "agreement")  # fmt: skip
+                   "p99", "agreement", "network")  # fmt: skip
 """The fields of a ``[bounds.forecast]`` table."""
 
 
@@ -235,6 +236,9 @@ class ForecastError:
         ``both`` vetoed, ``exact_only``, ``model_only``, ``neither``.
     region : str
         Digest of the ``[bounds.rescue]`` table measured on.
+    network : ResidualNet or None
+        The learned correction (``model = "learned"`` only), fitted on transitions before the
+        ``transitions`` that set the margins.
     """
 
     model: str
@@ -248,6 +252,7 @@ class ForecastError:
     seed: int
     agreement: dict[str, int]
     region: str
+    network: ResidualNet | None = None
 
     @property
     def margin(self) -> dict[str, float]:
@@ -274,6 +279,7 @@ class ForecastError:
             "median": dict(zip(self.variables, self.median, strict=True)),
             "p99": dict(zip(self.variables, self.p99, strict=True)),
             "agreement": dict(self.agreement),
+            **({"network": self.network.to_table()} if self.network is not None else {}),
         }
 
 
@@ -318,13 +324,111 @@ def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
     if sum(agreement.values()) != counts["held_out"]:
         raise SpecError(f"{where}.agreement: the counts add up to {sum(agreement.values())}, "
                         f"not to the {counts['held_out']} held-out transitions")  # fmt: skip
+    network = _network_of(t, where)
     return ForecastError(
+        network=network,
         model=t["model"], variables=names, margins=tuple(margins.values()),
         median=tuple(median[n] for n in names),
         p99=tuple(p99[n] for n in names), transitions=counts["transitions"], held_out=counts["held_out"],
         escapes=counts["escapes"], seed=counts["seed"],
         agreement={k: int(agreement[k]) for k in AGREEMENT}, region=t["region"],
     )  # fmt: skip
+
+
+def _network_of(t: dict[str, Any], where: str) -> ResidualNet | None:
+    """The ``network`` of a forecast table: required for ``model = "learned"``, refused otherwise."""
+    learned = t["model"] == "learned"
+    if ("network" in t) != learned:
+        need = "a learned model needs its network" if learned else "only model = 'learned' has a network"
+        raise SpecError(f"{where}.network: {need}")
+    return parse_residual(t["network"], f"{where}.network") if learned else None
+
+
+@dataclass(frozen=True)
+class ResidualNet:
+    """A learned correction of the linear forecast, added to its forecast of ``variables``.
+
+    Its inputs are the linear model's: the state's tangent-space deviation from the operating point
+    (``2 nv + na`` entries) and the control's (``nu``), standardized as
+    ``(inputs - input_mean) / input_scale``; ``tanh`` hidden layers and a linear output, times
+    ``output_scale``, give the correction per variable.
+
+    Attributes
+    ----------
+    variables : tuple of str
+        The observation variables it corrects (the rescue region's).
+    input_mean, input_scale, output_scale : tuple of float
+    layers : tuple of (ndarray, ndarray)
+        ``(weights, bias)`` per layer; weights of shape ``(inputs, outputs)``.
+    fitted : int
+        The transitions it was fitted on.
+    """
+
+    variables: tuple[str, ...]
+    input_mean: tuple[float, ...]
+    input_scale: tuple[float, ...]
+    output_scale: tuple[float, ...]
+    layers: tuple[tuple[np.ndarray, np.ndarray], ...] = field(compare=False, hash=False)
+    fitted: int = 0
+
+    @property
+    def inputs(self) -> int:
+        """How many inputs it takes."""
+        return len(self.input_mean)
+
+    def correction(self, inputs: np.ndarray) -> np.ndarray:
+        """The correction of each row of ``inputs`` (shape ``(n, inputs)``), shape ``(n, len(variables))``."""
+        x = np.atleast_2d(np.asarray(inputs, dtype=float))
+        h = (x - np.array(self.input_mean)) / np.array(self.input_scale)
+        for i, (w, b) in enumerate(self.layers):
+            h = h @ w + b
+            if i < len(self.layers) - 1:
+                h = np.tanh(h)
+        return h * np.array(self.output_scale)
+
+    def to_table(self) -> dict[str, Any]:
+        """The ``[bounds.forecast.network]`` table."""
+        return {
+            "variables": list(self.variables),
+            "fitted": int(self.fitted),
+            "input_mean": [float(v) for v in self.input_mean],
+            "input_scale": [float(v) for v in self.input_scale],
+            "output_scale": [float(v) for v in self.output_scale],
+            "layers": [{"weights": w.tolist(), "bias": b.tolist()} for w, b in self.layers],
+        }
+
+
+RESIDUAL_FIELDS = ("variables", "fitted", "input_mean", "input_scale", "output_scale", "layers")
+"""The fields of a ``[bounds.forecast.network]`` table."""
+MAX_RESIDUAL_INPUTS = 1000
+"""The most inputs a learned forecast may take (``2 nv + na + nu``)."""
+
+
+def parse_residual(t: Any, where: str = "bounds.forecast.network") -> ResidualNet:
+    """Read and check a ``[bounds.forecast.network]`` table.
+
+    Raises
+    ------
+    SpecError
+        A field missing, of the wrong type or out of range; the message names it.
+    """
+    _check_fields(t, where, RESIDUAL_FIELDS)
+    raw = t.get("variables")
+    names = list(raw) if isinstance(raw, list) else []
+    if not names or not all(isinstance(n, str) and n for n in names) or len(set(names)) != len(names):
+        raise SpecError(f"{where}.variables: expected distinct observation variable names")
+    fitted = t.get("fitted")
+    if isinstance(fitted, bool) or not isinstance(fitted, int) or fitted < 1:
+        raise SpecError(f"{where}.fitted: {fitted!r}; expected an integer >= 1")
+    mean = _finite_list(t.get("input_mean"), None, f"{where}.input_mean")
+    if not 1 <= len(mean) <= MAX_RESIDUAL_INPUTS:
+        raise SpecError(f"{where}.input_mean: expected 1 to {MAX_RESIDUAL_INPUTS} numbers")
+    scale = _finite_list(t.get("input_scale"), len(mean), f"{where}.input_scale")
+    out = _finite_list(t.get("output_scale"), len(names), f"{where}.output_scale")
+    if min(scale) <= 0 or min(out) <= 0:
+        raise SpecError(f"{where}: input_scale and output_scale must be > 0")
+    layers = _check_layers(t.get("layers"), len(mean), f"{where}.layers", outputs=len(names))
+    return ResidualNet(tuple(names), tuple(mean), tuple(scale), tuple(out), layers, fitted)
 
 
 def _per_variable(value: Any, where: str, names: tuple[str, ...] | None) -> dict[str, float]:
@@ -461,7 +565,9 @@ def is_classifier(t: Any) -> bool:
     return isinstance(t, dict) and "shape" in t
 
 
-def _check_layers(value: Any, k: int, where: str) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+def _check_layers(
+    value: Any, k: int, where: str, outputs: int = 1
+) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
     if not isinstance(value, list) or not 2 <= len(value) <= 4:
         raise SpecError(f"{where}: expected 2 to 4 layers, each a table of weights and bias")
     out, inputs = [], k
@@ -474,8 +580,8 @@ def _check_layers(value: Any, k: int, where: str) -> tuple[tuple[np.ndarray, np.
         bias = _finite_list(layer.get("bias"), None, f"{here}.bias")
         width = len(bias)
         last = i == len(value) - 1
-        if (last and width != 1) or not 1 <= width <= MAX_WIDTH:
-            want = "1 output" if last else f"1 to {MAX_WIDTH} units"
+        if (last and width != outputs) or not 1 <= width <= MAX_WIDTH:
+            want = f"{outputs} output{'s' if outputs != 1 else ''}" if last else f"1 to {MAX_WIDTH} units"
             raise SpecError(f"{here}.bias: {width} entries; expected {want}")
         w = np.array([_finite_list(r, width, f"{here}.weights[{j}]") for j, r in enumerate(rows)])
         out.append((w, np.array(bias)))

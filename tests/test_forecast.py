@@ -388,6 +388,9 @@ def test_forecast_writes_a_named_copy_of_the_spec(tmp_path) -> None:
         (["--transitions", "9" * 20], "expected an integer in [1, 1000000]"),  # not hours of recording
         (["--held-out", "-1"], "--held-out -1: expected an integer in [0, 1000000]"),
         (["--seed", "-1"], "--seed -1: expected an integer in [0, 4294967295]"),
+        (["--model", "quadratic"], "--model 'quadratic': expected one of linear, learned"),
+        (["--model", "learned", "--fit", "10"], "--fit 10: expected an integer in [100, 1000000]"),
+        (["--model", "learned", "--width", "1"], "--width 1: expected an integer in [2, 512]"),
     ],
 )
 def test_forecast_refuses_bad_options_in_one_line(args, message) -> None:
@@ -439,3 +442,83 @@ def test_both_predictors_say_when_the_next_state_is_one_the_env_ends(lean):
         for p in (exact, model):
             obs = p.predict(np.zeros(1))
             assert p.terminal is ends and bool(abs(obs[hinge]) > 0.2) is ends
+
+
+# ----------------------------------------------------------------------------- a learned correction
+
+
+def test_a_fitted_correction_learns_what_the_linear_model_misses_and_repeats() -> None:
+    from pidlab.region.dynamics import fit_residual
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, size=(3000, 3))
+    missed = np.stack([np.sin(2 * x[:, 0]) * 0.1, x[:, 1] * x[:, 2]], axis=1)
+    net = fit_residual(x[:2500], missed[:2500], ("a", "b"), width=32, epochs=200, seed=1)
+    assert net.fitted == 2500 and net.inputs == 3 and net.variables == ("a", "b")
+    error, raw = np.abs(net.correction(x[2500:]) - missed[2500:]), np.abs(missed[2500:])
+    assert np.all(np.median(error, axis=0) < 0.1 * np.median(raw, axis=0))  # on transitions it never saw
+    assert np.all(error.max(axis=0) < 0.25 * raw.max(axis=0))
+    again = fit_residual(x[:2500], missed[:2500], ("a", "b"), width=32, epochs=200, seed=1)
+    assert all(np.array_equal(w1, w2) and np.array_equal(b1, b2)
+               for (w1, b1), (w2, b2) in zip(net.layers, again.layers, strict=True))  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def learned(ip):
+    """The rescue spec of IP and a small learned forecast measurement of it."""
+    spec = load_spec(RESCUE)
+    return spec, measure_forecast(spec, ip, transitions=300, held_out=200, seed=3, model="learned", fit=400,
+                                  width=8, epochs=5)  # fmt: skip
+
+
+def test_the_learned_measurement_keeps_its_network_through_a_file(tmp_path, learned) -> None:
+    spec, found = learned
+    assert found.model == "learned" and found.network is not None and found.network.fitted == 400
+    assert found.network.variables == found.variables
+    assert sum(found.agreement.values()) == 200
+    back = load_spec(save_spec(_with(spec, found), tmp_path / f"{IP}.x.toml"))
+    again = spec_forecast(back.bounds, back.name)
+    assert again == found
+    assert all(np.array_equal(w1, w2) for (w1, _), (w2, _) in zip(again.network.layers, found.network.layers,
+                                                                     strict=True))  # fmt: skip
+
+
+def test_the_model_shield_asks_the_learned_forecast(ip, learned) -> None:
+    from pidlab.region.forecast import LearnedForecast
+
+    spec, found = learned
+    env = _shield(_with(spec, found), ip, predictor="model")
+    assert isinstance(env.lookahead.forecast, LearnedForecast)
+    _vetoes_exactly_the_boxes_that_leave(env, 300)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"model": "linear"}, r"network: only model = 'learned' has a network"),
+        ({"network": None}, r"network: a learned model needs its network"),
+        ({"network": {"fitted": 0}}, r"network.fitted: 0; expected an integer >= 1"),
+        ({"network": {"output_scale": [-1.0] * 4}}, r"input_scale and output_scale must be > 0"),
+        ({"network": {"variables": []}}, r"network.variables: expected distinct observation variable names"),
+        ({"network": {"extra": 1}}, r"network: unknown field\(s\) \['extra'\]"),
+    ],
+)
+def test_a_bad_learned_table_is_refused_by_name(learned, change, message) -> None:
+    table = learned[1].to_table()
+    if "network" in change and isinstance(change["network"], dict):
+        change = {"network": {**table["network"], **change["network"]}}
+    table = {k: v for k, v in {**table, **change}.items() if v is not None}
+    with pytest.raises(SpecError, match=message):
+        parse_forecast(table)
+
+
+def test_a_learned_network_for_another_model_is_refused(ip, learned) -> None:
+    from pidlab.region.forecast import learned_forecast
+
+    net = learned[1].network
+    card = ip.require_card()
+    short = dataclasses.replace(net, input_mean=net.input_mean[:-1], input_scale=net.input_scale[:-1])
+    with pytest.raises(CoachingError, match="fitted for another model"):
+        learned_forecast(forecast_of(ip), short, card)
+    with pytest.raises(CoachingError, match="corrects 'pole'"):
+        learned_forecast(forecast_of(ip), dataclasses.replace(net, variables=("pole", *net.variables[1:])), card)

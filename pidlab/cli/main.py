@@ -1213,7 +1213,22 @@ def forecast(
     held_out: Annotated[
         int, typer.Option(help="Further actions that check the margins and the vetoes.")
     ] = 5000,
-    seed: Annotated[int, typer.Option(help="Seed of the env's resets and the random agent.")] = 0,
+    seed: Annotated[
+        int, typer.Option(help="Seed of the env's resets, the random agent and the network's fit.")
+    ] = 0,
+    model: Annotated[
+        str,
+        typer.Option(
+            metavar="linear|learned",
+            help="The forecast: the discrete linear model, or that model corrected by a network fitted on "
+            "--fit actions recorded first.",
+        ),
+    ] = "linear",
+    fit: Annotated[
+        int, typer.Option(help="Actions the learned correction is fitted on (--model learned).")
+    ] = 30000,
+    width: Annotated[int, typer.Option(help="Units per hidden layer of the learned correction.")] = 64,
+    epochs: Annotated[int, typer.Option(help="Passes over the fitted actions.")] = 100,
     write: Annotated[bool, typer.Option("--write", help="Write [bounds.forecast] into SPEC.")] = False,
     output: Annotated[
         str | None,
@@ -1238,10 +1253,11 @@ def forecast(
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
-        with _counted_bar("forecast error", transitions + held_out) as bar:
+        recorded = transitions + held_out + (fit if model == "learned" else 0)
+        with _counted_bar("forecast error", recorded) as bar:
             found = measure_forecast(
                 spec, loaded, transitions=transitions, held_out=held_out, seed=seed,
-                progress=lambda done, total: bar(done),
+                progress=lambda done, total: bar(done), model=model, fit=fit, width=width, epochs=epochs,
             )  # fmt: skip
         card = loaded.require_card()
         units = {v.name: v.unit for v in card.observation}

@@ -109,6 +109,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
         algorithms=("sac",),
     ),
     Amendment(14, ("rescue-terminal-edge-model",), envs=("InvertedPendulum-v5",)),
+    Amendment(15, ("rescue-terminal-full-learned",), envs=("InvertedDoublePendulum-v5",)),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 

@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 
 from pidlab.errors import CoachingError, SpecError
-from pidlab.lookup import ForecastError, RescueClassifier, parse_forecast, region_digest
+from pidlab.lookup import ForecastError, RescueClassifier, ResidualNet, parse_forecast, region_digest
 from pidlab.plant.card import ModelCard
 from pidlab.plant.observation import variable_address
 from pidlab.region.takeover import ClassifierRegion, GridRegion, checked_observation, observation_indices
@@ -110,6 +110,84 @@ class LinearForecast:
                 v = min(max(v, clip[0]), clip[1])
             out[col] = v
         return out
+
+
+    def inputs(
+        self, model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, action: np.ndarray
+    ) -> np.ndarray:
+        """The linear model's inputs: the state's tangent-space deviation, then the clamped control's."""
+        u = np.clip(np.asarray(action, dtype=float).reshape(-1), self.ctrl_low, self.ctrl_high) - self.ctrl_op
+        return np.concatenate([self.state(model, qpos, qvel, act), u])
+
+
+@dataclass(frozen=True)
+class LearnedForecast:
+    """The linear forecast corrected by a learned network (:class:`~pidlab.lookup.ResidualNet`).
+
+    The network adds its correction to the linear forecast of the variables it was fitted for (each
+    clipped again as the card clips it); every other column is the linear forecast's.
+
+    Attributes
+    ----------
+    linear : LinearForecast
+    network : ResidualNet
+    corrected : tuple of (int, tuple or None)
+        Per corrected variable, its column in the observation and its clip.
+    """
+
+    linear: LinearForecast
+    network: ResidualNet
+    corrected: tuple[tuple[int, tuple[float, float] | None], ...]
+
+    @property
+    def variables(self) -> tuple[int, ...]:
+        """Columns of the observation the forecast fills (the others are NaN)."""
+        return self.linear.variables
+
+    def observation(
+        self, model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, action: np.ndarray
+    ) -> np.ndarray:
+        """The corrected forecast observation one control period after ``action``."""
+        linear = self.linear.observation(model, qpos, qvel, act, action)
+        return self.correct(linear[None, :], self.linear.inputs(model, qpos, qvel, act, action)[None, :])[0]
+
+    def correct(self, linear: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """Linear forecasts (rows of ``linear``) corrected by the network at their ``inputs``."""
+        out = np.array(linear, dtype=float)
+        fix = self.network.correction(inputs)
+        for k, (col, clip) in enumerate(self.corrected):
+            v = out[:, col] + fix[:, k]
+            out[:, col] = np.clip(v, clip[0], clip[1]) if clip is not None else v
+        return out
+
+
+def learned_forecast(linear: LinearForecast, network: ResidualNet, card: ModelCard) -> LearnedForecast:
+    """The linear forecast with ``network``'s correction, checked against the card and the linear model.
+
+    Raises
+    ------
+    CoachingError
+        The network takes another number of inputs than the linear model has, or corrects a
+        variable the forecast does not give.
+    """
+    k = linear.Ad.shape[0] + linear.Bd.shape[1]
+    if network.inputs != k:
+        raise CoachingError(
+            f"the learned forecast takes {network.inputs} inputs, and this env's linear model has {k} "
+            "(states and controls): it was fitted for another model; "
+            "run `pidlab forecast SPEC --model learned` again"
+        )
+    names = [v.name for v in card.observation]
+    clips = {c[0]: c[4] for c in linear.columns}
+    corrected = []
+    for v in network.variables:
+        col = names.index(v) if v in names else None
+        if col is None or col not in clips:
+            raise CoachingError(
+                f"the learned forecast corrects {v!r}, which no joint-state forecast gives here"
+            )
+        corrected.append((col, clips[col]))
+    return LearnedForecast(linear, network, tuple(corrected))
 
 
 def forecastable(card: ModelCard) -> tuple[str, ...]:

@@ -605,6 +605,8 @@ def forecast_view(f: Any, units: dict[str, str], kept: float | None = None) -> G
     head = Text()
     head.append(f"{f.model} forecast, measured behind the exact shield with a random agent (seed {f.seed})\n",
                 style="bold")  # fmt: skip
+    if f.network is not None:
+        head.append(f"its correction fitted on {f.network.fitted:,} earlier actions\n")
     head.append(
         f"margins from {f.transitions:,} actions; {f.held_out:,} held-out actions: {f.escapes} outside "
         "the margins of their forecast\n"

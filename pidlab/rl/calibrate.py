@@ -5,7 +5,9 @@ the coach taking over at a veto and handing back at half the region) with an age
 uniformly at random: the untrained agent of a training run's start, whose actions are the widest
 the forecast must answer for. At every action put to the shield, the exact look-ahead (a copy of
 the MuJoCo data) gives the true next observation and :class:`~pidlab.region.forecast.LinearForecast`
-its forecast from the same joint state. The first ``transitions`` set the margins (the largest
+its forecast from the same joint state. With ``model = "learned"`` the first ``fit`` actions fit a
+network to what the linear forecast misses (:mod:`pidlab.region.dynamics`), and the forecast is the
+corrected one from then on. The next ``transitions`` set the margins (the largest
 error per region variable); the next ``held_out`` check them: how many true next observations fall
 outside the margins of their forecast (``escapes``), and how often the two predictors agree on a
 veto (the model's asked of the margin box about its forecast, :func:`margin_region`: a lookup grid's
@@ -24,12 +26,14 @@ from pidlab.checks import integer
 from pidlab.checks import seed as checked_seed
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
-from pidlab.lookup import AGREEMENT, ForecastError, region_digest
+from pidlab.lookup import AGREEMENT, MAX_WIDTH, MODELS, ForecastError, region_digest
 from pidlab.plant.model import LoadedModel, load_model
+from pidlab.region.dynamics import fit_residual
 from pidlab.region.forecast import (
     ClassifierMarginRegion,
     MarginRegion,
     check_forecastable,
+    learned_forecast,
     margin_region,
     margin_variables,
 )
@@ -43,18 +47,24 @@ MAX_TRANSITIONS = 1_000_000
 
 def _record(
     spec: CoachSpec, loaded: LoadedModel, count: int, seed: int, tick: Callable[[], None]
-) -> tuple[np.ndarray, np.ndarray]:
-    """``count`` pairs (true next observation, forecast) from a random agent behind the exact shield."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``count`` transitions of a random agent behind the exact shield.
+
+    Per transition: the true next observation, the linear forecast, and the linear model's inputs
+    (the state's and the control's deviations).
+    """
     env = CoachingWrapper(gym.make(spec.env_id), spec, mode="takeover", region="rescue", trigger="predictive",
                           handback=0.5, loaded=loaded, seed=seed)  # fmt: skip
     forecast, model = forecast_of(loaded), loaded.model
     truth: list[np.ndarray] = []
     guess: list[np.ndarray] = []
+    inputs: list[np.ndarray] = []
 
     def listener(data: Any, action: Any, obs: np.ndarray) -> None:
         if len(truth) < count:
             truth.append(np.array(obs, dtype=float))
             guess.append(forecast.observation(model, data.qpos, data.qvel, data.act, action))
+            inputs.append(forecast.inputs(model, data.qpos, data.qvel, data.act, action))
             tick()
 
     lookahead = env.lookahead
@@ -70,7 +80,20 @@ def _record(
         if terminated or truncated:
             env.reset()
     env.close()
-    return np.array(truth), np.array(guess)
+    return np.array(truth), np.array(guess), np.array(inputs)
+
+
+def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: int, width: int,
+                   epochs: int) -> None:  # fmt: skip
+    integer(transitions, "transitions", CoachingError, low=1, high=MAX_TRANSITIONS, param="transitions")
+    integer(held_out, "held_out", CoachingError, low=0, high=MAX_TRANSITIONS, param="held_out")
+    checked_seed(seed, "seed", CoachingError, param="seed")
+    if model not in MODELS:
+        raise CoachingError(f"model={model!r}: expected one of {', '.join(MODELS)}", param="model")
+    if model == "learned":
+        integer(fit, "fit", CoachingError, low=100, high=MAX_TRANSITIONS, param="fit")
+        integer(width, "width", CoachingError, low=2, high=MAX_WIDTH, param="width")
+        integer(epochs, "epochs", CoachingError, low=1, high=10_000, param="epochs")
 
 
 def measure_forecast(
@@ -80,8 +103,12 @@ def measure_forecast(
     held_out: int = 5000,
     seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
+    model: str = "linear",
+    fit: int = 30_000,
+    width: int = 64,
+    epochs: int = 100,
 ) -> ForecastError:
-    """The linear forecast's error on the spec's rescue region, and what it does to the shield.
+    """The forecast's error on the spec's rescue region, and what it does to the shield.
 
     Parameters
     ----------
@@ -92,24 +119,27 @@ def measure_forecast(
     transitions, held_out : int
         Actions put to the shield that set the margins, then check them.
     seed : int
-        Seeds the env's resets and the random agent.
+        Seeds the env's resets, the random agent and the network's fit.
     progress : callable, optional
         ``progress(done, total)`` after each recorded action.
+    model : {"linear", "learned"}
+        The linear forecast, or the linear forecast corrected by a network fitted on ``fit``
+        actions recorded first (:func:`pidlab.region.dynamics.fit_residual`, ``width`` units per
+        hidden layer, ``epochs`` passes); the margins are then measured on actions it never saw.
 
     Returns
     -------
     ForecastError
-        Margins, error quantiles, escapes and veto agreement; ``to_table()`` is ``[bounds.forecast]``.
+        Margins, error quantiles, escapes and veto agreement (and the network);
+        ``to_table()`` is ``[bounds.forecast]``.
 
     Raises
     ------
     CoachingError
-        Counts below 1 (``held_out`` below 0) or above :data:`MAX_TRANSITIONS`, no rescue region,
-        or a region over a variable no joint-state forecast gives.
+        Counts below 1 (``held_out`` below 0; ``fit`` below 100) or above :data:`MAX_TRANSITIONS`,
+        an unknown model, no rescue region, or a region over a variable no joint-state forecast gives.
     """
-    integer(transitions, "transitions", CoachingError, low=1, high=MAX_TRANSITIONS, param="transitions")
-    integer(held_out, "held_out", CoachingError, low=0, high=MAX_TRANSITIONS, param="held_out")
-    checked_seed(seed, "seed", CoachingError, param="seed")
+    _check_options(transitions, held_out, seed, model, fit, width, epochs)
     loaded = loaded if loaded is not None else load_model(spec.env_id)
     card = loaded.require_card()
     rescue = (spec.bounds or {}).get("rescue")
@@ -121,7 +151,8 @@ def measure_forecast(
     names = margin_variables(region)
     check_forecastable(card, names, f"{spec.name}: pidlab forecast")
     cols = observation_indices(names, card.observation_names, "bounds.rescue")
-    total = int(transitions) + int(held_out)
+    first = int(fit) if model == "learned" else 0
+    total = first + int(transitions) + int(held_out)
     done = [0]
 
     def tick() -> None:
@@ -129,19 +160,25 @@ def measure_forecast(
         if progress is not None:
             progress(done[0], total)
 
-    truth, guess = _record(spec, loaded, total, int(seed), tick)
+    truth, guess, inputs = _record(spec, loaded, total, int(seed), tick)
+    network = None
+    if model == "learned":
+        missed = truth[:first, cols] - guess[:first, cols]
+        network = fit_residual(inputs[:first], missed, names, width, epochs, int(seed))
+        guess = learned_forecast(forecast_of(loaded), network, card).correct(guess, inputs)
+    truth, guess = truth[first:], guess[first:]
     err = np.abs(truth[:, cols] - guess[:, cols])
-    fit, check = err[: int(transitions)], err[int(transitions) :]
-    margins = fit.max(axis=0)
+    fitted, check = err[: int(transitions)], err[int(transitions) :]
+    margins = fitted.max(axis=0)
     escapes = int(np.any(check > margins, axis=1).sum())
     margin = dict(zip(names, margins, strict=True))
     agreement = _agreement(region, margin, card.observation_names, truth[transitions:], guess[transitions:])
     return ForecastError(
-        model="linear", variables=names, margins=tuple(float(m) for m in margins),
-        median=tuple(float(v) for v in np.median(fit, axis=0)),
-        p99=tuple(float(v) for v in np.quantile(fit, 0.99, axis=0)), transitions=int(transitions),
+        model=model, variables=names, margins=tuple(float(m) for m in margins),
+        median=tuple(float(v) for v in np.median(fitted, axis=0)),
+        p99=tuple(float(v) for v in np.quantile(fitted, 0.99, axis=0)), transitions=int(transitions),
         held_out=int(held_out), escapes=escapes, seed=int(seed), agreement=agreement,
-        region=region_digest(rescue),
+        region=region_digest(rescue), network=network,
     )  # fmt: skip
 
 

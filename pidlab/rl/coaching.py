@@ -530,7 +530,10 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self._trigger_index = observation_indices([self.trigger.variable], names, "growth trigger")[0]
         if self.predictive:
             exact = self.predictor_kind == "exact"
-            self._predictor = Predictor(env, card) if exact else ModelPredictor(env, self.loaded)
+            self._predictor = (
+                Predictor(env, card) if exact
+                else ModelPredictor(env, self.loaded, spec_forecast(spec.bounds, spec.name))
+            )  # fmt: skip
         if self.view == "terminal":
             self._failure = failure_function(spec.env_id)
         if self.view == "penalty":

@@ -3,8 +3,9 @@
 :class:`Predictor` (``predictor = "exact"``) steps a copy of the env's MuJoCo data: the answer is
 exact, and it is an oracle no real robot has. :class:`ModelPredictor` (``predictor = "model"``)
 forecasts from the env's discrete linear model and the current joint state
-(:class:`pidlab.region.forecast.LinearForecast`); the whole box of the forecast's measured error
-about it must lie in the rescue region (:class:`pidlab.region.forecast.MarginRegion`).
+(:class:`pidlab.region.forecast.LinearForecast`, or :class:`~pidlab.region.forecast.LearnedForecast`
+when the spec's measurement holds a learned correction); the whole box of the forecast's measured
+error about it must lie in the rescue region (:func:`pidlab.region.forecast.margin_region`).
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ import mujoco
 import numpy as np
 
 from pidlab.errors import CoachingError
+from pidlab.lookup import ForecastError
 from pidlab.plant.card import ModelCard, parse_signal
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import CompiledCard
-from pidlab.region.forecast import LinearForecast, linear_forecast
+from pidlab.region.forecast import LearnedForecast, LinearForecast, learned_forecast, linear_forecast
 
 
 def _refuse_action_wrappers(env: gym.Env, what: str) -> None:
@@ -175,14 +177,18 @@ class ModelPredictor:
         A Gymnasium MuJoCo env.
     loaded : LoadedModel
         The env's model (its card and its linear model).
+    measured : ForecastError, optional
+        The spec's forecast measurement: with a network (``model = "learned"``) the forecast is
+        :class:`~pidlab.region.forecast.LearnedForecast`, else the linear one.
 
     Raises
     ------
     CoachingError
-        ``env`` is not a MuJoCo env, or an action wrapper sits between the wrapper and the env.
+        ``env`` is not a MuJoCo env, or an action wrapper sits between the wrapper and the env, or
+        the learned network does not fit this env's linear model.
     """
 
-    def __init__(self, env: gym.Env, loaded: LoadedModel) -> None:
+    def __init__(self, env: gym.Env, loaded: LoadedModel, measured: ForecastError | None = None) -> None:
         u: Any = env.unwrapped
         if not isinstance(getattr(u, "data", None), mujoco.MjData):
             raise CoachingError(
@@ -191,7 +197,9 @@ class ModelPredictor:
         _refuse_action_wrappers(env, "predictor 'model'")
         self._env = u
         self._model = loaded.model
-        self.forecast = forecast_of(loaded)
+        self.forecast: LinearForecast | LearnedForecast = forecast_of(loaded)
+        if measured is not None and measured.network is not None:
+            self.forecast = learned_forecast(self.forecast, measured.network, loaded.require_card())
         self._limits = observed_limits(loaded.require_card())
         self.terminal = False
         """Whether a termination limit on an observed variable ends the last forecast state."""
