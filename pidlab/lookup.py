@@ -325,6 +325,8 @@ def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
         raise SpecError(f"{where}.agreement: the counts add up to {sum(agreement.values())}, "
                         f"not to the {counts['held_out']} held-out transitions")  # fmt: skip
     network = _network_of(t, where)
+    if network is not None and network.variables != names:
+        raise SpecError(f"{where}.network.variables: expected the margins' variables {', '.join(names)}")
     return ForecastError(
         network=network,
         model=t["model"], variables=names, margins=tuple(margins.values()),

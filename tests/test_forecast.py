@@ -501,10 +501,14 @@ def test_the_model_shield_asks_the_learned_forecast(ip, learned) -> None:
         ({"network": {"output_scale": [-1.0] * 4}}, r"input_scale and output_scale must be > 0"),
         ({"network": {"variables": []}}, r"network.variables: expected distinct observation variable names"),
         ({"network": {"extra": 1}}, r"network: unknown field\(s\) \['extra'\]"),
+        ({"network": {"variables": ["hinge_pos"], "output_scale": [1.0]}}, r"network.layers\[2\].bias: 4 entries"),
+        ("reversed", r"network.variables: expected the margins' variables"),
     ],
 )
 def test_a_bad_learned_table_is_refused_by_name(learned, change, message) -> None:
     table = learned[1].to_table()
+    if change == "reversed":
+        change = {"network": {**table["network"], "variables": table["network"]["variables"][::-1]}}
     if "network" in change and isinstance(change["network"], dict):
         change = {"network": {**table["network"], **change["network"]}}
     table = {k: v for k, v in {**table, **change}.items() if v is not None}
