@@ -33,6 +33,8 @@
 #                                                     # on that region (rescue-terminal-edge-model)
 #   bash benchmarks/evidence.sh --learned InvertedDoublePendulum-v5  # Amendment 15: a learned one-step
 #                                                     # model on the full-state region (rescue-terminal-full-learned)
+#   bash benchmarks/evidence.sh --room Hopper-v5     # Amendment 16: the room coach and its classifier
+#                                                     # region over the legs (rescue-terminal-room-full)
 #   bash benchmarks/evidence.sh --model InvertedPendulum-v5  # the model predictor in training
 #                                                     # (exploratory; none and rescue-terminal reused
 #                                                     # from the confirmatory sweep)
@@ -65,6 +67,7 @@ case "${1:-}" in
     --offpolicy) mode=offpolicy; shift ;;
     --edgemodel) mode=edgemodel; shift ;;
     --learned) mode=learned; shift ;;
+    --room) mode=room; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -84,6 +87,7 @@ design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
         offpolicy) offpolicy_design "$1"; return ;;
         edgemodel) edgemodel_design "$1"; return ;;
         learned) learned_design "$1"; return ;;
+        room) room_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -166,6 +170,13 @@ learned_design() {  # Amendment 15: a learned one-step model on the full-state r
     esac
 }
 
+room_design() {  # Amendment 16: Hopper's room coach and its classifier region over the legs
+    case $1 in
+        Hopper-v5) echo "$1-room none,rescue-terminal,rescue-terminal-room-full 300000 100-109" ;;
+        *) echo "evidence.sh: --room is for Hopper-v5 (docs/analysis-plan.md, Amendment 16)" >&2; exit 2 ;;
+    esac
+}
+
 offpolicy_design() {  # Amendment 13: SAC that learns from the coach, against the best plain baseline
     case $1 in
         InvertedPendulum-v5) echo "$1-offpolicy none,rescue-replay,rescue-value,rescue-propose,warm-start-keep-shield-short 50000 100-109" ;;
@@ -193,7 +204,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge offpolicy edgemodel learned; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge offpolicy edgemodel learned room; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

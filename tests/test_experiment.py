@@ -69,7 +69,8 @@ IP_ONLY = ("rescue-terminal-model",)  # the model predictor: on the other envs i
 FULL_ENVS = (IP, "InvertedDoublePendulum-v5")  # rescue-terminal-full: a classifier region fitted on the pendulums
 FULL_ONLY = ("rescue-terminal-full",)
 EDGE_ONLY = ("rescue-terminal-edge", "rescue-terminal-edge-model")
-LEARNED_ONLY = ("rescue-terminal-full-learned",)  # the learned forecast: fitted on InvertedDoublePendulum  # the classifier validated at its edge: fitted on InvertedPendulum
+LEARNED_ONLY = ("rescue-terminal-full-learned",)  # the learned forecast: fitted on InvertedDoublePendulum
+ROOM_ONLY = ("rescue-terminal-room-full",)  # the room coach's classifier region: fitted on Hopper  # the classifier validated at its edge: fitted on InvertedPendulum
 
 
 def test_a_condition_names_its_algorithm_for_every_env_or_one():
@@ -122,6 +123,7 @@ def test_shipped_conditions_resolve_on_all_four_envs():
                 or (name in FULL_ONLY and env not in FULL_ENVS)
                 or (name in EDGE_ONLY and env != IP)
                 or (name in LEARNED_ONLY and env != "InvertedDoublePendulum-v5")
+                or (name in ROOM_ONLY and env != "Hopper-v5")
             ):
                 continue
             given = with_overrides(recipe, algo="sac") if name in SAC_ONLY else recipe
@@ -131,7 +133,8 @@ def test_shipped_conditions_resolve_on_all_four_envs():
         for name in IP_ONLY if env != IP else ():  # the linear forecast's error leaves no region
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: .*use predictor = 'exact'"):
                 resolve(conditions[name], recipe)
-        elsewhere = (*(EDGE_ONLY if env != IP else ()), *(LEARNED_ONLY if env != "InvertedDoublePendulum-v5" else ()))
+        elsewhere = (*(EDGE_ONLY if env != IP else ()), *(LEARNED_ONLY if env != "InvertedDoublePendulum-v5" else ()),
+                     *(ROOM_ONLY if env != "Hopper-v5" else ()))  # fmt: skip
         for name in elsewhere:
             coach = conditions[name].for_env(env).coach
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: coach '{coach}' not found"):

@@ -157,13 +157,13 @@ def test_the_sac_sweep_is_for_the_pendulums_only(env):
 
 
 @pytest.mark.parametrize(
-    ("sweep", "amendment", "home"),
-    [("offpolicy", 13, "InvertedPendulum-v5"), ("edgemodel", 14, "InvertedPendulum-v5"),
-     ("learned", 15, "InvertedDoublePendulum-v5")],
+    ("sweep", "amendment", "home", "env"),
+    [("offpolicy", 13, "InvertedPendulum-v5", "Walker2d-v5"), ("edgemodel", 14, "InvertedPendulum-v5", "Hopper-v5"),
+     ("learned", 15, "InvertedDoublePendulum-v5", "InvertedPendulum-v5"),
+     ("room", 16, "Hopper-v5", "Walker2d-v5")],
 )  # fmt: skip
-@pytest.mark.parametrize("env", ["Hopper-v5", "Walker2d-v5"])
 def test_the_one_env_sweeps_refuse_other_envs(env, sweep, amendment, home):
-    """Amendments 13 to 15 govern their couplings on one env each; other envs are refused at once."""
+    """Amendments 13 to 16 govern their couplings on one env each; other envs are refused at once."""
     import subprocess
 
     done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), f"--{sweep}", env],
