@@ -351,24 +351,38 @@ def box_in_classifier(
     a box that is inside but too close to the edge to prove it. The domain box is not checked here.
     """
     c = np.atleast_2d(np.asarray(centre, dtype=float))
-    m = np.atleast_2d(np.asarray(margins, dtype=float)).copy()
+    return bool(boxes_in_classifier(classifier, c, np.asarray(margins, dtype=float), threshold, splits)[0])
+
+
+def boxes_in_classifier(
+    classifier: RescueClassifier, centres: np.ndarray, margins: np.ndarray, threshold: float,
+    splits: int = SPLITS,
+) -> np.ndarray:  # fmt: skip
+    """:func:`box_in_classifier` of each row of ``centres`` (shape ``(n, k)``), all at once: bool ``(n,)``.
+
+    ``margins``: shape ``(k,)`` (the same for every box) or ``(n, k)``.
+    """
+    c = np.atleast_2d(np.asarray(centres, dtype=float))
+    m = np.array(np.broadcast_to(np.asarray(margins, dtype=float), c.shape))
+    owner = np.arange(len(c))
+    failed = np.zeros(len(c), dtype=bool)
     width = np.array(classifier.upper) - np.array(classifier.lower)
     for level in range(splits + 1):
-        if bool((classifier.scores(c) < threshold).any()):
-            return False
-        proven = classifier.lowest_scores(c, m) >= threshold
-        c, m = c[~proven], m[~proven]
+        failed[owner[classifier.scores(c) < threshold]] = True  # a state of the box is outside
+        open_ = ~failed[owner] & (classifier.lowest_scores(c, m) < threshold)
+        c, m, owner = c[open_], m[open_], owner[open_]
         if not len(c):
-            return True
+            break
         if level == splits:
-            return False
+            failed[owner] = True  # still unproven after the last halving
+            break
         rows = np.arange(len(m))
         side = np.argmax(m / width, axis=1)
         m[rows, side] /= 2.0
         step = np.zeros_like(m)
         step[rows, side] = m[rows, side]
-        c, m = np.concatenate([c - step, c + step]), np.concatenate([m, m])
-    return False  # never reached: the last level returns
+        c, m, owner = np.concatenate([c - step, c + step]), np.concatenate([m, m]), np.tile(owner, 2)
+    return ~failed
 
 
 class ClassifierMarginRegion:
@@ -432,6 +446,15 @@ class ClassifierMarginRegion:
             return False
         return box_in_classifier(self.classifier, y, self._m, self.threshold)
 
+    def hold(self, ys: np.ndarray) -> np.ndarray:
+        """:meth:`holds` of each row of ``ys``, all at once."""
+        ys = np.atleast_2d(np.asarray(ys, dtype=float))
+        inside = np.all((ys >= self._lo) & (ys <= self._hi), axis=1)
+        out = np.zeros(len(ys), dtype=bool)
+        if inside.any():
+            out[inside] = boxes_in_classifier(self.classifier, ys[inside], self._m, self.threshold)
+        return out
+
     def inner(self, fraction: float) -> ClassifierRegion:
         """The rescue region's own hand-back region (asked of real states)."""
         return self.region.inner(fraction)
@@ -482,7 +505,7 @@ def kept_share(region: Any, margins: dict[str, float], samples: int = 20000, see
     if isinstance(region, ClassifierRegion):
         assert isinstance(shrunk, ClassifierMarginRegion)
         points = _classifier_points(region.classifier, region.threshold, samples, rng)
-        return float(np.mean([shrunk.holds(p) for p in points])) if len(points) else 0.0
+        return float(np.mean(shrunk.hold(points))) if len(points) else 0.0
     grid = region.grid
     marked = np.argwhere(np.asarray(grid.table, dtype=bool))
     if len(marked) == 0:
