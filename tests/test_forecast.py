@@ -31,6 +31,7 @@ from pidlab.region.forecast import (
     ClassifierMarginRegion,
     MarginRegion,
     box_in_classifier,
+    boxes_in_classifier,
     check_forecastable,
     forecastable,
     kept_share,
@@ -209,7 +210,10 @@ def test_a_proven_box_holds_no_state_below_the_threshold() -> None:
     rng = np.random.default_rng(1)
     margins = (hi - lo) * 0.02
     proven = 0
-    for centre in lo + margins + (hi - lo - 2 * margins) * rng.random((300, len(lo))):
+    centres = lo + margins + (hi - lo - 2 * margins) * rng.random((300, len(lo)))
+    one_by_one = [box_in_classifier(clf, centre, margins, clf.threshold) for centre in centres]
+    assert boxes_in_classifier(clf, centres, margins, clf.threshold).tolist() == one_by_one  # all at once
+    for centre in centres:
         if box_in_classifier(clf, centre, margins, clf.threshold):
             proven += 1
             inside = centre + margins * rng.uniform(-1, 1, size=(200, len(lo)))
