@@ -26,7 +26,7 @@ from run_accounts import falls_under_coach
 from pidlab.controller.spec import load_spec
 from pidlab.files import write_json
 from pidlab.plant.model import load_model
-from pidlab.region.coverage import DomainCoverage, DomainSettings, measure_domain_coverage
+from pidlab.region.coverage import MODEL_KIND, DomainCoverage, DomainSettings, measure_domain_coverage
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "docs" / "rescue.md"
@@ -64,6 +64,8 @@ class Coach:
     label: str
     spec: str | None = None
     runs: tuple[str, str] | None = None
+    kind: str = "rescue region"
+    """The region scored in the table: the rescue region, or it as the model predictor asks it."""
 
 
 def _runs(folder: str, env: str, condition: str) -> Path:
@@ -76,11 +78,16 @@ COACHES = {
         Coach("room coach, classifier", runs=("InvertedPendulum-v5-full", "rescue-terminal-full")),
         Coach("room coach, classifier validated at its edge",
               runs=("InvertedPendulum-v5-edge", "rescue-terminal-edge")),
+        Coach("room coach, classifier validated at its edge, asked through the linear forecast's margins "
+              "(the model predictor)", runs=("InvertedPendulum-v5-edgemodel", "rescue-terminal-edge-model"),
+              kind=MODEL_KIND),
     ),
     "InvertedDoublePendulum-v5": (
         Coach("room coach, lookup grid + guard box",
               runs=("InvertedDoublePendulum-v5-rescue", "rescue-terminal")),
         Coach("room coach, classifier", runs=("InvertedDoublePendulum-v5-full", "rescue-terminal-full")),
+        Coach("room coach, classifier, asked through the learned forecast's margins (the model predictor)",
+              "tuning/InvertedDoublePendulum-v5.pidlab-rescue-full-learned.toml", kind=MODEL_KIND),
     ),
     "Hopper-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Hopper-v5-rescue", "rescue-terminal")),
@@ -138,7 +145,7 @@ def _pct(x: float) -> str:
 
 def row(env: str, coach: Coach, c: DomainCoverage) -> str:
     """One table row (printed as it is measured)."""
-    r = c.score("rescue region")
+    r = c.score(coach.kind)
     region = "-" if r is None else f"**{_pct(r.coverage)}**"
     lo, hi = (float("nan"),) * 2 if r is None else r.false_claims_ci
     false = "-" if r is None or not r.inside else f"{_pct(r.false_claims)} [{100 * lo:.1f}, {100 * hi:.1f}]"

@@ -48,6 +48,18 @@ def test_scores_are_counted_as_by_hand() -> None:
     assert empty.inside == 0 and empty.coverage == 0.0 and np.isnan(empty.false_claims)
 
 
+def test_a_spec_with_a_forecast_is_also_scored_as_the_model_predictor_asks_it(models) -> None:
+    from pidlab.region.coverage import MODEL_KIND
+
+    found = measure_domain_coverage(_spec(IP, "pidlab-rescue-edge-model"), models[IP], IP_DOMAIN, workers=1)
+    assert [s.kind for s in found.scores] == ["rescue region", "certified core", "box", MODEL_KIND]
+    region, asked = found.score("rescue region"), found.score(MODEL_KIND)
+    # a box about a state proven inside holds the state itself: never more, here fewer
+    assert 0 < asked.inside < region.inside and asked.held <= region.held
+    plain = measure_domain_coverage(_spec(IP, "pidlab-rescue-edge"), models[IP], IP_DOMAIN, workers=1)
+    assert plain.score(MODEL_KIND) is None and plain.score("rescue region") == region  # the same states
+
+
 def test_the_same_seed_scores_the_same_states(models) -> None:
     a = measure_domain_coverage(_spec(IP), models[IP], IP_DOMAIN, workers=1)
     b = measure_domain_coverage(_spec(IP), models[IP], IP_DOMAIN, workers=1)

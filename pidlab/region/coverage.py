@@ -19,7 +19,9 @@ module scores any spec's regions over a domain the caller names, the same for ev
    the **coverage** (share of the rescuable states the region holds) and the **false claims**
    (share of the region's states the coach does *not* rescue, with a 95 % Clopper-Pearson
    interval). A region with false claims lets an agent fall while the coach acts: the region
-   tests fewer variables than decide a rescue.
+   tests fewer variables than decide a rescue. A spec with a forecast measurement
+   (``[bounds.forecast]``) also scores its rescue region as the model predictor asks it
+   (:data:`MODEL_KIND`).
 
 Deterministic from ``seed``.
 """
@@ -61,6 +63,10 @@ FIRST_DRAWS = 100_000
 
 REGION_KINDS = {"rescue": "rescue region", "ellipsoid": "certified core", "box": "box"}
 """The ``[bounds]`` regions scored, and their names in the tables."""
+MODEL_KIND = "rescue region through the forecast's margins"
+"""The name of the rescue region as the model predictor asks it (a spec with ``[bounds.forecast]``):
+a state counts as inside when the whole box of the forecast's margins about it lies in the region,
+i.e. when a forecast landing there would pass."""
 
 
 @dataclass(frozen=True)
@@ -218,6 +224,19 @@ def _score(kind: str, inside: np.ndarray, rescued: np.ndarray) -> RegionScore:
     return RegionScore(kind, n_in, held, held / rescuable if rescuable else 0.0, false, bounds)
 
 
+def _through_margins(spec: CoachSpec, names: tuple[str, ...], obs: np.ndarray) -> np.ndarray:
+    """Whether the box of the spec's forecast margins about each observation lies in its rescue region."""
+    from pidlab.errors import CoachingError
+    from pidlab.region.forecast import margin_region, spec_forecast
+
+    region = region_from_bounds(spec.bounds, names, "rescue", spec.name)
+    try:
+        shrunk = margin_region(region, spec_forecast(spec.bounds, spec.name).margin)
+    except CoachingError:  # the margins leave nothing of the region
+        return np.zeros(len(obs), dtype=bool)
+    return np.array([shrunk.contains(o) for o in obs], dtype=bool)
+
+
 def measure_domain_coverage(
     spec: CoachSpec,
     loaded: LoadedModel,
@@ -264,6 +283,8 @@ def measure_domain_coverage(
         region = region_from_bounds(spec.bounds, names, key, spec.name)
         inside = np.array([region.contains(o) for o in obs], dtype=bool)
         scores.append(_score(kind, inside, rescued))
+    if "rescue" in (spec.bounds or {}) and "forecast" in (spec.bounds or {}):
+        scores.append(_score(MODEL_KIND, _through_margins(spec, names, obs), rescued))
     return DomainCoverage(
         str(spec.env_id), spec.name, s, grounded, int(rescued.sum()), tuple(scores), sims,
         round(time.perf_counter() - t0, 1),
