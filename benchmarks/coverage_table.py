@@ -87,7 +87,7 @@ COACHES = {
               runs=("InvertedDoublePendulum-v5-rescue", "rescue-terminal")),
         Coach("room coach, classifier", runs=("InvertedDoublePendulum-v5-full", "rescue-terminal-full")),
         Coach("room coach, classifier, asked through the learned forecast's margins (the model predictor)",
-              "tuning/InvertedDoublePendulum-v5.pidlab-rescue-full-learned.toml", kind=MODEL_KIND),
+              runs=("InvertedDoublePendulum-v5-learned", "rescue-terminal-full-learned"), kind=MODEL_KIND),
     ),
     "Hopper-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Hopper-v5-rescue", "rescue-terminal")),
