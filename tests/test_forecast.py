@@ -530,3 +530,12 @@ def test_a_learned_network_for_another_model_is_refused(ip, learned) -> None:
         learned_forecast(forecast_of(ip), short, card)
     with pytest.raises(CoachingError, match="corrects 'pole'"):
         learned_forecast(forecast_of(ip), dataclasses.replace(net, variables=("pole", *net.variables[1:])), card)
+    # refused before any run: where a run (or an experiment's conditions) asks for the model region
+    from pidlab.rl.coaching import model_region
+
+    (w, b), *rest = net.layers
+    fitting = dataclasses.replace(short, layers=((w[:-1], b), *rest))  # a consistent network of 4 inputs
+    spec = _with(learned[0], dataclasses.replace(learned[1], network=fitting))
+    region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
+    with pytest.raises(CoachingError, match="pidlab-rescue: the learned forecast takes 4 inputs.*another model"):
+        model_region(spec, ip, region)

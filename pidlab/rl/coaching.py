@@ -133,6 +133,7 @@ from pidlab.region.forecast import (
     ClassifierMarginRegion,
     MarginRegion,
     check_forecastable,
+    learned_forecast,
     margin_region,
     margin_variables,
     spec_forecast,
@@ -145,7 +146,7 @@ from pidlab.region.takeover import (
     observation_indices,
     region_from_bounds,
 )
-from pidlab.rl.predict import ModelPredictor, Predictor
+from pidlab.rl.predict import ModelPredictor, Predictor, forecast_of
 from pidlab.rl.rewards import alive_reward, failure_function
 
 MODES = ("takeover", "nudge")
@@ -291,8 +292,9 @@ def model_region(
     ------
     CoachingError
         The region tests a variable no joint-state forecast gives; the spec has no forecast
-        measurement, or one of another region; the error leaves nothing of the region, or leaves
-        out the operating point (where the coach hands back).
+        measurement, or one of another region, or a learned correction fitted for another model;
+        the error leaves nothing of the region, or leaves out the operating point (where the coach
+        hands back).
     """
     from pidlab.plant.observation import observe_at
     from pidlab.plant.operating_point import resolve_operating_point
@@ -302,6 +304,8 @@ def model_region(
     forecast = spec_forecast(spec.bounds, spec.name)
     try:
         shrunk = margin_region(region, forecast.margin)
+        if forecast.network is not None:  # a learned correction must fit this env's linear model
+            learned_forecast(forecast_of(loaded), forecast.network, card)
     except CoachingError as exc:
         raise CoachingError(f"{spec.name}: {exc}") from None
     op = resolve_operating_point(loaded)
