@@ -502,9 +502,8 @@ def kept_share(region: Any, margins: dict[str, float], samples: int = 20000, see
     except CoachingError:
         return 0.0
     rng = np.random.default_rng(seed)
-    if isinstance(region, ClassifierRegion):
-        assert isinstance(shrunk, ClassifierMarginRegion)
-        points = _classifier_points(region.classifier, region.threshold, samples, rng)
+    if isinstance(shrunk, ClassifierMarginRegion):
+        points = _classifier_points(shrunk.classifier, shrunk.threshold, samples, rng)
         return float(np.mean(shrunk.hold(points))) if len(points) else 0.0
     grid = region.grid
     marked = np.argwhere(np.asarray(grid.table, dtype=bool))

@@ -142,14 +142,8 @@ def measure_forecast(
     _check_options(transitions, held_out, seed, model, fit, width, epochs)
     loaded = loaded if loaded is not None else load_model(spec.env_id)
     card = loaded.require_card()
-    rescue = (spec.bounds or {}).get("rescue")
-    if rescue is None:
-        raise CoachingError(
-            f"{spec.name}: the spec has no rescue region; run `pidlab rescue SPEC --write` first"
-        )
-    region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
+    region = _rescue_region(spec, card)
     names = margin_variables(region)
-    check_forecastable(card, names, f"{spec.name}: pidlab forecast")
     cols = observation_indices(names, card.observation_names, "bounds.rescue")
     first = int(fit) if model == "learned" else 0
     total = first + int(transitions) + int(held_out)
@@ -178,8 +172,19 @@ def measure_forecast(
         median=tuple(float(v) for v in np.median(fitted, axis=0)),
         p99=tuple(float(v) for v in np.quantile(fitted, 0.99, axis=0)), transitions=int(transitions),
         held_out=int(held_out), escapes=escapes, seed=int(seed), agreement=agreement,
-        region=region_digest(rescue), network=network,
+        region=region_digest((spec.bounds or {})["rescue"]), network=network,
     )  # fmt: skip
+
+
+def _rescue_region(spec: CoachSpec, card: Any) -> Region:
+    """The spec's rescue region, refused when it has none or tests a variable no forecast gives."""
+    if (spec.bounds or {}).get("rescue") is None:
+        raise CoachingError(
+            f"{spec.name}: the spec has no rescue region; run `pidlab rescue SPEC --write` first"
+        )
+    region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
+    check_forecastable(card, margin_variables(region), f"{spec.name}: pidlab forecast")
+    return region
 
 
 def _agreement(
