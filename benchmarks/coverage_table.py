@@ -93,7 +93,7 @@ COACHES = {
         Coach("robust coach, lookup grid over pitch", runs=("Hopper-v5-rescue", "rescue-terminal")),
         Coach("room coach (gains searched on the env), no region", "tuning/Hopper-v5.pidlab-room.toml"),
         Coach("room coach, classifier over pitch, legs and rates (thigh within 0.6 rad, knee 0.8 rad)",
-              "tuning/Hopper-v5.pidlab-room-full.toml"),
+              "tuning/Hopper-v5.pidlab-room-full.toml", runs=("Hopper-v5-room", "rescue-terminal-room-full")),
     ),
     "Walker2d-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Walker2d-v5-evidence", "rescue-terminal")),
@@ -103,9 +103,18 @@ COACHES = {
 
 
 def spec_file(env: str, coach: Coach) -> Path:
-    """The spec scored: the runs' own ``coach.toml`` (checked the same in every seed), else a file."""
+    """The spec scored: the runs' own ``coach.toml`` (checked the same in every seed), else a file.
+
+    A coach given both (a file, then runs trained with it) is scored from the file, which must be
+    the runs' ``coach.toml`` to the byte.
+    """
     if coach.runs is None:
         return ROOT / str(coach.spec)
+    if coach.spec is not None:
+        path = ROOT / coach.spec
+        if spec_file(env, Coach(coach.label, None, coach.runs)).read_bytes() != path.read_bytes():
+            raise SystemExit(f"{coach.spec}: not the coach.toml of {coach.runs}")
+        return path
     seeds = sorted(_runs(coach.runs[0], env, coach.runs[1]).glob("seed-*/coach.toml"))
     if not seeds or len({p.read_bytes() for p in seeds}) != 1:
         raise SystemExit(f"{coach.runs}: expected one coach.toml shared by every seed ({len(seeds)} files)")
