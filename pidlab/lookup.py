@@ -381,11 +381,7 @@ class ResidualNet:
     def correction(self, inputs: np.ndarray) -> np.ndarray:
         """The correction of each row of ``inputs`` (shape ``(n, inputs)``), shape ``(n, len(variables))``."""
         x = np.atleast_2d(np.asarray(inputs, dtype=float))
-        h = (x - np.array(self.input_mean)) / np.array(self.input_scale)
-        for i, (w, b) in enumerate(self.layers):
-            h = h @ w + b
-            if i < len(self.layers) - 1:
-                h = np.tanh(h)
+        h = tanh_forward(self.layers, (x - np.array(self.input_mean)) / np.array(self.input_scale))
         return h * np.array(self.output_scale)
 
     def to_table(self) -> dict[str, Any]:
@@ -396,7 +392,7 @@ class ResidualNet:
             "input_mean": [float(v) for v in self.input_mean],
             "input_scale": [float(v) for v in self.input_scale],
             "output_scale": [float(v) for v in self.output_scale],
-            "layers": [{"weights": w.tolist(), "bias": b.tolist()} for w, b in self.layers],
+            "layers": layers_table(self.layers),
         }
 
 
@@ -459,6 +455,20 @@ MAX_WIDTH = 512
 """The widest hidden layer a classifier region may hold."""
 
 
+def tanh_forward(layers: tuple[tuple[np.ndarray, np.ndarray], ...], h: np.ndarray) -> np.ndarray:
+    """A spec's small network on the rows of ``h``: ``tanh`` after every layer but the last."""
+    for i, (w, b) in enumerate(layers):
+        h = h @ w + b
+        if i < len(layers) - 1:
+            h = np.tanh(h)
+    return h
+
+
+def layers_table(layers: tuple[tuple[np.ndarray, np.ndarray], ...]) -> list[dict[str, Any]]:
+    """A network's layers as TOML tables (``weights`` rows per input, ``bias``)."""
+    return [{"weights": w.tolist(), "bias": b.tolist()} for w, b in layers]
+
+
 @dataclass(frozen=True)
 class RescueClassifier:
     """A rescue region's data as a classifier: a small network scores a state, a threshold decides.
@@ -502,12 +512,7 @@ class RescueClassifier:
 
     def scores(self, points: np.ndarray) -> np.ndarray:
         """The network's score of each row of ``points`` (shape ``(n, k)``), shape ``(n,)``."""
-        h = self.scaled(points)
-        for i, (w, b) in enumerate(self.layers):
-            h = h @ w + b
-            if i < len(self.layers) - 1:
-                h = np.tanh(h)
-        return h[:, 0]
+        return tanh_forward(self.layers, self.scaled(points))[:, 0]
 
     def lowest_scores(self, points: np.ndarray, margins: np.ndarray) -> np.ndarray:
         """A lower bound of the score over each box ``points +- margins``, shape ``(n,)``.
@@ -551,7 +556,7 @@ class RescueClassifier:
             "variables": list(self.variables),
             "lower": [float(v) for v in self.lower],
             "upper": [float(v) for v in self.upper],
-            "layers": [{"weights": w.tolist(), "bias": b.tolist()} for w, b in self.layers],
+            "layers": layers_table(self.layers),
             "threshold": float(self.threshold),
             "coach": self.coach,
         }

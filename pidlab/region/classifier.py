@@ -50,6 +50,7 @@ from pidlab.errors import RegionError
 from pidlab.lookup import MAX_CLASSIFIER_VARIABLES, MAX_WIDTH, RescueClassifier, is_classifier
 from pidlab.plant.model import LoadedModel
 from pidlab.region.coverage import draw_states
+from pidlab.region.networks import fit_tanh_network
 from pidlab.region.rescue import MAX_ROUNDS, STARTS_ON_FLOOR, _Domain, _Estimate, simulations, state_domain
 from pidlab.region.takeover import ClassifierRegion, GridRegion, region_from_bounds
 
@@ -203,23 +204,9 @@ def fit_layers(
     """
     import torch
 
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
-            k = x.shape[1]
-            net = torch.nn.Sequential(
-                torch.nn.Linear(k, width), torch.nn.Tanh(), torch.nn.Linear(width, width), torch.nn.Tanh(),
-                torch.nn.Linear(width, 1),
-            )  # fmt: skip
-            _train(net, torch.tensor(x, dtype=torch.float32), torch.tensor(y, dtype=torch.float32),
-                   epochs, negative_weight)  # fmt: skip
-    finally:
-        torch.set_num_threads(threads)
-    linears = [m for m in net if isinstance(m, torch.nn.Linear)]
-    return tuple((m.weight.detach().double().numpy().T.copy(), m.bias.detach().double().numpy().copy())
-                 for m in linears)  # fmt: skip
+    xt, yt = torch.tensor(x, dtype=torch.float32), torch.tensor(y, dtype=torch.float32)
+    return fit_tanh_network(x.shape[1], 1, width, seed,
+                            lambda net: _train(net, xt, yt, epochs, negative_weight))  # fmt: skip
 
 
 def _train(net: Any, x: Any, y: Any, epochs: int, negative_weight: float) -> None:

@@ -39,8 +39,9 @@ from scipy.stats import binomtest
 from pidlab.checks import integer, number
 from pidlab.checks import seed as check_seed
 from pidlab.controller.spec import CoachSpec
-from pidlab.errors import RegionError
+from pidlab.errors import CoachingError, RegionError
 from pidlab.plant.model import LoadedModel
+from pidlab.region.forecast import margin_region, spec_forecast
 from pidlab.region.rescue import _Estimate, simulations, state_domain
 from pidlab.region.takeover import region_from_bounds
 
@@ -226,9 +227,6 @@ def _score(kind: str, inside: np.ndarray, rescued: np.ndarray) -> RegionScore:
 
 def _through_margins(spec: CoachSpec, names: tuple[str, ...], obs: np.ndarray) -> np.ndarray:
     """Whether the box of the spec's forecast margins about each observation lies in its rescue region."""
-    from pidlab.errors import CoachingError
-    from pidlab.region.forecast import margin_region, spec_forecast
-
     region = region_from_bounds(spec.bounds, names, "rescue", spec.name)
     try:
         shrunk = margin_region(region, spec_forecast(spec.bounds, spec.name).margin)

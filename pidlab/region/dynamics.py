@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from pidlab.lookup import ResidualNet
+from pidlab.region.networks import fit_tanh_network
 
 BATCH = 256
 """Transitions per gradient step."""
@@ -35,7 +36,8 @@ def fit_residual(
 
     Inputs and residuals are standardized (the residuals by their standard deviation per variable);
     the loss is the mean squared error, minimized by Adam with a cosine-decayed step size over
-    ``epochs`` passes of shuffled batches of :data:`BATCH`, on one thread from ``seed``.
+    ``epochs`` passes of shuffled batches of :data:`BATCH`, on one thread from ``seed``
+    (:func:`pidlab.region.networks.fit_tanh_network`, as the classifier rescue region is fitted).
 
     Parameters
     ----------
@@ -57,22 +59,9 @@ def fit_residual(
     mean = x.mean(axis=0)
     scale = np.where(x.std(axis=0) > 1e-12, x.std(axis=0), 1.0)
     out = np.where(y.std(axis=0) > 1e-12, y.std(axis=0), 1.0)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
-            net = torch.nn.Sequential(
-                torch.nn.Linear(x.shape[1], width), torch.nn.Tanh(), torch.nn.Linear(width, width),
-                torch.nn.Tanh(), torch.nn.Linear(width, y.shape[1]),
-            )  # fmt: skip
-            _train(net, torch.tensor((x - mean) / scale, dtype=torch.float32),
-                   torch.tensor(y / out, dtype=torch.float32), epochs)  # fmt: skip
-    finally:
-        torch.set_num_threads(threads)
-    linears = [m for m in net if isinstance(m, torch.nn.Linear)]
-    layers = tuple((m.weight.detach().double().numpy().T.copy(), m.bias.detach().double().numpy().copy())
-                   for m in linears)  # fmt: skip
+    xt = torch.tensor((x - mean) / scale, dtype=torch.float32)
+    yt = torch.tensor(y / out, dtype=torch.float32)
+    layers = fit_tanh_network(x.shape[1], y.shape[1], width, seed, lambda net: _train(net, xt, yt, epochs))
     return ResidualNet(tuple(variables), tuple(float(v) for v in mean), tuple(float(v) for v in scale),
                        tuple(float(v) for v in out), layers, fitted=len(x))  # fmt: skip
 

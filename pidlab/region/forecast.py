@@ -93,8 +93,12 @@ class LinearForecast:
 
         NaN in the columns the forecast cannot fill (sources other than ``qpos`` and ``qvel``).
         """
-        u = np.clip(np.asarray(action, dtype=float).reshape(-1), self.ctrl_low, self.ctrl_high) - self.ctrl_op
-        x = self.Ad @ self.state(model, qpos, qvel, act) + self.Bd @ u
+        return self.from_inputs(model, self.inputs(model, qpos, qvel, act, action))
+
+    def from_inputs(self, model: mujoco.MjModel, z: np.ndarray) -> np.ndarray:
+        """:meth:`observation` from the linear model's inputs ``z`` (:meth:`inputs`)."""
+        n = self.Ad.shape[0]
+        x = self.Ad @ z[:n] + self.Bd @ z[n:]
         nv = model.nv
         q = self.qpos_op.copy()
         mujoco.mj_integratePos(model, q, x[:nv], 1.0)
@@ -148,8 +152,8 @@ class LearnedForecast:
         self, model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, action: np.ndarray
     ) -> np.ndarray:
         """The corrected forecast observation one control period after ``action``."""
-        linear = self.linear.observation(model, qpos, qvel, act, action)
-        return self.correct(linear[None, :], self.linear.inputs(model, qpos, qvel, act, action)[None, :])[0]
+        z = self.linear.inputs(model, qpos, qvel, act, action)
+        return self.correct(self.linear.from_inputs(model, z)[None, :], z[None, :])[0]
 
     def correct(self, linear: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         """Linear forecasts (rows of ``linear``) corrected by the network at their ``inputs``."""
@@ -442,14 +446,12 @@ class ClassifierMarginRegion:
 
     def holds(self, y: np.ndarray) -> bool:
         """:meth:`contains` of the classifier's variables ``y`` alone (in its order)."""
-        if not (np.all(y >= self._lo) and np.all(y <= self._hi)):  # also False for NaN
-            return False
-        return box_in_classifier(self.classifier, y, self._m, self.threshold)
+        return bool(self.hold(y)[0])
 
     def hold(self, ys: np.ndarray) -> np.ndarray:
         """:meth:`holds` of each row of ``ys``, all at once."""
         ys = np.atleast_2d(np.asarray(ys, dtype=float))
-        inside = np.all((ys >= self._lo) & (ys <= self._hi), axis=1)
+        inside = np.all((ys >= self._lo) & (ys <= self._hi), axis=1)  # also False for NaN
         out = np.zeros(len(ys), dtype=bool)
         if inside.any():
             out[inside] = boxes_in_classifier(self.classifier, ys[inside], self._m, self.threshold)

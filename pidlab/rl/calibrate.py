@@ -62,9 +62,10 @@ def _record(
 
     def listener(data: Any, action: Any, obs: np.ndarray) -> None:
         if len(truth) < count:
+            z = forecast.inputs(model, data.qpos, data.qvel, data.act, action)
             truth.append(np.array(obs, dtype=float))
-            guess.append(forecast.observation(model, data.qpos, data.qvel, data.act, action))
-            inputs.append(forecast.inputs(model, data.qpos, data.qvel, data.act, action))
+            guess.append(forecast.from_inputs(model, z))
+            inputs.append(z)
             tick()
 
     lookahead = env.lookahead
