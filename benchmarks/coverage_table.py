@@ -81,6 +81,9 @@ COACHES = {
         Coach("room coach, classifier validated at its edge, asked through the linear forecast's margins "
               "(the model predictor)", runs=("InvertedPendulum-v5-edgemodel", "rescue-terminal-edge-model"),
               kind=MODEL_KIND),
+        Coach("room coach, classifier validated at its edge, asked through the linear forecast's margins "
+              "with the linear bound", "tuning/InvertedPendulum-v5.pidlab-rescue-edge-linear.toml",
+              kind=MODEL_KIND),
     ),
     "InvertedDoublePendulum-v5": (
         Coach("room coach, lookup grid + guard box",
@@ -88,6 +91,8 @@ COACHES = {
         Coach("room coach, classifier", runs=("InvertedDoublePendulum-v5-full", "rescue-terminal-full")),
         Coach("room coach, classifier, asked through the learned forecast's margins (the model predictor)",
               runs=("InvertedDoublePendulum-v5-learned", "rescue-terminal-full-learned"), kind=MODEL_KIND),
+        Coach("room coach, classifier, asked through the learned forecast's margins with the linear bound",
+              "tuning/InvertedDoublePendulum-v5.pidlab-rescue-full-linear.toml", kind=MODEL_KIND),
     ),
     "Hopper-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Hopper-v5-rescue", "rescue-terminal")),

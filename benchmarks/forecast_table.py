@@ -25,7 +25,7 @@ from pidlab.controller.spec import load_spec
 from pidlab.errors import CoachingError
 from pidlab.plant.model import load_model
 from pidlab.region.forecast import kept_share, spec_forecast
-from pidlab.region.takeover import region_from_bounds
+from pidlab.region.takeover import ClassifierRegion, region_from_bounds
 from pidlab.rl.coaching import model_region
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,8 +33,10 @@ PAGE = ROOT / "docs" / "rescue.md"
 SPECS = (
     ("InvertedPendulum-v5", "pidlab-rescue-model", "lookup grid"),
     ("InvertedPendulum-v5", "pidlab-rescue-edge-model", "classifier validated at its edge"),
+    ("InvertedPendulum-v5", "pidlab-rescue-edge-linear", "classifier validated at its edge"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-model", "lookup grid + guard box"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-learned", "classifier over the full state"),
+    ("InvertedDoublePendulum-v5", "pidlab-rescue-full-linear", "classifier over the full state"),
     ("Hopper-v5", "pidlab-rescue-model", "lookup grid over pitch"),
     ("Walker2d-v5", "pidlab-rescue-model", "lookup grid over pitch"),
 )
@@ -50,6 +52,11 @@ START, END = "<!-- forecast-table -->", "<!-- /forecast-table -->"
 
 def _unit(unit: str) -> str:
     return "" if unit in ("", "1") else f" {unit}"
+
+
+def _model_cell(f, region) -> str:
+    """The forecast model, and for a classifier region how its score is bounded over a margin box."""
+    return f"{f.model}, {f.bound} bound" if isinstance(region, ClassifierRegion) else f.model
 
 
 def _error_cell(f, units: dict[str, str]) -> str:
@@ -74,11 +81,12 @@ def row(env: str, name: str, shape: str) -> str:
     a = f.agreement
     units = {v.name: v.unit for v in card.observation}
     return (
-        f"| {env} | {shape} | {f.model} | {_error_cell(f, units)} | {f.escapes} of {f.held_out:,} | "
+        f"| {env} | {shape} | {_model_cell(f, region)} | {_error_cell(f, units)} | "
+        f"{f.escapes} of {f.held_out:,} | "
         f"{a['both']:,} | "
         f"{a['exact_only']:,} | {a['model_only']:,} | {a['neither']:,} | "
         f"**{100 * f.veto_agreement:.1f} %** | "
-        f"{100 * kept_share(region, f.margin):.1f} % | {usable} |"
+        f"{100 * kept_share(region, f.margin, bound=f.bound):.1f} % | {usable} |"
     )
 
 

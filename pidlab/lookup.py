@@ -23,6 +23,11 @@ MODELS = ("linear", "learned")
 """The forecast models: the discrete linear model at the card's operating point, and that model
 corrected by a network fitted on recorded transitions (:class:`ResidualNet`)."""
 
+BOUNDS = ("interval", "linear")
+"""How the model predictor bounds a classifier's score over a forecast's margin box
+(:meth:`RescueClassifier.lowest_scores`): interval arithmetic, or a linear relaxation (tighter). A
+``[bounds.forecast]`` table without ``bound`` was measured with ``"interval"``."""
+
 TRIGGERS = ("reactive", "predictive")
 """What a rescue region was derived for: a check after the agent's step, or one before it."""
 
@@ -153,7 +158,7 @@ LOOKUP_FIELDS = ("trigger", "action_fraction", "variables", "lower", "upper", "c
                  "provenance")  # fmt: skip
 """The fields of a ``[bounds.rescue]`` table."""
 FORECAST_FIELDS = ("model", "region", "transitions", "held_out", "escapes", "seed", "margins", "median",
-                   "p99", "agreement", "network")  # fmt: skip
+                   "p99", "agreement", "network", "bound")  # fmt: skip
 """The fields of a ``[bounds.forecast]`` table."""
 
 
@@ -239,6 +244,9 @@ class ForecastError:
     network : ResidualNet or None
         The learned correction (``model = "learned"`` only), fitted on transitions before the
         ``transitions`` that set the margins.
+    bound : str
+        How a classifier region's score is bounded over a margin box (:data:`BOUNDS`); the
+        agreement was measured with it. A lookup grid is asked cell by cell, exactly, either way.
     """
 
     model: str
@@ -253,6 +261,7 @@ class ForecastError:
     agreement: dict[str, int]
     region: str
     network: ResidualNet | None = None
+    bound: str = "interval"
 
     @property
     def margin(self) -> dict[str, float]:
@@ -279,6 +288,7 @@ class ForecastError:
             "median": dict(zip(self.variables, self.median, strict=True)),
             "p99": dict(zip(self.variables, self.p99, strict=True)),
             "agreement": dict(self.agreement),
+            "bound": self.bound,
             **({"network": self.network.to_table()} if self.network is not None else {}),
         }
 
@@ -327,8 +337,11 @@ def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
     network = _network_of(t, where)
     if network is not None and network.variables != names:
         raise SpecError(f"{where}.network.variables: expected the margins' variables {', '.join(names)}")
+    bound = t.get("bound", "interval")
+    if bound not in BOUNDS:
+        raise SpecError(f"{where}.bound: {bound!r}; expected one of {', '.join(BOUNDS)}")
     return ForecastError(
-        network=network,
+        network=network, bound=bound,
         model=t["model"], variables=names, margins=tuple(margins.values()),
         median=tuple(median[n] for n in names),
         p99=tuple(p99[n] for n in names), transitions=counts["transitions"], held_out=counts["held_out"],
@@ -514,13 +527,10 @@ class RescueClassifier:
         """The network's score of each row of ``points`` (shape ``(n, k)``), shape ``(n,)``."""
         return tanh_forward(self.layers, self.scaled(points))[:, 0]
 
-    def lowest_scores(self, points: np.ndarray, margins: np.ndarray) -> np.ndarray:
+    def lowest_scores(self, points: np.ndarray, margins: np.ndarray, bound: str = "interval") -> np.ndarray:
         """A lower bound of the score over each box ``points +- margins``, shape ``(n,)``.
 
-        Interval arithmetic through the network: a linear layer maps a box of centre ``c`` and
-        half-widths ``r`` into the box of centre ``c W + b`` and half-widths ``r |W|``, and ``tanh``,
-        being increasing, maps an interval's ends to its image's. No state of the box scores below
-        the bound; with zero margins it is the score itself.
+        No state of the box scores below the bound; with zero margins it is the score itself.
 
         Parameters
         ----------
@@ -528,17 +538,17 @@ class RescueClassifier:
             Box centres, shape ``(n, k)`` (the classifier's variables, in observation units).
         margins : ndarray
             Half-widths per variable, shape ``(k,)`` or ``(n, k)``.
+        bound : {"interval", "linear"}
+            :func:`pidlab.region.relaxation.interval_lowest` (interval arithmetic through the
+            network) or :func:`~pidlab.region.relaxation.linear_lowest` (a linear relaxation carried
+            back to the input: tighter, slower); :data:`BOUNDS`.
         """
+        from pidlab.region.relaxation import interval_lowest, linear_lowest
+
         lo, hi = np.array(self.lower), np.array(self.upper)
         c = self.scaled(points)
         r = np.broadcast_to(2.0 * np.abs(np.asarray(margins, dtype=float)) / (hi - lo), c.shape)
-        last = len(self.layers) - 1
-        for i, (w, b) in enumerate(self.layers):
-            c, r = c @ w + b, r @ np.abs(w)
-            if i < last:
-                low, high = np.tanh(c - r), np.tanh(c + r)
-                c, r = (low + high) / 2.0, (high - low) / 2.0
-        return (c - r)[:, 0]
+        return (linear_lowest if bound == "linear" else interval_lowest)(self.layers, c, r)
 
     def inside(self, points: np.ndarray, threshold: float | None = None) -> np.ndarray:
         """Whether each row of ``points`` is in the domain box with a score of at least the threshold."""

@@ -203,7 +203,46 @@ def test_halving_proves_a_box_the_interval_bound_alone_cannot() -> None:
     assert not box_in_classifier(bump, np.array([0.0]), np.array([0.3]), 0.0, splits=8)
 
 
-def test_a_proven_box_holds_no_state_below_the_threshold() -> None:
+def test_the_linear_bound_is_the_hand_computed_relaxation() -> None:
+    # tanh(3 x) + tanh(-3 x) over 0.5 +- 0.25: the units' pre-activations span [0.75, 2.25] and
+    # [-2.25, -0.75], both relaxed by lines of slope k = 1 - tanh(2.25)^2; the x terms cancel and
+    # the lower lines' offsets give tanh(0.75) - tanh(2.25) + 1.5 k (the interval bound: tanh(0.75) - tanh(2.25))
+    flat = _net([[3.0, -3.0]], [0.0, 0.0], [[1.0], [1.0]], [0.0])
+    k = 1.0 - np.tanh(2.25) ** 2
+    expected = np.tanh(0.75) - np.tanh(2.25) + 1.5 * k
+    centre, margin = np.array([[0.5]]), np.array([0.25])
+    assert flat.lowest_scores(centre, margin, "linear")[0] == pytest.approx(expected, abs=1e-12)
+    assert flat.lowest_scores(centre, margin)[0] == pytest.approx(np.tanh(0.75) - np.tanh(2.25), abs=1e-12)
+    up = _net([[2.0]], [0.0], [[1.0]], [0.0])  # monotone: the line through the box's low end is exact there
+    assert up.lowest_scores(centre, margin, "linear")[0] == pytest.approx(np.tanh(0.5), abs=1e-12)
+    # -0.343 by intervals, -0.278 by lines: only the linear bound proves -0.3 without a halving
+    assert box_in_classifier(flat, centre[0], margin, -0.3, splits=0, bound="linear")
+    assert not box_in_classifier(flat, centre[0], margin, -0.3, splits=0)
+
+
+@pytest.mark.parametrize("spec_file", [EDGE, TUNING / "InvertedDoublePendulum-v5.pidlab-rescue-full-learned.toml"])
+def test_the_linear_bound_is_sound_and_proves_more(spec_file) -> None:
+    """No state of a box (corners included) scores below either bound, at every box size; the linear
+    bound proves at least every box the interval bound proves, and more on the forecast's small boxes."""
+    clf = parse_rescue(load_spec(spec_file).bounds["rescue"])
+    lo, hi = np.array(clf.lower), np.array(clf.upper)
+    rng = np.random.default_rng(4)
+    for size in (0.005, 0.05, 0.3):
+        margins = (hi - lo) * size
+        centres = lo + (hi - lo) * rng.random((200, len(lo)))
+        linear, interval = clf.lowest_scores(centres, margins, "linear"), clf.lowest_scores(centres, margins)
+        samples = centres[:, None, :] + margins * rng.choice([-1.0, 1.0, 0.3, -0.7], size=(200, 40, len(lo)))
+        lowest = clf.scores(samples.reshape(-1, len(lo))).reshape(200, 40).min(axis=1)
+        assert np.all(lowest >= linear - 1e-9) and np.all(lowest >= interval - 1e-9)
+    margins = (hi - lo) * 0.01
+    centres = lo + margins + (hi - lo - 2 * margins) * rng.random((300, len(lo)))
+    by_interval = boxes_in_classifier(clf, centres, margins, clf.threshold)
+    by_linear = boxes_in_classifier(clf, centres, margins, clf.threshold, bound="linear")
+    assert np.all(by_linear >= by_interval) and by_linear.sum() > by_interval.sum()
+
+
+@pytest.mark.parametrize("bound", ["interval", "linear"])
+def test_a_proven_box_holds_no_state_below_the_threshold(bound) -> None:
     spec = load_spec(EDGE)
     clf = parse_rescue(spec.bounds["rescue"])
     lo, hi = np.array(clf.lower), np.array(clf.upper)
@@ -211,10 +250,10 @@ def test_a_proven_box_holds_no_state_below_the_threshold() -> None:
     margins = (hi - lo) * 0.02
     proven = 0
     centres = lo + margins + (hi - lo - 2 * margins) * rng.random((300, len(lo)))
-    one_by_one = [box_in_classifier(clf, centre, margins, clf.threshold) for centre in centres]
-    assert boxes_in_classifier(clf, centres, margins, clf.threshold).tolist() == one_by_one  # all at once
-    for centre in centres:
-        if box_in_classifier(clf, centre, margins, clf.threshold):
+    one_by_one = [box_in_classifier(clf, centre, margins, clf.threshold, bound=bound) for centre in centres]
+    assert boxes_in_classifier(clf, centres, margins, clf.threshold, bound=bound).tolist() == one_by_one
+    for centre, ok in zip(centres, one_by_one, strict=True):
+        if ok:
             proven += 1
             inside = centre + margins * rng.uniform(-1, 1, size=(200, len(lo)))
             corners = centre + margins * rng.choice([-1.0, 1.0], size=(64, len(lo)))
@@ -278,6 +317,9 @@ def test_the_measurement_accounts_for_every_action_and_repeats(ip, measured) -> 
     assert max(found.margins) > 0
     assert measure_forecast(spec, ip, transitions=300, held_out=200, seed=3) == found
     assert parse_forecast(found.to_table()) == found
+    assert found.bound == "linear" and found.to_table()["bound"] == "linear"
+    published = {k: v for k, v in found.to_table().items() if k != "bound"}  # measured before the field
+    assert parse_forecast(published).bound == "interval"
 
 
 def test_a_spec_keeps_its_forecast_through_a_file(tmp_path, measured) -> None:
@@ -301,6 +343,8 @@ def test_a_spec_keeps_its_forecast_through_a_file(tmp_path, measured) -> None:
             r"add up to 1, not to the 200",
         ),
         ({"extra": 1}, r"unknown field\(s\) \['extra'\]"),
+        ({"bound": "cubic"}, r"bound: 'cubic'; expected one of interval, linear"),
+        ({"bound": ["linear"]}, r"bound: \['linear'\]; expected one of"),
     ],
 )
 def test_a_bad_forecast_table_is_refused_by_name(measured, change, message) -> None:
@@ -395,6 +439,7 @@ def test_forecast_writes_a_named_copy_of_the_spec(tmp_path) -> None:
         (["--model", "quadratic"], "--model 'quadratic': expected one of linear, learned"),
         (["--model", "learned", "--fit", "10"], "--fit 10: expected an integer in [100, 1000000]"),
         (["--model", "learned", "--width", "1"], "--width 1: expected an integer in [2, 512]"),
+        (["--bound", "cubic"], "--bound 'cubic': expected one of interval, linear"),
     ],
 )
 def test_forecast_refuses_bad_options_in_one_line(args, message) -> None:

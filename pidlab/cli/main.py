@@ -1229,6 +1229,14 @@ def forecast(
     ] = 30000,
     width: Annotated[int, typer.Option(help="Units per hidden layer of the learned correction.")] = 64,
     epochs: Annotated[int, typer.Option(help="Passes over the fitted actions.")] = 100,
+    bound: Annotated[
+        str,
+        typer.Option(
+            metavar="linear|interval",
+            help="How a classifier region's score is bounded over a forecast's margin box: a linear "
+            "relaxation of the network (tighter) or interval arithmetic. Kept in [bounds.forecast].",
+        ),
+    ] = "linear",
     write: Annotated[bool, typer.Option("--write", help="Write [bounds.forecast] into SPEC.")] = False,
     output: Annotated[
         str | None,
@@ -1258,12 +1266,13 @@ def forecast(
             found = measure_forecast(
                 spec, loaded, transitions=transitions, held_out=held_out, seed=seed,
                 progress=lambda done, total: bar(done), model=model, fit=fit, width=width, epochs=epochs,
+                bound=bound,
             )  # fmt: skip
         card = loaded.require_card()
         units = {v.name: v.unit for v in card.observation}
         con = wide_console()
         region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
-        con.print(forecast_view(found, units, kept_share(region, found.margin)))
+        con.print(forecast_view(found, units, kept_share(region, found.margin, bound=found.bound)))
         new = _with_forecast(spec, found)
         if write:
             con.print(f"wrote the forecast's error into {save_spec(new, spec_file)}")

@@ -8,5 +8,8 @@
   validated on fresh states), and :mod:`pidlab.region.room` tunes a coach for the largest one;
 - :mod:`pidlab.region.takeover` answers, for every shape, whether an observation lies in a spec's
   takeover region (:func:`pidlab.load_region`);
+- :mod:`pidlab.region.forecast` asks a rescue region about the box of a forecast's measured
+  error (the model predictor, a trigger without a copy of the simulator), bounding a classifier's
+  score over a box with :mod:`pidlab.region.relaxation`;
 - :mod:`pidlab.region.simulate` holds the simulation helpers they share.
 """

@@ -229,7 +229,8 @@ def _through_margins(spec: CoachSpec, names: tuple[str, ...], obs: np.ndarray) -
     """Whether the box of the spec's forecast margins about each observation lies in its rescue region."""
     region = region_from_bounds(spec.bounds, names, "rescue", spec.name)
     try:
-        shrunk = margin_region(region, spec_forecast(spec.bounds, spec.name).margin)
+        forecast = spec_forecast(spec.bounds, spec.name)
+        shrunk = margin_region(region, forecast.margin, forecast.bound)
     except CoachingError:  # the margins leave nothing of the region
         return np.zeros(len(obs), dtype=bool)
     return np.array([shrunk.contains(o) for o in obs], dtype=bool)

@@ -343,24 +343,27 @@ class MarginRegion(GridRegion):
 
 def box_in_classifier(
     classifier: RescueClassifier, centre: np.ndarray, margins: np.ndarray, threshold: float,
-    splits: int = SPLITS,
+    splits: int = SPLITS, bound: str = "interval",
 ) -> bool:  # fmt: skip
     """Whether every state of the box ``centre +- margins`` scores at least ``threshold``.
 
-    :meth:`~pidlab.lookup.RescueClassifier.lowest_scores` bounds the score over a box from below;
-    where the bound falls short, the box is halved along its widest side (in the network's scaled
-    units) and each half asked again, ``splits`` times at most. A box any of whose pieces' centres
-    scores below the threshold fails at once (that state is outside); one still unproven after the
-    last halving fails too. So a True is proof (every state of the box is inside) and a False may be
-    a box that is inside but too close to the edge to prove it. The domain box is not checked here.
+    :meth:`~pidlab.lookup.RescueClassifier.lowest_scores` bounds the score over a box from below
+    (interval arithmetic; with ``bound = "linear"``, for a box that leaves open, also the linear
+    relaxation); where the bound falls short, the box is halved along its widest side (in the
+    network's scaled units) and each half asked again, ``splits`` times at most. A box any of whose
+    pieces' centres scores below the threshold fails at once (that state is outside); one still
+    unproven after the last halving fails too. So a True is proof (every state of the box is
+    inside) and a False may be a box that is inside but too close to the edge to prove it. The
+    domain box is not checked here.
     """
     c = np.atleast_2d(np.asarray(centre, dtype=float))
-    return bool(boxes_in_classifier(classifier, c, np.asarray(margins, dtype=float), threshold, splits)[0])
+    m = np.asarray(margins, dtype=float)
+    return bool(boxes_in_classifier(classifier, c, m, threshold, splits, bound)[0])
 
 
 def boxes_in_classifier(
     classifier: RescueClassifier, centres: np.ndarray, margins: np.ndarray, threshold: float,
-    splits: int = SPLITS,
+    splits: int = SPLITS, bound: str = "interval",
 ) -> np.ndarray:  # fmt: skip
     """:func:`box_in_classifier` of each row of ``centres`` (shape ``(n, k)``), all at once: bool ``(n,)``.
 
@@ -373,7 +376,8 @@ def boxes_in_classifier(
     width = np.array(classifier.upper) - np.array(classifier.lower)
     for level in range(splits + 1):
         failed[owner[classifier.scores(c) < threshold]] = True  # a state of the box is outside
-        open_ = ~failed[owner] & (classifier.lowest_scores(c, m) < threshold)
+        open_ = ~failed[owner]
+        open_[open_] = ~_proven(classifier, c[open_], m[open_], threshold, bound)
         c, m, owner = c[open_], m[open_], owner[open_]
         if not len(c):
             break
@@ -387,6 +391,21 @@ def boxes_in_classifier(
         step[rows, side] = m[rows, side]
         c, m, owner = np.concatenate([c - step, c + step]), np.concatenate([m, m]), np.tile(owner, 2)
     return ~failed
+
+
+def _proven(
+    classifier: RescueClassifier, c: np.ndarray, m: np.ndarray, threshold: float, bound: str
+) -> np.ndarray:
+    """Whether a lower bound of the score over each box reaches ``threshold``.
+
+    The interval bound, and with ``bound = "linear"`` the linear relaxation for the boxes the
+    interval bound leaves open.
+    """
+    proven = classifier.lowest_scores(c, m) >= threshold
+    if bound == "linear" and not proven.all():
+        open_ = ~proven
+        proven[open_] = classifier.lowest_scores(c[open_], m[open_], "linear") >= threshold
+    return proven
 
 
 class ClassifierMarginRegion:
@@ -404,6 +423,8 @@ class ClassifierMarginRegion:
         The rescue region (its observation layout and threshold).
     margins : dict
         ``variable -> margin`` for every variable the classifier tests.
+    bound : {"interval", "linear"}
+        How the score is bounded over a box (:data:`pidlab.lookup.BOUNDS`, :func:`box_in_classifier`).
 
     Raises
     ------
@@ -414,9 +435,10 @@ class ClassifierMarginRegion:
     kind = "rescue"
     trigger = "predictive"
 
-    def __init__(self, region: ClassifierRegion, margins: dict[str, float]) -> None:
+    def __init__(self, region: ClassifierRegion, margins: dict[str, float], bound: str = "interval") -> None:
         clf = region.classifier
         self.region = region
+        self.bound = bound
         self.classifier = clf
         self.variables = clf.variables
         self.observation_names = region.observation_names
@@ -454,7 +476,9 @@ class ClassifierMarginRegion:
         inside = np.all((ys >= self._lo) & (ys <= self._hi), axis=1)  # also False for NaN
         out = np.zeros(len(ys), dtype=bool)
         if inside.any():
-            out[inside] = boxes_in_classifier(self.classifier, ys[inside], self._m, self.threshold)
+            out[inside] = boxes_in_classifier(
+                self.classifier, ys[inside], self._m, self.threshold, bound=self.bound
+            )
         return out
 
     def inner(self, fraction: float) -> ClassifierRegion:
@@ -462,8 +486,13 @@ class ClassifierMarginRegion:
         return self.region.inner(fraction)
 
 
-def margin_region(region: Any, margins: dict[str, float]) -> MarginRegion | ClassifierMarginRegion:
+def margin_region(
+    region: Any, margins: dict[str, float], bound: str = "interval"
+) -> MarginRegion | ClassifierMarginRegion:
     """The rescue region ``region`` asked of a forecast with ``margins`` (a grid's or a classifier's).
+
+    ``bound`` is how a classifier's score is bounded over a margin box (:data:`pidlab.lookup.BOUNDS`);
+    a grid is asked cell by cell, exactly.
 
     Raises
     ------
@@ -471,7 +500,7 @@ def margin_region(region: Any, margins: dict[str, float]) -> MarginRegion | Clas
         ``region`` is no rescue region, or a margin leaves nothing of it.
     """
     if isinstance(region, ClassifierRegion):
-        return ClassifierMarginRegion(region, margins)
+        return ClassifierMarginRegion(region, margins, bound)
     if isinstance(region, GridRegion):
         return MarginRegion(region, margins)
     raise CoachingError(f"the model predictor narrows a rescue region, not a {type(region).__name__}")
@@ -492,7 +521,9 @@ def _check_room(name: str, margin: float, lo: float, hi: float) -> None:
         )
 
 
-def kept_share(region: Any, margins: dict[str, float], samples: int = 20000, seed: int = 0) -> float:
+def kept_share(
+    region: Any, margins: dict[str, float], samples: int = 20000, seed: int = 0, bound: str = "interval"
+) -> float:
     """The share of the rescue region whose margin box fits in it (a Monte Carlo estimate).
 
     ``samples`` points drawn uniformly in the region (a grid: a marked cell, then a point in it, and
@@ -500,7 +531,7 @@ def kept_share(region: Any, margins: dict[str, float], samples: int = 20000, see
     ``samples`` are found or ``50 * samples`` drawn); 0 when no box fits at all.
     """
     try:
-        shrunk = margin_region(region, margins)
+        shrunk = margin_region(region, margins, bound)
     except CoachingError:
         return 0.0
     rng = np.random.default_rng(seed)

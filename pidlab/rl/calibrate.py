@@ -26,7 +26,7 @@ from pidlab.checks import integer
 from pidlab.checks import seed as checked_seed
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
-from pidlab.lookup import AGREEMENT, MAX_WIDTH, MODELS, ForecastError, region_digest
+from pidlab.lookup import AGREEMENT, BOUNDS, MAX_WIDTH, MODELS, ForecastError, region_digest
 from pidlab.plant.model import LoadedModel, load_model
 from pidlab.region.dynamics import fit_residual
 from pidlab.region.forecast import (
@@ -85,7 +85,7 @@ def _record(
 
 
 def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: int, width: int,
-                   epochs: int) -> None:  # fmt: skip
+                   epochs: int, bound: str) -> None:  # fmt: skip
     integer(transitions, "transitions", CoachingError, low=1, high=MAX_TRANSITIONS, param="transitions")
     integer(held_out, "held_out", CoachingError, low=0, high=MAX_TRANSITIONS, param="held_out")
     checked_seed(seed, "seed", CoachingError, param="seed")
@@ -95,6 +95,8 @@ def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: 
         integer(fit, "fit", CoachingError, low=100, high=MAX_TRANSITIONS, param="fit")
         integer(width, "width", CoachingError, low=2, high=MAX_WIDTH, param="width")
         integer(epochs, "epochs", CoachingError, low=1, high=10_000, param="epochs")
+    if bound not in BOUNDS:
+        raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
 
 
 def measure_forecast(
@@ -108,6 +110,7 @@ def measure_forecast(
     fit: int = 30_000,
     width: int = 64,
     epochs: int = 100,
+    bound: str = "linear",
 ) -> ForecastError:
     """The forecast's error on the spec's rescue region, and what it does to the shield.
 
@@ -127,6 +130,9 @@ def measure_forecast(
         The linear forecast, or the linear forecast corrected by a network fitted on ``fit``
         actions recorded first (:func:`pidlab.region.dynamics.fit_residual`, ``width`` units per
         hidden layer, ``epochs`` passes); the margins are then measured on actions it never saw.
+    bound : {"linear", "interval"}
+        How a classifier region's score is bounded over a margin box for the veto agreement, and
+        then by the shield (:data:`pidlab.lookup.BOUNDS`; a lookup grid is asked exactly either way).
 
     Returns
     -------
@@ -140,7 +146,7 @@ def measure_forecast(
         Counts below 1 (``held_out`` below 0; ``fit`` below 100) or above :data:`MAX_TRANSITIONS`,
         an unknown model, no rescue region, or a region over a variable no joint-state forecast gives.
     """
-    _check_options(transitions, held_out, seed, model, fit, width, epochs)
+    _check_options(transitions, held_out, seed, model, fit, width, epochs, bound)
     loaded = loaded if loaded is not None else load_model(spec.env_id)
     card = loaded.require_card()
     region = _rescue_region(spec, card)
@@ -167,13 +173,14 @@ def measure_forecast(
     margins = fitted.max(axis=0)
     escapes = int(np.any(check > margins, axis=1).sum())
     margin = dict(zip(names, margins, strict=True))
-    agreement = _agreement(region, margin, card.observation_names, truth[transitions:], guess[transitions:])
+    obs_names = card.observation_names
+    agreement = _agreement(region, margin, bound, obs_names, truth[transitions:], guess[transitions:])
     return ForecastError(
         model=model, variables=names, margins=tuple(float(m) for m in margins),
         median=tuple(float(v) for v in np.median(fitted, axis=0)),
         p99=tuple(float(v) for v in np.quantile(fitted, 0.99, axis=0)), transitions=int(transitions),
         held_out=int(held_out), escapes=escapes, seed=int(seed), agreement=agreement,
-        region=region_digest((spec.bounds or {})["rescue"]), network=network,
+        region=region_digest((spec.bounds or {})["rescue"]), network=network, bound=bound,
     )  # fmt: skip
 
 
@@ -191,13 +198,14 @@ def _rescue_region(spec: CoachSpec, card: Any) -> Region:
 def _agreement(
     region: Region,
     margins: dict[str, float],
+    bound: str,
     names: tuple[str, ...],
     truth: np.ndarray,
     guess: np.ndarray,
 ) -> dict[str, int]:
     """Veto by veto: the exact look-ahead's state in the region, the forecast's margin box in it."""
     try:
-        shrunk: MarginRegion | ClassifierMarginRegion | None = margin_region(region, margins)
+        shrunk: MarginRegion | ClassifierMarginRegion | None = margin_region(region, margins, bound)
     except CoachingError:  # nothing fits: the model vetoes every action
         shrunk = None
     counts = dict.fromkeys(AGREEMENT, 0)
