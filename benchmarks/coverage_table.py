@@ -84,6 +84,9 @@ COACHES = {
         Coach("room coach, classifier validated at its edge, asked through the linear forecast's margins "
               "with the linear bound", "tuning/InvertedPendulum-v5.pidlab-rescue-edge-linear.toml",
               kind=MODEL_KIND),
+        Coach("room coach, classifier validated at its edge, asked through the linear forecast's margins "
+              "with the linear bound, margins measured where the forecast lies in the region's domain",
+              "tuning/InvertedPendulum-v5.pidlab-rescue-edge-scoped.toml", kind=MODEL_KIND),
     ),
     "InvertedDoublePendulum-v5": (
         Coach("room coach, lookup grid + guard box",
@@ -93,6 +96,9 @@ COACHES = {
               runs=("InvertedDoublePendulum-v5-learned", "rescue-terminal-full-learned"), kind=MODEL_KIND),
         Coach("room coach, classifier, asked through the learned forecast's margins with the linear bound",
               "tuning/InvertedDoublePendulum-v5.pidlab-rescue-full-linear.toml", kind=MODEL_KIND),
+        Coach("room coach, classifier, asked through the learned forecast's margins with the linear bound, "
+              "margins measured where the forecast lies in the region's domain",
+              "tuning/InvertedDoublePendulum-v5.pidlab-rescue-full-scoped.toml", kind=MODEL_KIND),
     ),
     "Hopper-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Hopper-v5-rescue", "rescue-terminal")),

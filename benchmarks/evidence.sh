@@ -35,6 +35,9 @@
 #                                                     # model on the full-state region (rescue-terminal-full-learned)
 #   bash benchmarks/evidence.sh --room Hopper-v5     # Amendment 16: the room coach and its classifier
 #                                                     # region over the legs (rescue-terminal-room-full)
+#   bash benchmarks/evidence.sh --scoped InvertedDoublePendulum-v5  # Amendment 17: the learned model's
+#                                                     # margins where they decide a veto, the linear bound
+#                                                     # (rescue-terminal-full-scoped)
 #   bash benchmarks/evidence.sh --model InvertedPendulum-v5  # the model predictor in training
 #                                                     # (exploratory; none and rescue-terminal reused
 #                                                     # from the confirmatory sweep)
@@ -68,6 +71,7 @@ case "${1:-}" in
     --edgemodel) mode=edgemodel; shift ;;
     --learned) mode=learned; shift ;;
     --room) mode=room; shift ;;
+    --scoped) mode=scoped; shift ;;
 esac
 while [ $# -gt 0 ]; do
     if [ "$1" = "--" ]; then shift; extra=("$@"); break; fi
@@ -88,6 +92,7 @@ design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
         edgemodel) edgemodel_design "$1"; return ;;
         learned) learned_design "$1"; return ;;
         room) room_design "$1"; return ;;
+        scoped) scoped_design "$1"; return ;;
     esac
     case $1 in
         InvertedPendulum-v5) echo "InvertedPendulum-v5-rescue $rescue 50000 10" ;;
@@ -177,6 +182,13 @@ room_design() {  # Amendment 16: Hopper's room coach and its classifier region o
     esac
 }
 
+scoped_design() {  # Amendment 17: the learned model's margins where they decide a veto, and the linear bound
+    case $1 in
+        InvertedDoublePendulum-v5) echo "$1-scoped none,rescue-terminal-full,rescue-terminal-full-learned,rescue-terminal-full-scoped 200000 100-109" ;;
+        *) echo "evidence.sh: --scoped is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 17)" >&2; exit 2 ;;
+    esac
+}
+
 offpolicy_design() {  # Amendment 13: SAC that learns from the coach, against the best plain baseline
     case $1 in
         InvertedPendulum-v5) echo "$1-offpolicy none,rescue-replay,rescue-value,rescue-propose,warm-start-keep-shield-short 50000 100-109" ;;
@@ -204,7 +216,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge offpolicy edgemodel learned room; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge offpolicy edgemodel learned room scoped; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

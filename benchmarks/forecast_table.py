@@ -34,9 +34,11 @@ SPECS = (
     ("InvertedPendulum-v5", "pidlab-rescue-model", "lookup grid"),
     ("InvertedPendulum-v5", "pidlab-rescue-edge-model", "classifier validated at its edge"),
     ("InvertedPendulum-v5", "pidlab-rescue-edge-linear", "classifier validated at its edge"),
+    ("InvertedPendulum-v5", "pidlab-rescue-edge-scoped", "classifier validated at its edge"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-model", "lookup grid + guard box"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-learned", "classifier over the full state"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-linear", "classifier over the full state"),
+    ("InvertedDoublePendulum-v5", "pidlab-rescue-full-scoped", "classifier over the full state"),
     ("Hopper-v5", "pidlab-rescue-model", "lookup grid over pitch"),
     ("Walker2d-v5", "pidlab-rescue-model", "lookup grid over pitch"),
 )
@@ -55,8 +57,18 @@ def _unit(unit: str) -> str:
 
 
 def _model_cell(f, region) -> str:
-    """The forecast model, and for a classifier region how its score is bounded over a margin box."""
-    return f"{f.model}, {f.bound} bound" if isinstance(region, ClassifierRegion) else f.model
+    """The forecast model, how a classifier's score is bounded over a margin box, the margins' scope."""
+    cell = f"{f.model}, {f.bound} bound" if isinstance(region, ClassifierRegion) else f.model
+    if f.scope == "domain":
+        cell += f"; margins from the {f.in_scope:,} of {f.transitions:,} forecasts in the region's domain"
+    return cell
+
+
+def _escapes_cell(f) -> str:
+    """Held-out transitions outside the margins of their forecast, of those the margins speak for."""
+    if f.scope == "domain":
+        return f"{f.escapes} of {f.held_out_in_scope:,} in the domain ({f.held_out:,} in all)"
+    return f"{f.escapes} of {f.held_out:,}"
 
 
 def _error_cell(f, units: dict[str, str]) -> str:
@@ -82,7 +94,7 @@ def row(env: str, name: str, shape: str) -> str:
     units = {v.name: v.unit for v in card.observation}
     return (
         f"| {env} | {shape} | {_model_cell(f, region)} | {_error_cell(f, units)} | "
-        f"{f.escapes} of {f.held_out:,} | "
+        f"{_escapes_cell(f)} | "
         f"{a['both']:,} | "
         f"{a['exact_only']:,} | {a['model_only']:,} | {a['neither']:,} | "
         f"**{100 * f.veto_agreement:.1f} %** | "

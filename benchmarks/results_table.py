@@ -1,8 +1,8 @@
 """Write the tables of docs/results/README.md from the committed experiment reports.
 
 Four blocks, each between its own markers: the couplings against none (:func:`teaching_tables`: the
-sweeps of the plan's Amendments 1-5 and 7-16, `benchmarks/evidence.sh --teach` to `--teach7`,
-`--sac`, `--full`, `--edge`, `--offpolicy`, `--edgemodel`, `--learned` and `--room`), the
+sweeps of the plan's Amendments 1-5 and 7-17, `benchmarks/evidence.sh --teach` to `--teach7`,
+`--sac`, `--full`, `--edge`, `--offpolicy`, `--edgemodel`, `--learned`, `--room` and `--scoped`), the
 confirmation (:data:`CONFIRM`: the sweeps of docs/analysis-plan.md on fresh seeds,
 `benchmarks/evidence.sh --confirm`), the pilot evidence at budgets where the uncoached agent
 reaches the target (:data:`EVIDENCE`: the folders benchmarks/evidence.sh publishes, with `none`,
@@ -236,13 +236,14 @@ def tables(block: Block = EARLY) -> str:
 TEACH_BEGIN = "<!-- teaching: begin (benchmarks/results_table.py) -->"
 TEACH_END = "<!-- teaching: end -->"
 TEACH_SWEEPS = ("teach", "teach2", "teach3", "teach4", "teach5", "teach6", "teach7",
-                "sac", "full", "edge", "offpolicy", "edgemodel", "learned", "room")  # fmt: skip
+                "sac", "full", "edge", "offpolicy", "edgemodel", "learned", "room", "scoped")  # fmt: skip
 """The folders ENV-teach, ... ENV-teach7 (the plan's Amendments 1-5, 7 and 10), ENV-sac (Amendment 8: plain
 SAC beside plain PPO), ENV-full (Amendments 9 and 11: the rescue region over the full state), ENV-edge
 (Amendment 12: that region validated at its edge), ENV-offpolicy (Amendment 13: SAC that learns from
 the coach), ENV-edgemodel (Amendment 14: the model predictor on that region), ENV-learned (Amendment 15:
-a learned one-step model on the full-state region) and ENV-room (Amendment 16: Hopper's room coach and
-its region over the legs) of each env."""
+a learned one-step model on the full-state region), ENV-room (Amendment 16: Hopper's room coach and
+its region over the legs) and ENV-scoped (Amendment 17: that learned model's margins where they decide a
+veto, and the linear bound) of each env."""
 AIM = {"falls": 0.9, "env_steps_to_alone_target": 0.5}
 """Issue 35's aim as savings of the median against none: at least 90 % fewer falls, half the env steps."""
 

@@ -23,9 +23,14 @@ MODELS = ("linear", "learned")
 """The forecast models: the discrete linear model at the card's operating point, and that model
 corrected by a network fitted on recorded transitions (:class:`ResidualNet`)."""
 
+SCOPES = ("all", "domain")
+"""Which recorded transitions set a forecast's margins: all of them, or those whose forecast lies in
+the rescue region's domain box (the only ones whose error can decide a veto: a forecast whose
+margin box lies in the region lies in that box). A table without ``scope`` used ``"all"``."""
+
 BOUNDS = ("interval", "linear")
 """How the model predictor bounds a classifier's score over a forecast's margin box
-(:meth:`RescueClassifier.lowest_scores`): interval arithmetic, or a linear relaxation (tighter). A
+(:func:`pidlab.region.relaxation.lowest_scores`): interval arithmetic, or a linear relaxation (tighter). A
 ``[bounds.forecast]`` table without ``bound`` was measured with ``"interval"``."""
 
 TRIGGERS = ("reactive", "predictive")
@@ -158,7 +163,8 @@ LOOKUP_FIELDS = ("trigger", "action_fraction", "variables", "lower", "upper", "c
                  "provenance")  # fmt: skip
 """The fields of a ``[bounds.rescue]`` table."""
 FORECAST_FIELDS = ("model", "region", "transitions", "held_out", "escapes", "seed", "margins", "median",
-                   "p99", "agreement", "network", "bound")  # fmt: skip
+                   "p99", "agreement", "network", "bound", "scope", "in_scope",
+                   "held_out_in_scope")  # fmt: skip
 """The fields of a ``[bounds.forecast]`` table."""
 
 
@@ -247,6 +253,12 @@ class ForecastError:
     bound : str
         How a classifier region's score is bounded over a margin box (:data:`BOUNDS`); the
         agreement was measured with it. A lookup grid is asked cell by cell, exactly, either way.
+    scope : str
+        Which transitions set the margins (:data:`SCOPES`): all, or those whose forecast lies in the
+        region's domain box.
+    in_scope, held_out_in_scope : int or None
+        Of ``transitions`` and ``held_out``, how many were in scope (the margins, quantiles and
+        escapes are over those); None: all of them.
     """
 
     model: str
@@ -262,6 +274,9 @@ class ForecastError:
     region: str
     network: ResidualNet | None = None
     bound: str = "interval"
+    scope: str = "all"
+    in_scope: int | None = None
+    held_out_in_scope: int | None = None
 
     @property
     def margin(self) -> dict[str, float]:
@@ -289,6 +304,9 @@ class ForecastError:
             "p99": dict(zip(self.variables, self.p99, strict=True)),
             "agreement": dict(self.agreement),
             "bound": self.bound,
+            "scope": self.scope,
+            **({"in_scope": self.in_scope} if self.in_scope is not None else {}),
+            **({"held_out_in_scope": self.held_out_in_scope} if self.held_out_in_scope is not None else {}),
             **({"network": self.network.to_table()} if self.network is not None else {}),
         }
 
@@ -340,14 +358,35 @@ def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
     bound = t.get("bound", "interval")
     if bound not in BOUNDS:
         raise SpecError(f"{where}.bound: {bound!r}; expected one of {', '.join(BOUNDS)}")
+    scope, in_scope, held_in = _scope_of(t, where, counts)
     return ForecastError(
-        network=network, bound=bound,
+        network=network, bound=bound, scope=scope, in_scope=in_scope, held_out_in_scope=held_in,
         model=t["model"], variables=names, margins=tuple(margins.values()),
         median=tuple(median[n] for n in names),
         p99=tuple(p99[n] for n in names), transitions=counts["transitions"], held_out=counts["held_out"],
         escapes=counts["escapes"], seed=counts["seed"],
         agreement={k: int(agreement[k]) for k in AGREEMENT}, region=t["region"],
     )  # fmt: skip
+
+
+def _scope_of(t: dict[str, Any], where: str, counts: dict[str, int]) -> tuple[str, int | None, int | None]:
+    """A forecast table's ``scope`` and its in-scope counts (at most the counts they are of)."""
+    scope = t.get("scope", "all")
+    if scope not in SCOPES:
+        raise SpecError(f"{where}.scope: {scope!r}; expected one of {', '.join(SCOPES)}")
+    found: list[int | None] = []
+    for key, of, low in (("in_scope", "transitions", 1), ("held_out_in_scope", "held_out", 0)):
+        v = t.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not low <= v <= counts[of]):
+            raise SpecError(f"{where}.{key}: {v!r}; expected an integer in [{low}, {of} = {counts[of]}]")
+        found.append(v)
+    if any((scope == "domain") != (v is not None) for v in found):
+        raise SpecError(
+            f"{where}.in_scope: scope 'domain' needs in_scope and held_out_in_scope; scope 'all' has neither"
+        )
+    if counts["escapes"] > (counts["held_out"] if found[1] is None else found[1]):
+        raise SpecError(f"{where}.escapes: {counts['escapes']} of {found[1]} held-out transitions in scope")
+    return scope, found[0], found[1]
 
 
 def _network_of(t: dict[str, Any], where: str) -> ResidualNet | None:
@@ -526,29 +565,6 @@ class RescueClassifier:
     def scores(self, points: np.ndarray) -> np.ndarray:
         """The network's score of each row of ``points`` (shape ``(n, k)``), shape ``(n,)``."""
         return tanh_forward(self.layers, self.scaled(points))[:, 0]
-
-    def lowest_scores(self, points: np.ndarray, margins: np.ndarray, bound: str = "interval") -> np.ndarray:
-        """A lower bound of the score over each box ``points +- margins``, shape ``(n,)``.
-
-        No state of the box scores below the bound; with zero margins it is the score itself.
-
-        Parameters
-        ----------
-        points : ndarray
-            Box centres, shape ``(n, k)`` (the classifier's variables, in observation units).
-        margins : ndarray
-            Half-widths per variable, shape ``(k,)`` or ``(n, k)``.
-        bound : {"interval", "linear"}
-            :func:`pidlab.region.relaxation.interval_lowest` (interval arithmetic through the
-            network) or :func:`~pidlab.region.relaxation.linear_lowest` (a linear relaxation carried
-            back to the input: tighter, slower); :data:`BOUNDS`.
-        """
-        from pidlab.region.relaxation import interval_lowest, linear_lowest
-
-        lo, hi = np.array(self.lower), np.array(self.upper)
-        c = self.scaled(points)
-        r = np.broadcast_to(2.0 * np.abs(np.asarray(margins, dtype=float)) / (hi - lo), c.shape)
-        return (linear_lowest if bound == "linear" else interval_lowest)(self.layers, c, r)
 
     def inside(self, points: np.ndarray, threshold: float | None = None) -> np.ndarray:
         """Whether each row of ``points`` is in the domain box with a score of at least the threshold."""

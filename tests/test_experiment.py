@@ -69,7 +69,7 @@ IP_ONLY = ("rescue-terminal-model",)  # the model predictor: on the other envs i
 FULL_ENVS = (IP, "InvertedDoublePendulum-v5")  # rescue-terminal-full: a classifier region fitted on the pendulums
 FULL_ONLY = ("rescue-terminal-full",)
 EDGE_ONLY = ("rescue-terminal-edge", "rescue-terminal-edge-model")
-LEARNED_ONLY = ("rescue-terminal-full-learned",)  # the learned forecast: fitted on InvertedDoublePendulum
+LEARNED_ONLY = ("rescue-terminal-full-learned", "rescue-terminal-full-scoped")  # the learned forecast: fitted on InvertedDoublePendulum
 ROOM_ONLY = ("rescue-terminal-room-full",)  # the room coach's classifier region: fitted on Hopper  # the classifier validated at its edge: fitted on InvertedPendulum
 
 

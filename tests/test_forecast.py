@@ -33,11 +33,14 @@ from pidlab.region.forecast import (
     box_in_classifier,
     boxes_in_classifier,
     check_forecastable,
+    domain_box,
     forecastable,
+    in_domain,
     kept_share,
     margin_region,
     spec_forecast,
 )
+from pidlab.region.relaxation import lowest_scores
 from pidlab.region.takeover import ClassifierRegion, GridRegion, region_from_bounds
 from pidlab.rl.calibrate import measure_forecast
 from pidlab.rl.coaching import CoachingWrapper
@@ -163,6 +166,18 @@ def test_the_guard_narrows_by_its_margin() -> None:
         MarginRegion(region, {"hinge_pos": 0.0, "hinge_vel": 2.0, "slider_pos": 0.0})
 
 
+def test_a_forecast_the_shrunk_region_passes_lies_in_the_regions_domain_box() -> None:
+    region = _region([[1, 1]] * 2, {"slider_pos": (-0.1, 0.1)})
+    lo, hi = domain_box(region)
+    assert lo.tolist() == [-0.2, -2.0, -0.1] and hi.tolist() == [0.2, 2.0, 0.1]  # grid, then the guard
+    assert in_domain(region, [[0.0, 1.9, 0.1], [0.0, 2.1, 0.0]]).tolist() == [True, False]
+    shrunk = MarginRegion(region, {"hinge_pos": 0.01, "hinge_vel": 0.1, "slider_pos": 0.01})
+    rng = np.random.default_rng(5)
+    for y in rng.uniform(-2.5, 2.5, size=(400, 3)) * [0.1, 1.0, 0.05]:
+        if shrunk.contains(_obs(y[0], y[1], y[2])):
+            assert in_domain(region, y[None, :])[0]
+
+
 def test_the_kept_share_of_a_full_grid_is_the_shrunk_volume() -> None:
     region = _region([[1] * 4] * 4, {"slider_pos": (-0.1, 0.1)})
     margins = {"hinge_pos": 0.04, "hinge_vel": 0.5, "slider_pos": 0.05}
@@ -183,11 +198,11 @@ def _net(w1, b1, w2, b2, lower=(-1.0,), upper=(1.0,), threshold=0.0) -> RescueCl
 def test_the_score_bound_of_a_monotone_network_is_its_value_at_the_box_end() -> None:
     # score = tanh(2 x) on [-1, 1] (scaled x is x): over 0.5 +- 0.25 the lowest is tanh(0.5)
     up = _net([[2.0]], [0.0], [[1.0]], [0.0])
-    assert up.lowest_scores(np.array([[0.5]]), np.array([0.25]))[0] == pytest.approx(np.tanh(0.5), abs=1e-12)
+    assert lowest_scores(up, np.array([[0.5]]), np.array([0.25]))[0] == pytest.approx(np.tanh(0.5), abs=1e-12)
     down = _net([[2.0]], [0.0], [[-1.0]], [0.0])  # -tanh(2 x): the lowest at the upper end
-    assert down.lowest_scores(np.array([[0.5]]), np.array([0.25]))[0] == pytest.approx(-np.tanh(1.5), abs=1e-12)
+    assert lowest_scores(down, np.array([[0.5]]), np.array([0.25]))[0] == pytest.approx(-np.tanh(1.5), abs=1e-12)
     points = np.array([[-0.7], [0.1], [0.9]])
-    assert np.array_equal(up.lowest_scores(points, np.zeros(1)), up.scores(points))  # no margin: the score
+    assert np.array_equal(lowest_scores(up, points, np.zeros(1)), up.scores(points))  # no margin: the score
 
 
 def test_halving_proves_a_box_the_interval_bound_alone_cannot() -> None:
@@ -195,7 +210,7 @@ def test_halving_proves_a_box_the_interval_bound_alone_cannot() -> None:
     # -2 tanh(1.5) < -0.1, over each of 256 pieces -2 tanh(3 * 0.5 / 256) > -0.1
     flat = _net([[3.0, -3.0]], [0.0, 0.0], [[1.0], [1.0]], [0.0])
     centre, margin = np.array([0.0]), np.array([0.5])
-    assert flat.lowest_scores(centre[None, :], margin)[0] == pytest.approx(-2 * np.tanh(1.5))
+    assert lowest_scores(flat, centre[None, :], margin)[0] == pytest.approx(-2 * np.tanh(1.5))
     assert not box_in_classifier(flat, centre, margin, -0.1, splits=0)
     assert box_in_classifier(flat, centre, margin, -0.1, splits=8)
     assert not box_in_classifier(flat, centre, margin, 0.1, splits=8)  # no state scores 0.1: never proven
@@ -211,10 +226,10 @@ def test_the_linear_bound_is_the_hand_computed_relaxation() -> None:
     k = 1.0 - np.tanh(2.25) ** 2
     expected = np.tanh(0.75) - np.tanh(2.25) + 1.5 * k
     centre, margin = np.array([[0.5]]), np.array([0.25])
-    assert flat.lowest_scores(centre, margin, "linear")[0] == pytest.approx(expected, abs=1e-12)
-    assert flat.lowest_scores(centre, margin)[0] == pytest.approx(np.tanh(0.75) - np.tanh(2.25), abs=1e-12)
+    assert lowest_scores(flat, centre, margin, "linear")[0] == pytest.approx(expected, abs=1e-12)
+    assert lowest_scores(flat, centre, margin)[0] == pytest.approx(np.tanh(0.75) - np.tanh(2.25), abs=1e-12)
     up = _net([[2.0]], [0.0], [[1.0]], [0.0])  # monotone: the line through the box's low end is exact there
-    assert up.lowest_scores(centre, margin, "linear")[0] == pytest.approx(np.tanh(0.5), abs=1e-12)
+    assert lowest_scores(up, centre, margin, "linear")[0] == pytest.approx(np.tanh(0.5), abs=1e-12)
     # -0.343 by intervals, -0.278 by lines: only the linear bound proves -0.3 without a halving
     assert box_in_classifier(flat, centre[0], margin, -0.3, splits=0, bound="linear")
     assert not box_in_classifier(flat, centre[0], margin, -0.3, splits=0)
@@ -230,7 +245,7 @@ def test_the_linear_bound_is_sound_and_proves_more(spec_file) -> None:
     for size in (0.005, 0.05, 0.3):
         margins = (hi - lo) * size
         centres = lo + (hi - lo) * rng.random((200, len(lo)))
-        linear, interval = clf.lowest_scores(centres, margins, "linear"), clf.lowest_scores(centres, margins)
+        linear, interval = lowest_scores(clf, centres, margins, "linear"), lowest_scores(clf, centres, margins)
         samples = centres[:, None, :] + margins * rng.choice([-1.0, 1.0, 0.3, -0.7], size=(200, 40, len(lo)))
         lowest = clf.scores(samples.reshape(-1, len(lo))).reshape(200, 40).min(axis=1)
         assert np.all(lowest >= linear - 1e-9) and np.all(lowest >= interval - 1e-9)
@@ -318,8 +333,21 @@ def test_the_measurement_accounts_for_every_action_and_repeats(ip, measured) -> 
     assert measure_forecast(spec, ip, transitions=300, held_out=200, seed=3) == found
     assert parse_forecast(found.to_table()) == found
     assert found.bound == "linear" and found.to_table()["bound"] == "linear"
-    published = {k: v for k, v in found.to_table().items() if k != "bound"}  # measured before the field
-    assert parse_forecast(published).bound == "interval"
+    assert found.scope == "domain" and 0 < found.in_scope <= 300 and found.held_out_in_scope <= 200
+    assert found.escapes <= found.held_out_in_scope
+    older = ("bound", "scope", "in_scope", "held_out_in_scope")  # measured before these fields
+    published = {k: v for k, v in found.to_table().items() if k not in older}
+    assert parse_forecast(published).bound == "interval" and parse_forecast(published).scope == "all"
+
+
+def test_margins_over_all_transitions_cover_those_in_the_domain(ip, measured) -> None:
+    """The same recording: the margins of every transition are at least those whose forecast lies in
+    the region's domain box, a subset of them."""
+    spec, found = measured
+    every = measure_forecast(spec, ip, transitions=300, held_out=200, seed=3, scope="all")
+    assert every.scope == "all" and every.in_scope is None and "in_scope" not in every.to_table()
+    assert all(a >= d for a, d in zip(every.margins, found.margins, strict=True))
+    assert every.margins != found.margins  # here 19 of the 300 forecasts left the domain box
 
 
 def test_a_spec_keeps_its_forecast_through_a_file(tmp_path, measured) -> None:
@@ -345,6 +373,10 @@ def test_a_spec_keeps_its_forecast_through_a_file(tmp_path, measured) -> None:
         ({"extra": 1}, r"unknown field\(s\) \['extra'\]"),
         ({"bound": "cubic"}, r"bound: 'cubic'; expected one of interval, linear"),
         ({"bound": ["linear"]}, r"bound: \['linear'\]; expected one of"),
+        ({"scope": "everywhere"}, r"scope: 'everywhere'; expected one of all, domain"),
+        ({"in_scope": 301}, r"in_scope: 301; expected an integer in \[1, transitions = 300\]"),
+        ({"held_out_in_scope": -1}, r"held_out_in_scope: -1; expected an integer in \[0, held_out = 200\]"),
+        ({"scope": "all"}, r"scope 'domain' needs in_scope and held_out_in_scope; scope 'all' has neither"),
     ],
 )
 def test_a_bad_forecast_table_is_refused_by_name(measured, change, message) -> None:
@@ -440,6 +472,7 @@ def test_forecast_writes_a_named_copy_of_the_spec(tmp_path) -> None:
         (["--model", "learned", "--fit", "10"], "--fit 10: expected an integer in [100, 1000000]"),
         (["--model", "learned", "--width", "1"], "--width 1: expected an integer in [2, 512]"),
         (["--bound", "cubic"], "--bound 'cubic': expected one of interval, linear"),
+        (["--scope", "near"], "--scope 'near': expected one of all, domain"),
     ],
 )
 def test_forecast_refuses_bad_options_in_one_line(args, message) -> None:

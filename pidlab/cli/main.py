@@ -1237,6 +1237,14 @@ def forecast(
             "relaxation of the network (tighter) or interval arithmetic. Kept in [bounds.forecast].",
         ),
     ] = "linear",
+    scope: Annotated[
+        str,
+        typer.Option(
+            metavar="domain|all",
+            help="Which actions set the margins: those whose forecast lies in the rescue region's domain "
+            "box (the only ones whose error can decide a veto), or all. Kept in [bounds.forecast].",
+        ),
+    ] = "domain",
     write: Annotated[bool, typer.Option("--write", help="Write [bounds.forecast] into SPEC.")] = False,
     output: Annotated[
         str | None,
@@ -1251,9 +1259,7 @@ def forecast(
     """Measure the model predictor's forecast error on a spec's rescue region, and its vetoes."""
     from pidlab.controller.spec import editing_spec, save_spec, writing_spec
     from pidlab.plant.model import load_model
-    from pidlab.region.forecast import kept_share
-    from pidlab.region.takeover import region_from_bounds
-    from pidlab.report.console import forecast_view, wide_console
+    from pidlab.report.console import wide_console
     from pidlab.rl.calibrate import measure_forecast
 
     if write and output:
@@ -1266,19 +1272,28 @@ def forecast(
             found = measure_forecast(
                 spec, loaded, transitions=transitions, held_out=held_out, seed=seed,
                 progress=lambda done, total: bar(done), model=model, fit=fit, width=width, epochs=epochs,
-                bound=bound,
+                bound=bound, scope=scope,
             )  # fmt: skip
-        card = loaded.require_card()
-        units = {v.name: v.unit for v in card.observation}
         con = wide_console()
-        region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
-        con.print(forecast_view(found, units, kept_share(region, found.margin, bound=found.bound)))
+        con.print(_forecast_view(spec, loaded, found))
         new = _with_forecast(spec, found)
         if write:
             con.print(f"wrote the forecast's error into {save_spec(new, spec_file)}")
         elif output and write_copy is not None:
             path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
             con.print(f"wrote the spec with its forecast's error to {path}")
+
+
+def _forecast_view(spec: Any, loaded: Any, found: Any) -> Any:
+    """``pidlab forecast``'s view: the error per variable, the vetoes, the share of the region kept."""
+    from pidlab.region.forecast import kept_share
+    from pidlab.region.takeover import region_from_bounds
+    from pidlab.report.console import forecast_view
+
+    card = loaded.require_card()
+    units = {v.name: v.unit for v in card.observation}
+    region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
+    return forecast_view(found, units, kept_share(region, found.margin, bound=found.bound))
 
 
 def _copy_name(spec: Any, output: str) -> str:

@@ -111,6 +111,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
     Amendment(14, ("rescue-terminal-edge-model",), envs=("InvertedPendulum-v5",)),
     Amendment(15, ("rescue-terminal-full-learned",), envs=("InvertedDoublePendulum-v5",)),
     Amendment(16, ("rescue-terminal-room-full",), envs=("Hopper-v5",)),
+    Amendment(17, ("rescue-terminal-full-scoped",), envs=("InvertedDoublePendulum-v5",)),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 

@@ -34,6 +34,7 @@ from pidlab.errors import CoachingError, SpecError
 from pidlab.lookup import ForecastError, RescueClassifier, ResidualNet, parse_forecast, region_digest
 from pidlab.plant.card import ModelCard
 from pidlab.plant.observation import variable_address
+from pidlab.region.relaxation import lowest_scores
 from pidlab.region.takeover import ClassifierRegion, GridRegion, checked_observation, observation_indices
 
 SPLITS = 8
@@ -347,7 +348,7 @@ def box_in_classifier(
 ) -> bool:  # fmt: skip
     """Whether every state of the box ``centre +- margins`` scores at least ``threshold``.
 
-    :meth:`~pidlab.lookup.RescueClassifier.lowest_scores` bounds the score over a box from below
+    :func:`pidlab.region.relaxation.lowest_scores` bounds the score over a box from below
     (interval arithmetic; with ``bound = "linear"``, for a box that leaves open, also the linear
     relaxation); where the bound falls short, the box is halved along its widest side (in the
     network's scaled units) and each half asked again, ``splits`` times at most. A box any of whose
@@ -401,10 +402,10 @@ def _proven(
     The interval bound, and with ``bound = "linear"`` the linear relaxation for the boxes the
     interval bound leaves open.
     """
-    proven = classifier.lowest_scores(c, m) >= threshold
+    proven = lowest_scores(classifier, c, m) >= threshold
     if bound == "linear" and not proven.all():
         open_ = ~proven
-        proven[open_] = classifier.lowest_scores(c[open_], m[open_], "linear") >= threshold
+        proven[open_] = lowest_scores(classifier, c[open_], m[open_], "linear") >= threshold
     return proven
 
 
@@ -511,6 +512,27 @@ def margin_variables(region: Any) -> tuple[str, ...]:
     if isinstance(region, GridRegion):
         return (*region.grid.variables, *region.grid.guard)
     return tuple(region.variables)
+
+
+def domain_box(region: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The box a rescue region lies in, over :func:`margin_variables`: ``(lower, upper)``.
+
+    A classifier's domain box; a lookup grid's box and its guard's ranges. A forecast whose margin
+    box passes :func:`margin_region` lies in it.
+    """
+    if isinstance(region, GridRegion):
+        g = region.grid
+        return (np.array([*g.lower, *(lo for lo, _ in g.guard.values())], dtype=float),
+                np.array([*g.upper, *(hi for _, hi in g.guard.values())], dtype=float))  # fmt: skip
+    clf = region.classifier
+    return np.array(clf.lower, dtype=float), np.array(clf.upper, dtype=float)
+
+
+def in_domain(region: Any, ys: np.ndarray) -> np.ndarray:
+    """Whether each row of ``ys`` (the :func:`margin_variables`, in order) lies in :func:`domain_box`."""
+    lo, hi = domain_box(region)
+    ys = np.atleast_2d(np.asarray(ys, dtype=float))
+    return np.all((ys >= lo) & (ys <= hi), axis=1)
 
 
 def _check_room(name: str, margin: float, lo: float, hi: float) -> None:

@@ -27,11 +27,37 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from pidlab.lookup import RescueClassifier
+
 Layers = Sequence[tuple[np.ndarray, np.ndarray]]
 """``(W, b)`` per layer, ``W`` of shape ``(inputs, outputs)``; ``tanh`` after every layer but the last."""
 
 CHUNK = 512
 """Boxes bounded at once by :func:`linear_lowest` (its coefficients take ``units^2`` floats per box)."""
+
+
+def lowest_scores(
+    classifier: RescueClassifier, points: np.ndarray, margins: np.ndarray, bound: str = "interval"
+) -> np.ndarray:
+    """A lower bound of a rescue classifier's score over each box ``points +- margins``, shape ``(n,)``.
+
+    No state of the box scores below the bound; with zero margins it is the score itself.
+
+    Parameters
+    ----------
+    classifier : RescueClassifier
+        The network (inputs scaled to [-1, 1] over its domain box).
+    points : ndarray
+        Box centres, shape ``(n, k)`` (the classifier's variables, in observation units).
+    margins : ndarray
+        Half-widths per variable, shape ``(k,)`` or ``(n, k)``.
+    bound : {"interval", "linear"}
+        :func:`interval_lowest` or :func:`linear_lowest` (:data:`pidlab.lookup.BOUNDS`).
+    """
+    lo, hi = np.array(classifier.lower), np.array(classifier.upper)
+    c = classifier.scaled(points)
+    r = np.broadcast_to(2.0 * np.abs(np.asarray(margins, dtype=float)) / (hi - lo), c.shape)
+    return (linear_lowest if bound == "linear" else interval_lowest)(classifier.layers, c, r)
 
 
 def interval_lowest(layers: Layers, c: np.ndarray, r: np.ndarray) -> np.ndarray:

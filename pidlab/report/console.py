@@ -603,14 +603,21 @@ def train_view(result: Any, win_target: float) -> Group:
 def forecast_view(f: Any, units: dict[str, str], kept: float | None = None) -> Group:
     """What ``pidlab forecast`` prints: the forecast's error per region variable, and the vetoes."""
     head = Text()
-    head.append(f"{f.model} forecast, measured behind the exact shield with a random agent (seed {f.seed})\n",
-                style="bold")  # fmt: skip
+    head.append(f"{f.model} forecast, measured behind the exact shield with a random agent (seed {f.seed}); "
+                f"{f.bound} bound\n", style="bold")  # fmt: skip
     if f.network is not None:
         head.append(f"its correction fitted on {f.network.fitted:,} earlier actions\n")
-    head.append(
-        f"margins from {f.transitions:,} actions; {f.held_out:,} held-out actions: {f.escapes} outside "
-        "the margins of their forecast\n"
-    )
+    if f.in_scope is None:
+        head.append(
+            f"margins from {f.transitions:,} actions; {f.held_out:,} held-out actions: {f.escapes} outside "
+            "the margins of their forecast\n"
+        )
+    else:
+        head.append(
+            f"margins from the {f.in_scope:,} of {f.transitions:,} actions whose forecast lies in the "
+            f"region's domain box; of the {f.held_out_in_scope:,} such of {f.held_out:,} held-out actions, "
+            f"{f.escapes} outside the margins of their forecast\n"
+        )
     if kept is not None:
         head.append(f"{kept:.1%} of the rescue region has its margin box inside it (sampled)\n")
     t = Table(title="Forecast error, |true - forecast| one control period ahead", title_justify="left")

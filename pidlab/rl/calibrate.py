@@ -26,13 +26,23 @@ from pidlab.checks import integer
 from pidlab.checks import seed as checked_seed
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
-from pidlab.lookup import AGREEMENT, BOUNDS, MAX_WIDTH, MODELS, ForecastError, region_digest
+from pidlab.lookup import (
+    AGREEMENT,
+    BOUNDS,
+    MAX_WIDTH,
+    MODELS,
+    SCOPES,
+    ForecastError,
+    ResidualNet,
+    region_digest,
+)
 from pidlab.plant.model import LoadedModel, load_model
 from pidlab.region.dynamics import fit_residual
 from pidlab.region.forecast import (
     ClassifierMarginRegion,
     MarginRegion,
     check_forecastable,
+    in_domain,
     learned_forecast,
     margin_region,
     margin_variables,
@@ -85,7 +95,7 @@ def _record(
 
 
 def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: int, width: int,
-                   epochs: int, bound: str) -> None:  # fmt: skip
+                   epochs: int, bound: str, scope: str) -> None:  # fmt: skip
     integer(transitions, "transitions", CoachingError, low=1, high=MAX_TRANSITIONS, param="transitions")
     integer(held_out, "held_out", CoachingError, low=0, high=MAX_TRANSITIONS, param="held_out")
     checked_seed(seed, "seed", CoachingError, param="seed")
@@ -97,6 +107,8 @@ def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: 
         integer(epochs, "epochs", CoachingError, low=1, high=10_000, param="epochs")
     if bound not in BOUNDS:
         raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
+    if scope not in SCOPES:
+        raise CoachingError(f"scope={scope!r}: expected one of {', '.join(SCOPES)}", param="scope")
 
 
 def measure_forecast(
@@ -111,6 +123,7 @@ def measure_forecast(
     width: int = 64,
     epochs: int = 100,
     bound: str = "linear",
+    scope: str = "domain",
 ) -> ForecastError:
     """The forecast's error on the spec's rescue region, and what it does to the shield.
 
@@ -133,6 +146,10 @@ def measure_forecast(
     bound : {"linear", "interval"}
         How a classifier region's score is bounded over a margin box for the veto agreement, and
         then by the shield (:data:`pidlab.lookup.BOUNDS`; a lookup grid is asked exactly either way).
+    scope : {"domain", "all"}
+        Which transitions set the margins (and count as escapes): those whose forecast lies in the
+        rescue region's domain box (:func:`pidlab.region.forecast.domain_box`), or all
+        (:data:`pidlab.lookup.SCOPES`).
 
     Returns
     -------
@@ -144,44 +161,87 @@ def measure_forecast(
     ------
     CoachingError
         Counts below 1 (``held_out`` below 0; ``fit`` below 100) or above :data:`MAX_TRANSITIONS`,
-        an unknown model, no rescue region, or a region over a variable no joint-state forecast gives.
+        an unknown model, no rescue region, a region over a variable no joint-state forecast gives,
+        or no forecast in scope.
     """
-    _check_options(transitions, held_out, seed, model, fit, width, epochs, bound)
+    _check_options(transitions, held_out, seed, model, fit, width, epochs, bound, scope)
     loaded = loaded if loaded is not None else load_model(spec.env_id)
     card = loaded.require_card()
     region = _rescue_region(spec, card)
     names = margin_variables(region)
     cols = observation_indices(names, card.observation_names, "bounds.rescue")
-    first = int(fit) if model == "learned" else 0
-    total = first + int(transitions) + int(held_out)
-    done = [0]
+    learned = (int(fit), width, epochs) if model == "learned" else None
+    recorded = transitions + held_out
+    truth, guess, network = _forecasts(spec, loaded, names, recorded, learned, int(seed), progress)
+    err = np.abs(truth[:, cols] - guess[:, cols])
+    scoped = in_domain(region, guess[:, cols]) if scope == "domain" else np.ones(len(err), dtype=bool)
+    fitted, check = _in_scope(spec.name, err, scoped, int(transitions))
+    margins = fitted.max(axis=0)
+    margin = dict(zip(names, margins, strict=True))
+    obs_names = card.observation_names
+    agreement = _agreement(region, margin, bound, obs_names, truth[transitions:], guess[transitions:])
+    counted = {"in_scope": len(fitted), "held_out_in_scope": len(check)} if scope == "domain" else {}
+    return ForecastError(
+        model=model, variables=names, margins=tuple(float(m) for m in margins),
+        median=tuple(float(v) for v in np.median(fitted, axis=0)),
+        p99=tuple(float(v) for v in np.quantile(fitted, 0.99, axis=0)), transitions=int(transitions),
+        held_out=int(held_out), escapes=int(np.any(check > margins, axis=1).sum()), seed=int(seed),
+        agreement=agreement, region=region_digest((spec.bounds or {})["rescue"]), network=network,
+        bound=bound, scope=scope, **counted,
+    )  # fmt: skip
+
+
+def _forecasts(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    names: tuple[str, ...],
+    count: int,
+    learned: tuple[int, int, int] | None,
+    seed: int,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[np.ndarray, np.ndarray, ResidualNet | None]:
+    """``count`` recorded transitions: true next observations, forecasts, and the learned correction.
+
+    With ``learned = (fit, width, epochs)``, ``fit`` transitions are recorded first and the
+    correction fitted on them (:func:`pidlab.region.dynamics.fit_residual`); the forecasts returned
+    are corrected by it, on transitions it never saw.
+    """
+    card = loaded.require_card()
+    first = learned[0] if learned is not None else 0
+    total, done = first + count, [0]
 
     def tick() -> None:
         done[0] += 1
         if progress is not None:
             progress(done[0], total)
 
-    truth, guess, inputs = _record(spec, loaded, total, int(seed), tick)
-    network = None
-    if model == "learned":
-        missed = truth[:first, cols] - guess[:first, cols]
-        network = fit_residual(inputs[:first], missed, names, width, epochs, int(seed))
-        guess = learned_forecast(forecast_of(loaded), network, card).correct(guess, inputs)
-    truth, guess = truth[first:], guess[first:]
-    err = np.abs(truth[:, cols] - guess[:, cols])
-    fitted, check = err[: int(transitions)], err[int(transitions) :]
-    margins = fitted.max(axis=0)
-    escapes = int(np.any(check > margins, axis=1).sum())
-    margin = dict(zip(names, margins, strict=True))
-    obs_names = card.observation_names
-    agreement = _agreement(region, margin, bound, obs_names, truth[transitions:], guess[transitions:])
-    return ForecastError(
-        model=model, variables=names, margins=tuple(float(m) for m in margins),
-        median=tuple(float(v) for v in np.median(fitted, axis=0)),
-        p99=tuple(float(v) for v in np.quantile(fitted, 0.99, axis=0)), transitions=int(transitions),
-        held_out=int(held_out), escapes=escapes, seed=int(seed), agreement=agreement,
-        region=region_digest((spec.bounds or {})["rescue"]), network=network, bound=bound,
-    )  # fmt: skip
+    truth, guess, inputs = _record(spec, loaded, total, seed, tick)
+    if learned is None:
+        return truth, guess, None
+    cols = observation_indices(names, card.observation_names, "bounds.rescue")
+    missed = truth[:first, cols] - guess[:first, cols]
+    network = fit_residual(inputs[:first], missed, names, learned[1], learned[2], seed)
+    guess = learned_forecast(forecast_of(loaded), network, card).correct(guess, inputs)
+    return truth[first:], guess[first:], network
+
+
+def _in_scope(
+    name: str, err: np.ndarray, scoped: np.ndarray, transitions: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The errors in scope of the transitions that set the margins, and of the held-out ones.
+
+    Raises
+    ------
+    CoachingError
+        No transition that sets the margins is in scope.
+    """
+    fitted, check = err[:transitions][scoped[:transitions]], err[transitions:][scoped[transitions:]]
+    if not len(fitted):
+        raise CoachingError(
+            f"{name}: no forecast of the {transitions:,} transitions lies in the rescue region's domain box; "
+            "record more (transitions) or set scope 'all'", param="transitions",
+        )  # fmt: skip
+    return fitted, check
 
 
 def _rescue_region(spec: CoachSpec, card: Any) -> Region:
