@@ -296,6 +296,8 @@ def test_the_classifier_margin_region_asks_the_whole_box(ip) -> None:
     assert not wide.contains(np.full(len(names), np.nan)) and wide.scale == 1.0
     with pytest.raises(CoachingError, match="hinge_pos.*at least half.*predictor = 'exact'"):
         margin_region(region, {**none, "hinge_pos": 0.2})
+    with pytest.raises(CoachingError, match="bound='cubic': expected one of interval, linear"):
+        margin_region(region, none, "cubic")
     assert kept_share(region, none, samples=2000) == 1.0
     assert 0.0 < kept_share(region, {v: 0.02 * (h - lo_) for v, lo_, h in zip(clf.variables, lo, hi, strict=True)},
                             samples=2000) < 1.0  # fmt: skip
@@ -338,6 +340,16 @@ def test_the_measurement_accounts_for_every_action_and_repeats(ip, measured) -> 
     older = ("bound", "scope", "in_scope", "held_out_in_scope")  # measured before these fields
     published = {k: v for k, v in found.to_table().items() if k not in older}
     assert parse_forecast(published).bound == "interval" and parse_forecast(published).scope == "all"
+
+
+def test_no_forecast_in_scope_is_refused_in_one_line() -> None:
+    from pidlab.rl.calibrate import _in_scope
+
+    err = np.ones((10, 2))
+    with pytest.raises(CoachingError, match="no forecast of the 6 transitions lies in the rescue region's domain box"):
+        _in_scope("x", err, np.array([False] * 6 + [True] * 4), 6)
+    fitted, check = _in_scope("x", err, np.array([True, False] * 5), 6)
+    assert len(fitted) == 3 and len(check) == 2
 
 
 def test_margins_over_all_transitions_cover_those_in_the_domain(ip, measured) -> None:

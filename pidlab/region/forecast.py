@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 
 from pidlab.errors import CoachingError, SpecError
-from pidlab.lookup import ForecastError, RescueClassifier, ResidualNet, parse_forecast, region_digest
+from pidlab.lookup import BOUNDS, ForecastError, RescueClassifier, ResidualNet, parse_forecast, region_digest
 from pidlab.plant.card import ModelCard
 from pidlab.plant.observation import variable_address
 from pidlab.region.relaxation import lowest_scores
@@ -430,13 +430,15 @@ class ClassifierMarginRegion:
     Raises
     ------
     CoachingError
-        A domain range no wider than twice its margin (no box fits).
+        A domain range no wider than twice its margin (no box fits), or an unknown ``bound``.
     """
 
     kind = "rescue"
     trigger = "predictive"
 
     def __init__(self, region: ClassifierRegion, margins: dict[str, float], bound: str = "interval") -> None:
+        if bound not in BOUNDS:
+            raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
         clf = region.classifier
         self.region = region
         self.bound = bound
@@ -552,9 +554,11 @@ def kept_share(
     the guard's ranges; a classifier: points of its domain box that it holds, drawn until
     ``samples`` are found or ``50 * samples`` drawn); 0 when no box fits at all.
     """
+    if bound not in BOUNDS:
+        raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
     try:
         shrunk = margin_region(region, margins, bound)
-    except CoachingError:
+    except CoachingError:  # no box fits
         return 0.0
     rng = np.random.default_rng(seed)
     if isinstance(shrunk, ClassifierMarginRegion):
