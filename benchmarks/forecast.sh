@@ -37,4 +37,8 @@ done
 .venv/bin/pidlab forecast tuning/InvertedDoublePendulum-v5.pidlab-rescue-full.toml --model learned --fit 100000 \
     --width 128 --epochs 100 --transitions 15000 --held-out 15000 --seed 0 --bound linear --scope domain \
     -o tuning/InvertedDoublePendulum-v5.pidlab-rescue-full-scoped.toml --force
+# a learned one-step model on Hopper's room-coach classifier region (about 20 minutes on a busy core)
+.venv/bin/pidlab forecast tuning/Hopper-v5.pidlab-room-full.toml --model learned --fit 100000 --width 128 \
+    --epochs 100 --transitions 15000 --held-out 15000 --seed 0 --bound linear --scope domain \
+    -o tuning/Hopper-v5.pidlab-room-full-learned.toml --force
 .venv/bin/python benchmarks/forecast_table.py

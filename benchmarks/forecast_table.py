@@ -40,6 +40,7 @@ SPECS = (
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-linear", "classifier over the full state"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-scoped", "classifier over the full state"),
     ("Hopper-v5", "pidlab-rescue-model", "lookup grid over pitch"),
+    ("Hopper-v5", "pidlab-room-full-learned", "room coach's classifier over pitch, legs and rates"),
     ("Walker2d-v5", "pidlab-rescue-model", "lookup grid over pitch"),
 )
 """(env, the spec with its measurement in tuning/, its rescue region) per row of the error table."""
