@@ -98,7 +98,8 @@ COACHES = {
               "tuning/InvertedDoublePendulum-v5.pidlab-rescue-full-linear.toml", kind=MODEL_KIND),
         Coach("room coach, classifier, asked through the learned forecast's margins with the linear bound, "
               "margins measured where the forecast lies in the region's domain",
-              "tuning/InvertedDoublePendulum-v5.pidlab-rescue-full-scoped.toml", kind=MODEL_KIND),
+              "tuning/InvertedDoublePendulum-v5.pidlab-rescue-full-scoped.toml",
+              runs=("InvertedDoublePendulum-v5-scoped", "rescue-terminal-full-scoped"), kind=MODEL_KIND),
     ),
     "Hopper-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Hopper-v5-rescue", "rescue-terminal")),

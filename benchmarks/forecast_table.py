@@ -48,6 +48,7 @@ TRAINED = (
     ("InvertedPendulum-v5-model", ("none", "rescue-terminal", "rescue-terminal-model")),
     ("InvertedPendulum-v5-edgemodel", ("rescue-terminal-edge", "rescue-terminal-edge-model")),
     ("InvertedDoublePendulum-v5-learned", ("rescue-terminal-full", "rescue-terminal-full-learned")),
+    ("InvertedDoublePendulum-v5-scoped", ("rescue-terminal-full-scoped",)),
 )
 """(published folder, its conditions) per block of the training table (unpublished: skipped)."""
 START, END = "<!-- forecast-table -->", "<!-- /forecast-table -->"
