@@ -437,8 +437,7 @@ class ClassifierMarginRegion:
     trigger = "predictive"
 
     def __init__(self, region: ClassifierRegion, margins: dict[str, float], bound: str = "interval") -> None:
-        if bound not in BOUNDS:
-            raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
+        check_bound(bound)
         clf = region.classifier
         self.region = region
         self.bound = bound
@@ -500,13 +499,20 @@ def margin_region(
     Raises
     ------
     CoachingError
-        ``region`` is no rescue region, or a margin leaves nothing of it.
+        ``region`` is no rescue region, a margin leaves nothing of it, or ``bound`` is unknown.
     """
+    check_bound(bound)
     if isinstance(region, ClassifierRegion):
         return ClassifierMarginRegion(region, margins, bound)
     if isinstance(region, GridRegion):
         return MarginRegion(region, margins)
     raise CoachingError(f"the model predictor narrows a rescue region, not a {type(region).__name__}")
+
+
+def check_bound(bound: str) -> None:
+    """Refuse a score bound that is not one of :data:`pidlab.lookup.BOUNDS` (a :class:`CoachingError`)."""
+    if bound not in BOUNDS:
+        raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
 
 
 def margin_variables(region: Any) -> tuple[str, ...]:
@@ -554,8 +560,7 @@ def kept_share(
     the guard's ranges; a classifier: points of its domain box that it holds, drawn until
     ``samples`` are found or ``50 * samples`` drawn); 0 when no box fits at all.
     """
-    if bound not in BOUNDS:
-        raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
+    check_bound(bound)
     try:
         shrunk = margin_region(region, margins, bound)
     except CoachingError:  # no box fits

@@ -28,7 +28,6 @@ from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
 from pidlab.lookup import (
     AGREEMENT,
-    BOUNDS,
     MAX_WIDTH,
     MODELS,
     SCOPES,
@@ -41,6 +40,7 @@ from pidlab.region.dynamics import fit_residual
 from pidlab.region.forecast import (
     ClassifierMarginRegion,
     MarginRegion,
+    check_bound,
     check_forecastable,
     in_domain,
     learned_forecast,
@@ -105,8 +105,7 @@ def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: 
         integer(fit, "fit", CoachingError, low=100, high=MAX_TRANSITIONS, param="fit")
         integer(width, "width", CoachingError, low=2, high=MAX_WIDTH, param="width")
         integer(epochs, "epochs", CoachingError, low=1, high=10_000, param="epochs")
-    if bound not in BOUNDS:
-        raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
+    check_bound(bound)
     if scope not in SCOPES:
         raise CoachingError(f"scope={scope!r}: expected one of {', '.join(SCOPES)}", param="scope")
 
