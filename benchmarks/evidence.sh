@@ -21,7 +21,8 @@
 #   bash benchmarks/evidence.sh --teach7 InvertedDoublePendulum-v5  # Amendment 10: the demonstrations'
 #                                                     # weight held at 1 (fresh seeds 110-119)
 #   bash benchmarks/evidence.sh --sac InvertedPendulum-v5    # Amendment 8: plain SAC beside plain PPO
-#                                                     # (the pendulums; `none` reused from the confirmation)
+#                                                     # (the pendulums, and Hopper by Amendment 18;
+#                                                     # `none` reused from the confirmation)
 #   bash benchmarks/evidence.sh --full InvertedDoublePendulum-v5  # Amendments 9 and 11: the classifier
 #                                                     # region over the full state (rescue-terminal-full;
 #                                                     # also InvertedPendulum-v5)
@@ -137,12 +138,13 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
     esac
 }
 
-sac_design() {  # Amendment 8: the plain SAC baseline beside plain PPO, on the pendulums
+sac_design() {  # Amendments 8 and 18: the plain SAC baseline beside plain PPO
     case $1 in
         InvertedPendulum-v5) echo "$1-sac none,none-sac 50000 100-109" ;;
         InvertedDoublePendulum-v5) echo "$1-sac none,none-sac 200000 100-109" ;;
-        *) echo "evidence.sh: --sac is for InvertedPendulum-v5 and InvertedDoublePendulum-v5" \
-               "(docs/analysis-plan.md, Amendment 8)" >&2; exit 2 ;;
+        Hopper-v5) echo "$1-sac none,none-sac 300000 100-109" ;;
+        *) echo "evidence.sh: --sac is for InvertedPendulum-v5, InvertedDoublePendulum-v5 and Hopper-v5" \
+               "(docs/analysis-plan.md, Amendments 8 and 18)" >&2; exit 2 ;;
     esac
 }
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from bench_cli import run
 
 from pidlab.experiment.analysis import recipes_of_runs
-from pidlab.experiment.plan import ALONE_TARGETS, PlainLearner, best_plain_baseline
+from pidlab.experiment.plan import ALONE_TARGETS, AMENDMENT_LIST, PlainLearner, best_plain_baseline
 from pidlab.experiment.stats import Estimate
 from pidlab.experiment.sweep import finished
 from pidlab.files import atomic_write_text, read_json
@@ -351,7 +351,8 @@ def baselines() -> str:
     for env in ENVS:
         loaded = _load(f"{env}-sac")
         if loaded is None:
-            why = "not run yet (Amendment 8)" if env in ENVS[:2] else "not run (no amendment governs it)"
+            governs = [a.number for a in AMENDMENT_LIST if "none-sac" in a.conditions and env in a.envs]
+            why = f"not run yet (Amendment {governs[0]})" if governs else "not run (no amendment governs it)"
             out.append(f"| {env} | none (PPO) | - | - | - | - | - | none (PPO): plain SAC {why} | - |")
             continue
         rows, _ = loaded

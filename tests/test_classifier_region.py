@@ -114,6 +114,18 @@ def test_the_edge_band_computed_by_hand() -> None:
     assert edge_width(3.0, scores, 0.25) == 0.0  # never below the threshold
 
 
+def test_the_focus_level_computed_by_hand() -> None:
+    """The first fit's score that all but the lowest 1 % of the rescued fitted states reach."""
+    from pidlab.region.classifier import FOCUS_QUANTILE, focus_level
+
+    assert FOCUS_QUANTILE == 0.01
+    scores = np.arange(101.0)  # numpy's linear quantile 0.01 of 0..100: position 1 -> 1.0
+    assert focus_level(scores) == pytest.approx(1.0)
+    assert focus_level(np.array([2.0, 4.0])) == pytest.approx(2.02)  # 2 + 0.01 x (4 - 2)
+    with pytest.raises(RegionError, match="focus: no fitted state was rescued"):
+        focus_level(np.array([]))
+
+
 def test_no_edge_share_means_no_edge_draw() -> None:
     from types import SimpleNamespace
 
@@ -155,7 +167,7 @@ def test_the_region_object_tests_observations_and_narrows_for_the_hand_back() ->
 
 def _small(**kw: object) -> ClassifierSettings:
     base = ClassifierSettings(VARS, HALF, samples=10000, calibration=2000, validation=200, coverage=600,
-                              width=16, epochs=100, seed=3)  # fmt: skip
+                              width=16, epochs=100, seed=3, focus=1000)  # fmt: skip
     return dataclasses.replace(base, **kw)
 
 
@@ -195,7 +207,10 @@ def test_classifier_accounts_add_up(idp_classifier: tuple) -> None:
     assert p["coverage_rescue"] == r.coverage and 0.0 <= r.coverage <= 1.0
     assert r.coverage_grid is not None and 0.0 <= r.coverage_grid <= 1.0  # the shipped grid, same states
     assert 0.0 < r.volume <= 1.0 and 0.0 < r.rescued_fraction < 1.0
-    assert p["simulations"] >= 10000 + 2000 + 200 + 200 + 600  # labels, validation, its edge, coverage
+    # labels, focus, validation, its edge, coverage
+    assert p["simulations"] >= 10000 + 2000 + 1000 + 200 + 200 + 600
+    # the focused states were drawn where the first fit scores like the rescued ones: far richer in rescues
+    assert p["focus"] == 1000 and p["focus_rescued"] > 2 * r.rescued_fraction
     assert p["edge_samples"] == 200 and p["edge_share"] == 0.05 and p["edge_band"] > 0.0
     assert p["edge_rounds"] == r.edge_rounds >= 1 and p["edge_failures_removed"] == r.edge_failures_removed
     assert r.classifier.coach == law_digest(spec)
@@ -237,6 +252,8 @@ def test_settings_out_of_range_are_refused() -> None:
         ClassifierSettings(("a",), (0.0,))
     with pytest.raises(RegionError, match="samples"):
         _small(samples=10)
+    with pytest.raises(RegionError, match="focus"):
+        _small(focus=-5)
     for share in (-0.1, 1.5, math.nan):
         with pytest.raises(RegionError, match="edge_share"):
             _small(edge_share=share)
@@ -254,6 +271,7 @@ def test_settings_out_of_range_are_refused() -> None:
         (["--domain", "hinge_sin=1", "--samples", "5"], "--samples 5: expected an integer in [100, 2000000]"),
         (["--domain", "hinge_sin=1", "--write", "-o", "x.toml"], "--write and --output: choose one"),
         (["--domain", "hinge_sin=1", "--edge-share", "2"], "--edge-share 2"),
+        (["--domain", "hinge_sin=1", "--focus", "-1"], "--focus -1: expected an integer in [0, 2000000]"),
     ],
 )
 def test_the_command_refuses_bad_input_in_one_line(args: list[str], message: str) -> None:

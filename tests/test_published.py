@@ -142,17 +142,17 @@ def test_the_teaching_sweeps_refuse_an_env_without_a_design(mode):
     ]
 
 
-@pytest.mark.parametrize("env", ["Hopper-v5", "CartPole-v1"])
-def test_the_sac_sweep_is_for_the_pendulums_only(env):
-    """Amendment 8 governs plain SAC on the two pendulums; other envs are refused before any work."""
+@pytest.mark.parametrize("env", ["Walker2d-v5", "CartPole-v1"])
+def test_the_sac_sweep_is_for_the_envs_an_amendment_governs(env):
+    """Amendments 8 and 18 govern plain SAC on the pendulums and Hopper; other envs are refused before any work."""
     import subprocess
 
     done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), "--sac", env],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip().splitlines() == [
-        "evidence.sh: --sac is for InvertedPendulum-v5 and InvertedDoublePendulum-v5 "
-        "(docs/analysis-plan.md, Amendment 8)"
+        "evidence.sh: --sac is for InvertedPendulum-v5, InvertedDoublePendulum-v5 and Hopper-v5 "
+        "(docs/analysis-plan.md, Amendments 8 and 18)"
     ]
 
 

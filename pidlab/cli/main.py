@@ -1020,6 +1020,13 @@ def rescue_classifier(
         ),
     ] = 0.05,
     coverage: Annotated[int, typer.Option(help="Fresh states over the domain for the coverage.")] = 20_000,
+    focus: Annotated[
+        int,
+        typer.Option(
+            help="Further labelled states drawn where a first fit scores like the rescued states, and "
+            "fitted on too (0: none); the threshold and the validation stay uniform."
+        ),
+    ] = 0,
     width: Annotated[int, typer.Option(help="Units per hidden layer (two hidden layers).")] = 64,
     epochs: Annotated[int, typer.Option(help="Passes over the labelled states.")] = 100,
     horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
@@ -1052,6 +1059,7 @@ def rescue_classifier(
     settings = ClassifierSettings(
         tuple(box), tuple(box.values()), samples=samples, calibration=calibration, validation=validation,
         coverage=coverage, width=width, epochs=epochs, horizon_s=horizon, seed=seed, edge_share=edge_share,
+        focus=focus,
     )  # fmt: skip
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:

@@ -112,6 +112,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
     Amendment(15, ("rescue-terminal-full-learned",), envs=("InvertedDoublePendulum-v5",)),
     Amendment(16, ("rescue-terminal-room-full",), envs=("Hopper-v5",)),
     Amendment(17, ("rescue-terminal-full-scoped",), envs=("InvertedDoublePendulum-v5",)),
+    Amendment(18, ("none-sac",), envs=("Hopper-v5",), algorithms=("sac",)),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 

@@ -16,6 +16,12 @@ of the states the coach rescues. A **classifier region** covers all of them:
 3. **Fit.** A small network (``tanh`` hidden layers, one linear output) is fitted to the labels of
    the first ``samples`` states by weighted cross-entropy (failures weigh ``negative_weight``
    times more), deterministically from ``seed`` (:func:`fit_layers`).
+   **Focus** (``focus > 0``): most of a large domain is plainly lost (Hopper: 92 % of the states
+   over its legs), and uniform labels spend most simulations there. So ``focus`` further states
+   are drawn uniformly among those the first fit scores at least :func:`focus_level` (all but
+   the lowest-scoring :data:`FOCUS_QUANTILE` of the rescued fitted states score as high), labelled
+   the same way, and the network is fitted again on both. The threshold and every check below
+   still use uniform draws only, so focusing changes which network is checked, not the checks.
 4. **Threshold.** The calibration states set it: the highest score a failure among them has.
 5. **Validation**, as for the grid: ``validation`` fresh states drawn uniformly inside the
    region are simulated; a failure raises the threshold past its score and a new fresh draw
@@ -59,6 +65,9 @@ Progress = Callable[[str, "float | None"], None]
 MAX_SAMPLES = 2_000_000
 """The most labelled states an estimate may simulate per stage."""
 
+FOCUS_QUANTILE = 0.01
+"""The share of the rescued fitted states the focus zone may leave out (their lowest first-fit scores)."""
+
 
 @dataclass(frozen=True)
 class ClassifierSettings:
@@ -90,6 +99,9 @@ class ClassifierSettings:
     seed : int
     edge_share : float
         The share of the region, its lowest scores, that the edge validation draws from (0: none).
+    focus : int
+        Further labelled states drawn where a first fit scores at least :func:`focus_level`, fitted
+        on too (0: none).
     """
 
     variables: tuple[str, ...]
@@ -104,6 +116,7 @@ class ClassifierSettings:
     horizon_s: float = 3.0
     seed: int = 0
     edge_share: float = 0.05
+    focus: int = 0
 
     def __post_init__(self) -> None:
         """Refuse settings out of range at once (:class:`RegionError` naming the field)."""
@@ -119,7 +132,8 @@ def _check_settings(s: ClassifierSettings) -> None:
         )
     for name, h in zip(s.variables, s.half_range, strict=True):
         number(h, f"half-range of {name}", RegionError, low=0.0, low_open=True)
-    for name, low in (("samples", 100), ("calibration", 100), ("validation", 1), ("coverage", 1)):
+    counts = (("samples", 100), ("calibration", 100), ("validation", 1), ("coverage", 1), ("focus", 0))
+    for name, low in counts:
         integer(getattr(s, name), name, RegionError, low=low, high=MAX_SAMPLES, param=name)
     integer(s.width, "width", RegionError, low=2, high=MAX_WIDTH, param="width")
     integer(s.epochs, "epochs", RegionError, low=1, high=10_000, param="epochs")
@@ -306,17 +320,50 @@ def estimate_classifier(
         s, est = settings, work.est
         labelled = draw_states(work.est, s.samples + s.calibration)
         rescued, _ = est.rescued(labelled, "labelling")
-        box = _box(work.est.domain)
-        unfitted = RescueClassifier(s.variables, *box, layers=(), coach=law_digest(spec))
-        work.report("fitting", None)
-        layers = fit_layers(unfitted.scaled(labelled[: s.samples]), rescued[: s.samples], s.width, s.epochs,
-                            s.negative_weight, s.seed)  # fmt: skip
+        unfitted = RescueClassifier(s.variables, *_box(work.est.domain), layers=(), coach=law_digest(spec))
+        layers, focused = _fitted(work, unfitted, labelled[: s.samples], rescued[: s.samples])
         scores = replace(unfitted, layers=layers).scores(labelled[s.samples :])
         accuracy = float(np.mean((scores >= 0.0) == rescued[s.samples :]))
         clf = replace(unfitted, layers=layers, threshold=calibrated_threshold(scores, rescued[s.samples :]))
         clf, rounds, removed, scores_inside = _validate(work, clf, s.validation)
         clf, edge = _validate_edge(work, clf, scores_inside)
-        return _scored(spec, work, clf, (rounds, removed, *edge, accuracy))
+        return _scored(spec, work, clf, (rounds, removed, *edge, accuracy), focused)
+
+
+def focus_level(rescued_scores: np.ndarray) -> float:
+    """The first fit's score reached by all the rescued fitted states but the lowest :data:`FOCUS_QUANTILE`.
+
+    Raises
+    ------
+    RegionError
+        No fitted state was rescued: there is nothing to focus on.
+    """
+    if not rescued_scores.size:
+        raise RegionError(
+            "focus: no fitted state was rescued, so there is no zone to focus on; widen the domain or "
+            "label more states (--samples)"
+        )
+    return float(np.quantile(rescued_scores, FOCUS_QUANTILE))
+
+
+def _fitted(
+    work: _Work, unfitted: RescueClassifier, labelled: np.ndarray, rescued: np.ndarray
+) -> tuple[tuple[tuple[np.ndarray, np.ndarray], ...], dict[str, Any]]:
+    """The network fitted on the uniform labels, then (``focus``) on the focused ones too; their facts."""
+    s = work.settings
+    x, y = unfitted.scaled(labelled), rescued
+    work.report("fitting", None)
+    layers = fit_layers(x, y, s.width, s.epochs, s.negative_weight, s.seed)
+    if not s.focus:
+        return layers, {}
+    first = replace(unfitted, layers=layers)
+    level = focus_level(first.scores(labelled[rescued]))
+    drawn = draw_states(work.est, s.focus, keep=lambda v: first.scores(v) >= level)
+    ok, _ = work.est.rescued(drawn, "focus")
+    work.report("fitting", None)
+    layers = fit_layers(np.vstack([x, unfitted.scaled(drawn)]), np.concatenate([y, ok]), s.width, s.epochs,
+                        s.negative_weight, s.seed)  # fmt: skip
+    return layers, {"focus": s.focus, "focus_level": level, "focus_rescued": float(ok.mean())}
 
 
 def _box(d: _Domain) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -383,7 +430,11 @@ def _validate_edge(
 
 
 def _scored(
-    spec: CoachSpec, work: _Work, clf: RescueClassifier, how: tuple[int, int, int, int, float, float]
+    spec: CoachSpec,
+    work: _Work,
+    clf: RescueClassifier,
+    how: tuple[int, int, int, int, float, float],
+    focused: dict[str, Any],
 ) -> ClassifierRescue:
     """Coverage over fresh domain states, the spec's grid region on the same ones, and the provenance."""
     s, est = work.settings, work.est
@@ -403,7 +454,8 @@ def _scored(
         float(inside.mean()), rounds, removed, edge_rounds, edge_removed, accuracy,
     )  # fmt: skip
     elapsed = round(time.perf_counter() - work.started, 1)
-    facts: dict[str, Any] = {"simulations": est.simulations, "elapsed_s": elapsed, "coverage_rescuable": held}
+    facts: dict[str, Any] = {"simulations": est.simulations, "elapsed_s": elapsed, "coverage_rescuable": held,
+                             **focused}  # fmt: skip
     if edge_rounds:
         facts |= {"edge_share": s.edge_share, "edge_band": band, "edge_samples": s.validation,
                   "edge_rounds": edge_rounds, "edge_failures_removed": edge_removed}  # fmt: skip

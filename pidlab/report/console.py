@@ -491,6 +491,11 @@ def classifier_view(r: Any, spec_name: str, env_id: str, units: dict[str, str]) 
         f"network {len(c.variables)}-{s.width}-{s.width}-1 (tanh) fitted on {s.samples:,} labelled states, "
         f"threshold {c.threshold:.4g} set on {s.calibration:,} more (accuracy {r.calibration_accuracy:.1%})\n"
     )
+    if s.focus:
+        head.append(
+            f"focus: fitted again with {s.focus:,} more labelled states where a first fit scored at least "
+            f"{r.provenance['focus_level']:.4g} ({r.provenance['focus_rescued']:.1%} of them rescued)\n"
+        )
     head.append(
         f"validation in MuJoCo: {s.validation:,} fresh states in the region, 0 not rescued "
         f"(failure rate < {r.failure_bound_95:.2%} at 95 %); {r.validation_rounds} draw(s), "
