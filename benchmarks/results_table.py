@@ -329,7 +329,8 @@ def _median_text(values: tuple[float, ...]) -> str:
 
 
 def _plain_row(
-    env: str, x: PlainLearner, rows: dict[tuple[str, str], dict[str, str]], best: bool, verdict: str
+    env: str, x: PlainLearner, rows: dict[tuple[str, str], dict[str, str]], best: bool, verdict: str,
+    progress: str = "",
 ) -> str:
     def cell(metric: str, to_target: bool = False) -> str:
         return _cell(rows.get((x.condition, metric)), to_target)
@@ -337,7 +338,8 @@ def _plain_row(
     sac = x.condition == "none-sac"
     cells = [env, "none-sac (SAC)" if sac else "none (PPO)", _median_text(x.steps_to_target),
              cell("env_steps_to_alone_target", True), cell("falls"), cell("final_score"),
-             cell("wall_s_to_alone_target"), "**yes**" if best else "", verdict if sac else "-"]  # fmt: skip
+             cell("wall_s_to_alone_target"), progress or ("**yes**" if best else ""),
+             verdict if sac and not progress else "-"]  # fmt: skip
     return "| " + " | ".join(cells) + " |"
 
 
@@ -355,12 +357,14 @@ def baselines() -> str:
             why = f"not run yet (Amendment {governs[0]})" if governs else "not run (no amendment governs it)"
             out.append(f"| {env} | none (PPO) | - | - | - | - | - | none (PPO): plain SAC {why} | - |")
             continue
-        rows, _ = loaded
+        rows, record = loaded
         learners = _learners(f"{env}-sac")
-        best = best_plain_baseline(learners)
+        # a sweep split over sessions names no baseline until all its runs are in
+        progress = _progress(f"{env}-sac", record, _budget(env, f"{env}-sac", record)).strip("; *")
+        best = None if progress else best_plain_baseline(learners)
         test = rows.get(("none-sac", "env_steps_to_alone_target"))
         verdict = "-" if test is None else f"{test['verdict']} (Holm {p_text(float(test['p_holm']))})"
-        out += [_plain_row(env, x, rows, x is best, verdict) for x in learners]
+        out += [_plain_row(env, x, rows, x is best, verdict, progress) for x in learners]
     return "\n".join(out)
 
 
