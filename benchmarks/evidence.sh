@@ -20,6 +20,8 @@
 #                                                     # hold with the same settings: pidlab experiment --reuse)
 #   bash benchmarks/evidence.sh --teach7 InvertedDoublePendulum-v5  # Amendment 10: the demonstrations'
 #                                                     # weight held at 1 (fresh seeds 110-119)
+#   bash benchmarks/evidence.sh --teach8 InvertedDoublePendulum-v5  # Amendment 19: half the demonstrations,
+#                                                     # held (fresh seeds 120-129)
 #   bash benchmarks/evidence.sh --sac InvertedPendulum-v5    # Amendment 8: plain SAC beside plain PPO
 #                                                     # (the pendulums, and Hopper by Amendment 18;
 #                                                     # `none` reused from the confirmation)
@@ -64,6 +66,7 @@ case "${1:-}" in
     --teach5) mode=teach5; shift ;;
     --teach6) mode=teach6; shift ;;
     --teach7) mode=teach7; shift ;;
+    --teach8) mode=teach8; shift ;;
     --model) mode=model; shift ;;
     --sac) mode=sac; shift ;;
     --full) mode=full; shift ;;
@@ -84,7 +87,7 @@ rescue=none,paper,rescue,rescue-penalty,rescue-terminal,rescue-fading
 design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
     case $mode in
         confirm) confirm_design "$1"; return ;;
-        teach|teach2|teach3|teach4|teach5|teach6|teach7) teach_design "$1"; return ;;
+        teach|teach2|teach3|teach4|teach5|teach6|teach7|teach8) teach_design "$1"; return ;;
         model) model_design "$1"; return ;;
         sac) sac_design "$1"; return ;;
         full) full_design "$1"; return ;;
@@ -134,6 +137,10 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
         teach7) case $1 in   # Amendment 10: the demonstrations' weight held, on fresh seeds
                     InvertedDoublePendulum-v5) echo "$1-teach7 none,warm-start-hold $steps 110-119" ;;
                     *) echo "evidence.sh: --teach7 is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 10)" >&2; exit 2 ;;
+                esac ;;
+        teach8) case $1 in   # Amendment 19: half the demonstrations, held, on fresh seeds
+                    InvertedDoublePendulum-v5) echo "$1-teach8 none,warm-start-hold-short $steps 120-129" ;;
+                    *) echo "evidence.sh: --teach8 is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 19)" >&2; exit 2 ;;
                 esac ;;
     esac
 }
@@ -218,7 +225,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 model sac full edge offpolicy edgemodel learned room scoped; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 teach8 model sac full edge offpolicy edgemodel learned room scoped; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

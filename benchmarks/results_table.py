@@ -25,7 +25,7 @@ from bench_cli import run
 
 from pidlab.experiment.analysis import recipes_of_runs
 from pidlab.experiment.plan import ALONE_TARGETS, AMENDMENT_LIST, PlainLearner, best_plain_baseline
-from pidlab.experiment.stats import Estimate
+from pidlab.experiment.stats import Estimate, median_saving
 from pidlab.experiment.sweep import finished
 from pidlab.files import atomic_write_text, read_json
 from pidlab.report.experiment import (
@@ -248,12 +248,16 @@ AIM = {"falls": 0.9, "env_steps_to_alone_target": 0.5}
 """Issue 35's aim as savings of the median against none: at least 90 % fewer falls, half the env steps."""
 
 
-def aim_text(row: dict[str, str], threshold: float) -> str:
+def aim_word(low: float, high: float, threshold: float) -> str:
     """The aim read from a saving's interval: met (above the threshold), missed (below), undecided."""
+    return "met" if low >= threshold else "missed" if high < threshold else "undecided"
+
+
+def aim_text(row: dict[str, str], threshold: float) -> str:
+    """A summary row's saving against none and the aim read from its interval."""
     if not row.get("saving", ""):
         return "no saving (none never reached it)"
-    low, high = _num(row["saving_low"]), _num(row["saving_high"])
-    word = "met" if low >= threshold else "missed" if high < threshold else "undecided"
+    word = aim_word(_num(row["saving_low"]), _num(row["saving_high"]), threshold)
     return f"{_saving(row)}: **{word}** (aim {100 * threshold:.0f} %)"
 
 
@@ -306,21 +310,23 @@ PLAIN = ("none", "none-sac")
 """The plain learners of Amendment 8: PPO and SAC alone."""
 
 
-def _learners(name: str) -> list[PlainLearner]:
-    """The plain learners of a published sweep, per run from its ``metrics.csv``."""
-    runs: dict[str, list[dict[str, str]]] = {}
+def _per_run(name: str, metric: str) -> dict[str, tuple[float, ...]]:
+    """One measure of a published sweep per run, per condition, from its ``metrics.csv``.
+
+    An empty cell (a target never reached) reads +inf.
+    """
+    runs: dict[str, list[float]] = {}
     with open(RESULTS / name / "metrics.csv", newline="") as fh:
         for r in csv.DictReader(fh):
-            runs.setdefault(r["condition"], []).append(r)
+            text = r[metric]
+            runs.setdefault(r["condition"], []).append(float(text) if text not in ("", "nan") else math.inf)
+    return {c: tuple(v) for c, v in runs.items()}
 
-    def value(text: str) -> float:
-        return float(text) if text not in ("", "nan") else float("inf")
 
-    return [
-        PlainLearner(c, tuple(value(r["env_steps_to_alone_target"]) for r in runs[c]),
-                     tuple(float(r["final_score"]) for r in runs[c]))
-        for c in PLAIN if c in runs
-    ]  # fmt: skip
+def _learners(name: str) -> list[PlainLearner]:
+    """The plain learners of a published sweep, per run from its ``metrics.csv``."""
+    steps, scores = _per_run(name, "env_steps_to_alone_target"), _per_run(name, "final_score")
+    return [PlainLearner(c, steps[c], scores[c]) for c in PLAIN if c in steps]
 
 
 def _median_text(values: tuple[float, ...]) -> str:
@@ -368,12 +374,86 @@ def baselines() -> str:
     return "\n".join(out)
 
 
+BEST_BEGIN = "<!-- against the best: begin (benchmarks/results_table.py) -->"
+BEST_END = "<!-- against the best: end -->"
+BEST_REPS = 10000
+"""Bootstrap resamples of each saving against the best plain baseline (seed 0, as the sweeps' own)."""
+
+
+def named_baseline(env: str) -> tuple[str, str] | str:
+    """``(sweep folder, condition)`` of ``env``'s best plain baseline, or why none is named yet.
+
+    Amendment 8's rule reads it from the env's ``ENV-sac`` sweep once all its runs are in.
+    """
+    name = f"{env}-sac"
+    loaded = _load(name)
+    if loaded is None:
+        governs = [a.number for a in AMENDMENT_LIST if "none-sac" in a.conditions and env in a.envs]
+        why = f"not run yet (Amendment {governs[0]})" if governs else "not run (no amendment governs it)"
+        return f"not named: plain SAC {why}"
+    progress = _progress(name, loaded[1], _budget(env, name, loaded[1])).strip("; *")
+    if progress:
+        return f"not named: its sweep is {progress}"
+    return name, best_plain_baseline(_learners(name)).condition
+
+
+def _against(x: tuple[float, ...], y: tuple[float, ...], threshold: float) -> tuple[str, str]:
+    """The saving of the median of ``x`` against ``y`` with its interval, and the aim's word."""
+    e = median_saving(x, y, reps=BEST_REPS)
+    if e.value != e.value:
+        return f"saving {saving_text(e)}", "undecided"
+    word = aim_word(e.low, e.high, threshold)
+    return f"saving {saving_text(e)}: **{word}** (aim {100 * threshold:.0f} %)", word
+
+
+def _best_rows(env: str, base: tuple[str, str]) -> list[str]:
+    """Every published coupling of ``env`` against its best plain baseline's runs."""
+    folder, learner = base
+    y = {m: _per_run(folder, m)[learner] for m in AIM}
+    label = f"{learner} ({'SAC' if learner == 'none-sac' else 'PPO'}, {len(y['falls'])} runs)"
+    out, seen = [], set()
+    for sweep in TEACH_SWEEPS:
+        name = f"{env}-{sweep}"
+        loaded = _load(name)
+        if loaded is None or _progress(name, loaded[1], _budget(env, name, loaded[1])):
+            continue
+        x = {m: _per_run(name, m) for m in AIM}
+        seeds = tuple(loaded[1]["identity"]["seeds"])
+        for c in loaded[1]["identity"]["conditions"]:
+            # a condition's runs copied into a later sweep (Amendment 6) are shown once, where first run
+            if c in PLAIN or c not in x["falls"] or (c, seeds) in seen:
+                continue
+            seen.add((c, seeds))
+            cells = [_against(x[m][c], y[m], t) for m, t in AIM.items()]
+            words = [w for _, w in cells]
+            both = "missed" if "missed" in words else "met" if set(words) == {"met"} else "undecided"
+            out.append(f"| {env} | {label} | {sweep} | {c} | {cells[0][0]} | {cells[1][0]} | **{both}** |")
+    return out
+
+
+def against_best() -> str:
+    """Every published coupling against its env's best plain baseline: the savings and issue 37's aim."""
+    head = ["env", "best plain baseline (runs)", "sweep", "condition",
+            "fewer falls than the best plain baseline (aim)",
+            "fewer env steps to the agent-alone target (aim)", "both aims"]  # fmt: skip
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for env in ENVS:
+        base = named_baseline(env)
+        if isinstance(base, str):
+            out.append(f"| {env} | {base} | - | - | - | - | - |")
+            continue
+        out += _best_rows(env, base)
+    return "\n".join(out)
+
+
 def main() -> None:
     """Replace the marked blocks of docs/results/README.md."""
     readme = RESULTS / "README.md"
     text = readme.read_text()
     for begin, end, body in [(b.begin, b.end, tables(b)) for b in BLOCKS] + [
-        (TEACH_BEGIN, TEACH_END, teaching_tables()), (BASE_BEGIN, BASE_END, baselines())
+        (TEACH_BEGIN, TEACH_END, teaching_tables()),
+        (BASE_BEGIN, BASE_END, baselines()),
+        (BEST_BEGIN, BEST_END, against_best()),
     ]:
         a, b = text.index(begin) + len(begin), text.index(end)
         text = text[:a] + "\n\n" + body + "\n\n" + text[b:]

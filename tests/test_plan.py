@@ -187,6 +187,11 @@ def test_every_condition_an_amendment_governs_is_named_in_its_amendment():
     assert plan.role(range(100, 110), short, envs=["InvertedDoublePendulum-v5"]) == "exploratory"
     assert plan.role(range(120, 130), short) == "pilot"
     assert "seeds 110-119" in plan.citation(range(110, 120), short)
+    # Amendment 19 confirms on its own fresh seeds, on InvertedDoublePendulum only
+    held, idp = ["none", "warm-start-hold-short"], ["InvertedDoublePendulum-v5"]
+    assert plan.role(range(120, 130), held, envs=idp) == "confirmatory"
+    assert plan.role(range(120, 130), held, envs=["Hopper-v5"]) == "pilot"
+    assert plan.role(range(110, 120), held, envs=idp) == "pilot"
 
 
 def test_the_runs_say_which_agents_a_sweep_trained(tmp_path):

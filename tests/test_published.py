@@ -10,6 +10,7 @@ and its report.html must match too.
 
 from __future__ import annotations
 
+import math
 import sys
 
 import pytest
@@ -130,6 +131,42 @@ def test_the_aim_is_read_from_the_savings_interval():
     assert results_table.aim_text({"saving": ""}, 0.9).startswith("no saving")
 
 
+def test_every_coupling_is_read_against_the_best_plain_baseline_once(tmp_path, monkeypatch):
+    """Savings against the baseline's own runs, by hand; a copied condition is shown once."""
+    import json
+
+    import results_table
+
+    def sweep(name: str, seeds: list[int], rows: list[tuple[str, float, float]]) -> None:
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "summary.csv").write_text("env,condition,metric\n")
+        conditions = list(dict.fromkeys(c for c, _, _ in rows))
+        ident = {"conditions": conditions, "seeds": seeds, "runs": {}}
+        (folder / "experiment.json").write_text(json.dumps({"identity": ident}))
+        lines = ["env,condition,seed,falls,env_steps_to_alone_target,final_score"]
+        lines += [f"Foo-v5,{c},{i},{f},{'' if s == math.inf else s},1.0" for i, (c, f, s) in enumerate(rows)]
+        (folder / "metrics.csv").write_text("\n".join(lines) + "\n")
+
+    monkeypatch.setattr(results_table, "RESULTS", tmp_path)
+    monkeypatch.setattr(results_table, "_budget", lambda env, name, record: 1000)
+    monkeypatch.setattr(results_table, "TEACH_SWEEPS", ("teach", "full"))
+    sweep("Foo-v5-sac", [0, 1, 2], [("none-sac", 100, 20000)] * 3)
+    fast = [("fast", 0, 10000)] * 3
+    sweep("Foo-v5-teach", [0, 1, 2], [("none", 90, 90000)] * 3 + fast + [("stuck", 5, math.inf)] * 3)
+    sweep("Foo-v5-full", [0, 1, 2], fast)  # the same runs, copied (Amendment 6)
+    assert results_table.named_baseline("Foo-v5") == ("Foo-v5-sac", "none-sac")
+    rows = results_table._best_rows("Foo-v5", ("Foo-v5-sac", "none-sac"))
+    assert len(rows) == 2 and "| teach | fast |" in rows[0] and "| teach | stuck |" in rows[1]
+    # falls 0 against 100: +100 %; env steps 10,000 against 20,000: +50 %, on the aim exactly
+    assert "saving +100.0 % [+100.0 %, +100.0 %]: **met** (aim 90 %)" in rows[0]
+    assert "saving +50.0 % [+50.0 %, +50.0 %]: **met** (aim 50 %) | **met** |" in rows[0]
+    # falls 5 against 100: +95 %; never at the target: the env-steps aim, and so both, missed
+    assert "saving +95.0 % [+95.0 %, +95.0 %]: **met**" in rows[1]
+    assert rows[1].endswith("**missed** (aim 50 %) | **missed** |")
+    assert results_table.named_baseline("Bar-v5") == "not named: plain SAC not run (no amendment governs it)"
+
+
 @pytest.mark.parametrize("mode", ["--teach", "--teach2", "--teach3"])
 def test_the_teaching_sweeps_refuse_an_env_without_a_design(mode):
     import subprocess
@@ -160,10 +197,11 @@ def test_the_sac_sweep_is_for_the_envs_an_amendment_governs(env):
     ("sweep", "amendment", "home", "env"),
     [("offpolicy", 13, "InvertedPendulum-v5", "Walker2d-v5"), ("edgemodel", 14, "InvertedPendulum-v5", "Hopper-v5"),
      ("learned", 15, "InvertedDoublePendulum-v5", "InvertedPendulum-v5"),
-     ("room", 16, "Hopper-v5", "Walker2d-v5")],
+     ("room", 16, "Hopper-v5", "Walker2d-v5"), ("teach7", 10, "InvertedDoublePendulum-v5", "Hopper-v5"),
+     ("teach8", 19, "InvertedDoublePendulum-v5", "InvertedPendulum-v5")],
 )  # fmt: skip
 def test_the_one_env_sweeps_refuse_other_envs(env, sweep, amendment, home):
-    """Amendments 13 to 16 govern their couplings on one env each; other envs are refused at once."""
+    """Amendments 10, 13 to 16 and 19 govern their couplings on one env each; other envs are refused at once."""
     import subprocess
 
     done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), f"--{sweep}", env],

@@ -113,6 +113,9 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
     Amendment(16, ("rescue-terminal-room-full",), envs=("Hopper-v5",)),
     Amendment(17, ("rescue-terminal-full-scoped",), envs=("InvertedDoublePendulum-v5",)),
     Amendment(18, ("none-sac",), envs=("Hopper-v5",), algorithms=("sac",)),
+    Amendment(
+        19, ("warm-start-hold-short",), envs=("InvertedDoublePendulum-v5",), seeds=tuple(range(120, 130))
+    ),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 
