@@ -1,9 +1,10 @@
 """Write the tables of docs/results/README.md from the committed experiment reports.
 
-Four blocks, each between its own markers: the couplings against none (:func:`teaching_tables`: the
-sweeps of the plan's Amendments 1-5 and 7-17, `benchmarks/evidence.sh --teach` to `--teach7`,
-`--sac`, `--full`, `--edge`, `--offpolicy`, `--edgemodel`, `--learned`, `--room` and `--scoped`), the
-confirmation (:data:`CONFIRM`: the sweeps of docs/analysis-plan.md on fresh seeds,
+Six blocks, each between its own markers: each env's best plain baseline (:func:`baselines`, Amendment
+8's rule), every coupling against it (:func:`against_best`, issue 37's aim), the couplings against none
+(:func:`teaching_tables`: the sweeps of the plan's Amendments 1-5, 7-17 and 19, `benchmarks/evidence.sh
+--teach` to `--teach8`, `--sac`, `--full`, `--edge`, `--offpolicy`, `--edgemodel`, `--learned`, `--room`
+and `--scoped`), the confirmation (:data:`CONFIRM`: the sweeps of docs/analysis-plan.md on fresh seeds,
 `benchmarks/evidence.sh --confirm`), the pilot evidence at budgets where the uncoached agent
 reaches the target (:data:`EVIDENCE`: the folders benchmarks/evidence.sh publishes, with `none`,
 `paper` and the coached condition chosen for it) and the early-phase results (:data:`EARLY`: the
@@ -235,10 +236,10 @@ def tables(block: Block = EARLY) -> str:
 
 TEACH_BEGIN = "<!-- teaching: begin (benchmarks/results_table.py) -->"
 TEACH_END = "<!-- teaching: end -->"
-TEACH_SWEEPS = ("teach", "teach2", "teach3", "teach4", "teach5", "teach6", "teach7",
+TEACH_SWEEPS = ("teach", "teach2", "teach3", "teach4", "teach5", "teach6", "teach7", "teach8",
                 "sac", "full", "edge", "offpolicy", "edgemodel", "learned", "room", "scoped")  # fmt: skip
-"""The folders ENV-teach, ... ENV-teach7 (the plan's Amendments 1-5, 7 and 10), ENV-sac (Amendment 8: plain
-SAC beside plain PPO), ENV-full (Amendments 9 and 11: the rescue region over the full state), ENV-edge
+"""The folders ENV-teach, ... ENV-teach8 (the plan's Amendments 1-5, 7, 10 and 19), ENV-sac (Amendment 8:
+plain SAC beside plain PPO), ENV-full (Amendments 9 and 11: the rescue region over the full state), ENV-edge
 (Amendment 12: that region validated at its edge), ENV-offpolicy (Amendment 13: SAC that learns from
 the coach), ENV-edgemodel (Amendment 14: the model predictor on that region), ENV-learned (Amendment 15:
 a learned one-step model on the full-state region), ENV-room (Amendment 16: Hopper's room coach and

@@ -304,3 +304,68 @@ def test_the_final_agent_loads_without_its_buffers(run):
     summary = read_json(folder / "summary.json")
     assert sorted(summary["files"]) == ["model.zip"]  # the shipped [sac] tables normalize nothing
     assert Path(folder / "final_model.zip").is_file()
+
+
+# ----------------------------------------------------------------------------- demonstrations, for SAC
+
+
+@pytest.mark.parametrize("normalize", [False, True])
+def test_sac_keeps_the_coachs_demonstrations_in_the_coach_buffer(spec, tmp_path, normalize):
+    """Demonstrations as long as learning_starts take the random warm-up's place, in the coach's buffer."""
+    from pidlab.rl import demonstrations as demo
+    from pidlab.rl.checkpoint import _read_npz
+
+    # noise as wide as the action range, so that the coach falls and ended steps are checked too
+    data = recipe_data(off_after=0.0, view="hidden", demonstrations={"steps": 100, "noise": 1.0})
+    if normalize:  # raw observations in both buffers, as SB3 stores its own behind a VecNormalize
+        data["sac"]["normalize"] = {"obs": True, "reward": False}
+    folder = tmp_path / "run"
+    result = train(parse_recipe(data, "tiny"), spec, folder, progress_bar=False)
+    demos = demo.load(folder / demo.FILE)
+    coach = _read_npz(latest_checkpoint(folder) / "coach_buffer.npz")
+    state = read_json(latest_checkpoint(folder) / "state.json")
+    assert read_json(folder / "warm_start.json")["coach_buffer_rows"] == len(demos) == 100
+    # the coach never acts after its demonstrations: they are the coach buffer, row for row
+    assert state["sb3"]["coach_transitions"] == len(coach["rewards"]) == 100 == result.coach_steps
+    assert np.array_equal(coach["observations"][:, 0], demos.obs)
+    assert np.array_equal(coach["next_observations"][:, 0], demos.next_obs)
+    assert np.allclose(coach["actions"][:, 0], demos.actions / 3.0, atol=1e-6)  # scaled as SB3 does: +-3
+    assert np.array_equal(coach["rewards"][:, 0], demos.rewards.astype(np.float32))
+    ended = demos.terminated | demos.truncated
+    assert np.array_equal(coach["dones"][:, 0].astype(bool), ended)
+    # a step's next observation is the next step's observation, unless the step ended an episode
+    going = ~ended[:-1]
+    assert np.array_equal(demos.next_obs[:-1][going], demos.obs[1:][going])
+    assert demos.terminated.any()
+    for i in np.flatnonzero(ended[:-1]):  # the last observation of the episode, not the next reset
+        assert abs(demos.next_obs[i][1]) > 0.2 and not np.array_equal(demos.next_obs[i], demos.obs[i + 1])
+    # they were env steps: SB3 counted them, and no random warm-up step followed
+    assert state["num_timesteps"] == result.env_steps == 400
+    agent = _read_npz(latest_checkpoint(folder) / "replay_buffer.npz")
+    assert len(agent["rewards"]) == result.agent_steps == 300
+    # learning started right after them: every agent env step bought one gradient step
+    assert 300 - 8 <= state["sb3"]["n_updates"] <= 300
+
+
+def test_sac_demonstrations_without_a_coach_buffer_are_refused(spec):
+    recipe = parse_recipe(sac_recipe_data(off_after=0.0, demonstrations={"steps": 100, "noise": 0.1}), "tiny")
+    with pytest.raises(CoachingError, match="add coaching.coach_buffer"):
+        check_couplings(recipe, spec)
+    # a coach buffer with the hidden view is refused only while the coach may take over
+    check_couplings(tiny(off_after=0.0, view="hidden", demonstrations={"steps": 100, "noise": 0.1}), spec)
+    with pytest.raises(CoachingError, match="use view = 'terminal' or 'penalty'"):
+        check_couplings(tiny(view="hidden", demonstrations={"steps": 100, "noise": 0.1}), spec)
+
+
+def test_demonstrations_written_before_next_observations_load_without_them(tmp_path):
+    from pidlab.rl import demonstrations as demo
+
+    arrays = {"obs": np.zeros((3, 4), np.float32), "actions": np.zeros((3, 1), np.float32),
+              "rewards": np.ones(3), "terminated": np.zeros(3, bool), "truncated": np.zeros(3, bool),
+              "env_index": np.zeros(3, np.int64)}  # fmt: skip
+    np.savez(tmp_path / "old.npz", **arrays)
+    old = demo.load(tmp_path / "old.npz")
+    assert old.next_obs is None and len(old) == 3
+    np.savez(tmp_path / "bad.npz", **arrays, next_obs=np.zeros((2, 4), np.float32))
+    with pytest.raises(CoachingError, match="disagree in length or shape"):
+        demo.load(tmp_path / "bad.npz")

@@ -28,7 +28,10 @@ Warm start (:class:`WarmStartCoupling`)
     behaviour-cloning steps as the update took gradient steps, weighted by ``keep(progress)``
     (:func:`pidlab.rl.cloning.keep_step`; DAPG's augmented gradient, Rajeswaran et al. 2018). The
     rounds are checkpointed counters (``kept_rounds``, and ``kept_at``: SB3's update count at the
-    last round, so a resume does not repeat one).
+    last round, so a resume does not repeat one). With SAC (which needs a ``coach_buffer``) there is
+    no cloning: every demonstration step enters the coach's buffer as a transition of the coach's,
+    counted as an env step towards ``learning_starts`` (:mod:`pidlab.rl.replay`); demonstrations as
+    long as ``learning_starts`` replace SAC's random warm-up.
 Value trigger (:class:`ValueTriggerCoupling`, TS2C-style)
     SAC's critic judges, before each agent action that the rescue region lets pass, whether the
     coach's proposal is worth more; the coach then takes over as at a veto.
@@ -102,7 +105,13 @@ class WarmStartCoupling(Coupling):
         record: dict[str, Any] = {"demonstration_steps": len(demos), "noise": self.demonstrations.noise}
         if self.warm_start is not None:
             record["clone"] = asdict(self._clone(trainer, demos))
+        keep = getattr(model, "keep_demonstrations", None)
+        if keep is not None:  # an off-policy agent keeps them as the coach's transitions
+            record["coach_buffer_rows"] = keep(demos)
         model._last_obs, model._last_episode_starts = last_obs, last_dones
+        original = getattr(venv, "get_original_obs", None)
+        if original is not None:  # what SB3's off-policy agents store as the next transition's state
+            model._last_original_obs = original()
         trainer.envs_running = True
         record["agent_alone_after"] = trainer.evaluate().mean
         record["env_steps_after"] = c.env_steps
@@ -347,11 +356,12 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
     CoachingError
         Demonstrations, a blend, a residual, a roll-in, a coach buffer or a value trigger without a
         coach; demonstrations as long as the budget; a warm start, a blend or a residual with an
-        algorithm other than PPO; a coach buffer, a value trigger or a proposer with PPO; a coach
-        buffer with the ``hidden`` view; a proposer with several envs, a coach buffer or a value
-        trigger; a value trigger without the predictive trigger, or with subprocess
-        envs; a roll-in on an env without a time limit; the model predictor with a spec whose
-        region it cannot serve (see :func:`pidlab.rl.coaching.model_region`).
+        algorithm other than PPO; demonstrations for SAC without a coach buffer; a coach buffer, a
+        value trigger or a proposer with PPO; a coach buffer with the ``hidden`` view while the
+        coach may take over; a proposer with several envs, a coach buffer or a value trigger; a
+        value trigger without the predictive trigger, or with subprocess envs; a roll-in on an env
+        without a time limit; the model predictor with a spec whose region it cannot serve (see
+        :func:`pidlab.rl.coaching.model_region`).
     """
     c = recipe.coaching
     if c.blend is not None and spec is None:
@@ -388,6 +398,11 @@ def check_couplings(recipe: Recipe, spec: CoachSpec | None) -> None:
             f"coaching.warm_start with algo = {recipe.algo!r}: the warm start clones a PPO agent "
             "(its policy's mean and spread, and its critic); use algo = 'ppo'"
         )
+    if recipe.algo == "sac" and c.coach_buffer is None:
+        raise CoachingError(
+            "coaching.demonstrations with algo = 'sac' and no coach_buffer: SAC learns from the "
+            "demonstrations only through the coach's buffer; add coaching.coach_buffer = { share = S }"
+        )
 
 
 def _check_mix_algorithm(recipe: Recipe) -> None:
@@ -409,7 +424,8 @@ def _check_coach_buffer(recipe: Recipe, spec: CoachSpec | None) -> None:
     Raises
     ------
     CoachingError
-        No coach, an algorithm other than SAC, the ``hidden`` view, or an episodic ``train_freq``.
+        No coach, an algorithm other than SAC, the ``hidden`` view while the coach may take over
+        (``off_after`` not 0), or an episodic ``train_freq``.
     """
     if spec is None:
         raise CoachingError(
@@ -421,7 +437,7 @@ def _check_coach_buffer(recipe: Recipe, spec: CoachSpec | None) -> None:
             f"coaching.coach_buffer with algo = {recipe.algo!r}: the coach's transitions feed an "
             "off-policy agent's replay; use algo = 'sac'"
         )
-    if recipe.coaching.view == "hidden":
+    if recipe.coaching.view == "hidden" and recipe.coaching.off_after != 0.0:
         raise CoachingError(
             "coaching.coach_buffer with view = 'hidden': the agent's transition at a takeover would "
             "carry the coach's steps as its own, and nothing would mark its action as worse than the "

@@ -8,8 +8,14 @@ makes the demonstrations cover the states the coach corrects from, not only its 
 
 The file ``demonstrations.npz`` of a run holds them (plain arrays, read with
 ``allow_pickle=False``): ``obs`` (raw observations the coach acted on), ``actions`` (the executed,
-noisy actions), ``rewards`` (raw env rewards), ``terminated``, ``truncated`` and ``env_index``,
-one row per demonstration step in the order the envs took them.
+noisy actions), ``rewards`` (raw env rewards), ``terminated``, ``truncated``, ``env_index`` and
+``next_obs`` (the raw observation the step led to: the episode's last one where it ended), one row
+per demonstration step in the order the envs took them. Files written before ``next_obs`` was kept
+load without it (``next_obs`` None).
+
+An off-policy agent with a coach buffer (SAC, :class:`pidlab.rl.replay.CoachReplaySAC`) keeps every
+demonstration step there as a transition of the coach's
+(:meth:`~pidlab.rl.replay.CoachReplaySAC.keep_demonstrations`).
 """
 
 from __future__ import annotations
@@ -25,6 +31,9 @@ from pidlab.files import atomic_write_bytes
 
 FILE = "demonstrations.npz"
 FIELDS = ("obs", "actions", "rewards", "terminated", "truncated", "env_index")
+"""The arrays every demonstrations file holds."""
+OPTIONAL = ("next_obs",)
+"""The arrays a file written since they were kept holds too."""
 
 
 @dataclass(frozen=True)
@@ -43,6 +52,9 @@ class Demonstrations:
         How the step ended its episode (both False: the episode went on).
     env_index : ndarray of int, shape (n,)
         Which training env took the step.
+    next_obs : ndarray, shape (n, obs_dim), or None
+        Raw observation the step led to (where it ended an episode, that episode's last one); None
+        for a file written before it was kept.
     """
 
     obs: np.ndarray
@@ -51,6 +63,7 @@ class Demonstrations:
     terminated: np.ndarray
     truncated: np.ndarray
     env_index: np.ndarray
+    next_obs: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.rewards.shape[0])
@@ -83,16 +96,18 @@ def collect(venv: Any, steps: int, noise: float, seed: int, on_step: Any) -> tup
     n = venv.num_envs
     for i in range(n):
         venv.env_method("demonstrate", noise, seed + i, indices=[i])
-    rows: dict[str, list[Any]] = {k: [] for k in FIELDS}
+    rows: dict[str, list[Any]] = {k: [] for k in FIELDS + OPTIONAL}
     obs = _raw(venv, venv.reset())
     zeros = np.zeros((n, *venv.action_space.shape), dtype=venv.action_space.dtype)
     done, new_obs, dones = 0, None, np.zeros(n, dtype=bool)
     try:
         while done < steps:
             new_obs, _, dones, infos = venv.step(zeros)
+            raw_new = _raw(venv, new_obs)
             for i, info in enumerate(infos):
                 ended = bool(dones[i])
                 rows["obs"].append(obs[i])
+                rows["next_obs"].append(_terminal(venv, info) if ended else raw_new[i])
                 rows["actions"].append(np.asarray(info["demonstration_action"], dtype=np.float32))
                 rows["rewards"].append(float(info.get("coach_reward", 0.0)))
                 fell = bool(info.get("fell", False))
@@ -101,7 +116,7 @@ def collect(venv: Any, steps: int, noise: float, seed: int, on_step: Any) -> tup
                 rows["env_index"].append(i)
             done += n
             on_step(infos, done < steps)
-            obs = _raw(venv, new_obs)
+            obs = raw_new
     finally:
         venv.env_method("demonstrate", None)
     demos = Demonstrations(
@@ -111,8 +126,20 @@ def collect(venv: Any, steps: int, noise: float, seed: int, on_step: Any) -> tup
         terminated=np.asarray(rows["terminated"], dtype=bool),
         truncated=np.asarray(rows["truncated"], dtype=bool),
         env_index=np.asarray(rows["env_index"], dtype=np.int64),
+        next_obs=np.asarray(rows["next_obs"], dtype=np.float32),
     )
     return demos, new_obs, np.asarray(dones, dtype=bool)
+
+
+def _terminal(venv: Any, info: dict[str, Any]) -> np.ndarray:
+    """The raw last observation of an episode that ended (SB3 keeps it in the step's info).
+
+    A ``VecNormalize`` normalized it there; it is unnormalized as SB3's off-policy agents do.
+    """
+    last = np.asarray(info["terminal_observation"])
+    if getattr(venv, "norm_obs", False):
+        last = venv.unnormalize_obs(last)
+    return np.asarray(last, dtype=np.float32)
 
 
 def _raw(venv: Any, obs: np.ndarray) -> np.ndarray:
@@ -126,7 +153,8 @@ def save(path: str | Path, demos: Demonstrations) -> Path:
     import io
 
     buf = io.BytesIO()
-    np.savez(buf, **{k: getattr(demos, k) for k in FIELDS})
+    arrays = {k: getattr(demos, k) for k in FIELDS + OPTIONAL if getattr(demos, k) is not None}
+    np.savez(buf, **arrays)
     atomic_write_bytes(Path(path), buf.getvalue())
     return Path(path)
 
@@ -141,7 +169,7 @@ def load(path: str | Path) -> Demonstrations:
     """
     try:
         with np.load(Path(path), allow_pickle=False) as data:
-            arrays = {k: np.asarray(data[k]) for k in FIELDS}
+            arrays = {k: np.asarray(data[k]) for k in FIELDS + tuple(k for k in OPTIONAL if k in data)}
     except (OSError, KeyError, ValueError) as exc:
         raise CoachingError(f"{path}: not a demonstrations file ({exc})") from None
     n = arrays["rewards"].shape[0]
@@ -149,6 +177,7 @@ def load(path: str | Path) -> Demonstrations:
         any(a.shape[0] != n for a in arrays.values())
         or arrays["obs"].ndim != 2
         or arrays["actions"].ndim != 2
+        or ("next_obs" in arrays and arrays["next_obs"].shape != arrays["obs"].shape)
     ):
         raise CoachingError(f"{path}: its arrays disagree in length or shape")
     return Demonstrations(**arrays)

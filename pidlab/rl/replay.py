@@ -19,7 +19,9 @@ What enters each buffer
     of a takeover or a veto: ``(s, a_coach, r, s', done)``, where ``a_coach`` is the action the coach
     executed (inside the action space, scaled as SB3 scales the agent's), ``r`` the env's reward,
     and ``done`` the env's own end (a fall ends it with no bootstrap; the time limit is a timeout,
-    bootstrapped, as SB3 does for the agent). Roll-ins and demonstrations do not enter it.
+    bootstrapped, as SB3 does for the agent). The coach's demonstrations before learning
+    (``[coaching] demonstrations``) enter it too, one transition per demonstration step with the
+    executed, noisy action (:meth:`CoachReplaySAC.keep_demonstrations`). Roll-ins do not.
 
 Batches
     Each gradient step draws ``round(share * batch_size)`` transitions from the coach's buffer and
@@ -37,8 +39,10 @@ Gradient steps per env step
     SB3's ``num_timesteps`` counts env steps here (the coach's steps are added, and a vetoed agent
     action, which never ran, is not), so it equals the run's env steps. Uncoached SAC makes the
     same number of gradient steps per env step, so a comparison of the two is at the same
-    update-to-data ratio; a coupling without a coach buffer (``rescue-terminal``) makes gradient
-    steps only for the agent's steps.
+    update-to-data ratio. Demonstration steps count the same way: demonstrations as long as
+    ``learning_starts`` take the place of SAC's random warm-up, and learning starts right after
+    them. A coupling without a coach buffer (``rescue-terminal``) makes gradient steps only for
+    the agent's steps.
 """
 
 from __future__ import annotations
@@ -150,6 +154,26 @@ class CoachReplaySAC(SAC):
             self.coach_transitions += 1
             self.num_timesteps += 1
             self.coach_counted += int(self.num_timesteps > self.learning_starts)
+
+    def keep_demonstrations(self, demos: Any) -> int:
+        """Keep the coach's demonstration steps (:mod:`pidlab.rl.demonstrations`) as coach transitions.
+
+        Each is an env step of the run: it counts towards ``learning_starts`` and, past it, buys
+        gradient steps as any coach step does. Returns the number kept.
+
+        Raises
+        ------
+        CoachingError
+            The demonstrations hold no next observations (a file written before they were kept).
+        """
+        from pidlab.errors import CoachingError
+
+        if demos.next_obs is None:
+            raise CoachingError("demonstrations without next observations cannot enter a replay buffer")
+        fields = ("obs", "actions", "rewards", "next_obs", "terminated", "truncated")
+        rows = {k: getattr(demos, k) for k in fields}
+        self._keep(rows)
+        return len(demos)
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         """SB3's updates for the agent's steps, plus those the coach's steps bought."""
