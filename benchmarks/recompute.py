@@ -126,7 +126,7 @@ def explanations(a: Analysis) -> list[str]:
 
 
 def check_readme() -> list[str]:
-    """The README tables against results_table.tables() (recomputed from the summaries)."""
+    """The README tables against benchmarks/results_table.py's (recomputed from the summaries and logs)."""
     import results_table
 
     text = (RESULTS / "README.md").read_text()
@@ -139,14 +139,15 @@ def check_readme() -> list[str]:
         if text[a:b].strip() != results_table.tables(block).strip():
             problems.append(f"docs/results/README.md: the tables after {block.begin} differ from "
                             "benchmarks/results_table.py's; run that script")  # fmt: skip
-    begin, end = results_table.TEACH_BEGIN, results_table.TEACH_END
-    if begin not in text or end not in text:
-        problems.append(f"docs/results/README.md: no {begin} ... {end} block")
-    elif text[text.index(begin) + len(begin) : text.index(end)].strip() != (
-        results_table.teaching_tables().strip()
-    ):
-        problems.append(f"docs/results/README.md: the tables after {begin} differ from "
-                        "benchmarks/results_table.py's; run that script")  # fmt: skip
+    marked = [(results_table.TEACH_BEGIN, results_table.TEACH_END, results_table.teaching_tables),
+              (results_table.BASE_BEGIN, results_table.BASE_END, results_table.baselines),
+              (results_table.BEST_BEGIN, results_table.BEST_END, results_table.against_best)]  # fmt: skip
+    for begin, end, body in marked:
+        if begin not in text or end not in text:
+            problems.append(f"docs/results/README.md: no {begin} ... {end} block")
+        elif text[text.index(begin) + len(begin) : text.index(end)].strip() != body().strip():
+            problems.append(f"docs/results/README.md: the tables after {begin} differ from "
+                            "benchmarks/results_table.py's; run that script")  # fmt: skip
     return problems
 
 
