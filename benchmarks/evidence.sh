@@ -38,6 +38,8 @@
 #                                                     # model on the full-state region (rescue-terminal-full-learned)
 #   bash benchmarks/evidence.sh --room Hopper-v5     # Amendment 16: the room coach and its classifier
 #                                                     # region over the legs (rescue-terminal-room-full)
+#   bash benchmarks/evidence.sh --roomfocus Hopper-v5  # Amendment 20: that region fitted again with focus
+#                                                     # (rescue-terminal-room-focus)
 #   bash benchmarks/evidence.sh --scoped InvertedDoublePendulum-v5  # Amendment 17: the learned model's
 #                                                     # margins where they decide a veto, the linear bound
 #                                                     # (rescue-terminal-full-scoped)
@@ -75,6 +77,7 @@ case "${1:-}" in
     --edgemodel) mode=edgemodel; shift ;;
     --learned) mode=learned; shift ;;
     --room) mode=room; shift ;;
+    --roomfocus) mode=roomfocus; shift ;;
     --scoped) mode=scoped; shift ;;
 esac
 while [ $# -gt 0 ]; do
@@ -96,6 +99,7 @@ design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
         edgemodel) edgemodel_design "$1"; return ;;
         learned) learned_design "$1"; return ;;
         room) room_design "$1"; return ;;
+        roomfocus) roomfocus_design "$1"; return ;;
         scoped) scoped_design "$1"; return ;;
     esac
     case $1 in
@@ -191,6 +195,13 @@ room_design() {  # Amendment 16: Hopper's room coach and its classifier region o
     esac
 }
 
+roomfocus_design() {  # Amendment 20: Hopper's room coach with its classifier region fitted with focus
+    case $1 in
+        Hopper-v5) echo "$1-roomfocus none,rescue-terminal-room-full,rescue-terminal-room-focus 300000 100-109" ;;
+        *) echo "evidence.sh: --roomfocus is for Hopper-v5 (docs/analysis-plan.md, Amendment 20)" >&2; exit 2 ;;
+    esac
+}
+
 scoped_design() {  # Amendment 17: the learned model's margins where they decide a veto, and the linear bound
     case $1 in
         InvertedDoublePendulum-v5) echo "$1-scoped none,rescue-terminal-full,rescue-terminal-full-learned,rescue-terminal-full-scoped 200000 100-109" ;;
@@ -225,7 +236,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 teach8 model sac full edge offpolicy edgemodel learned room scoped; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 teach8 model sac full edge offpolicy edgemodel learned room roomfocus scoped; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

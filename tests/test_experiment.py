@@ -71,7 +71,7 @@ FULL_ENVS = (IP, "InvertedDoublePendulum-v5")  # rescue-terminal-full: a classif
 FULL_ONLY = ("rescue-terminal-full",)
 EDGE_ONLY = ("rescue-terminal-edge", "rescue-terminal-edge-model")
 LEARNED_ONLY = ("rescue-terminal-full-learned", "rescue-terminal-full-scoped")  # the learned forecast: fitted on InvertedDoublePendulum
-ROOM_ONLY = ("rescue-terminal-room-full",)  # the room coach's classifier region: fitted on Hopper  # the classifier validated at its edge: fitted on InvertedPendulum
+ROOM_ONLY = ("rescue-terminal-room-full", "rescue-terminal-room-focus")  # the room coach's classifier region: fitted on Hopper  # the classifier validated at its edge: fitted on InvertedPendulum
 
 
 def test_a_condition_names_its_algorithm_for_every_env_or_one():
