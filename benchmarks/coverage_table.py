@@ -107,7 +107,8 @@ COACHES = {
         Coach("room coach, classifier over pitch, legs and rates (thigh within 0.6 rad, knee 0.8 rad)",
               "tuning/Hopper-v5.pidlab-room-full.toml", runs=("Hopper-v5-room", "rescue-terminal-room-full")),
         Coach("room coach, classifier over pitch, legs and rates, focused fit (80,000 more labels where a "
-              "first fit scored high; width 128)", "tuning/Hopper-v5.pidlab-room-focus.toml"),
+              "first fit scored high; width 128)", "tuning/Hopper-v5.pidlab-room-focus.toml",
+              runs=("Hopper-v5-roomfocus", "rescue-terminal-room-focus")),
     ),
     "Walker2d-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Walker2d-v5-evidence", "rescue-terminal")),
