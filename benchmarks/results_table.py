@@ -255,12 +255,18 @@ def aim_word(low: float, high: float, threshold: float) -> str:
     return "met" if low >= threshold else "missed" if high < threshold else "undecided"
 
 
+def _aim(e: Estimate, threshold: float) -> tuple[str, str]:
+    """A saving with its interval and the aim read from it, and the aim's word."""
+    word = aim_word(e.low, e.high, threshold)
+    return f"saving {saving_text(e)}: **{word}** (aim {100 * threshold:.0f} %)", word
+
+
 def aim_text(row: dict[str, str], threshold: float) -> str:
     """A summary row's saving against none and the aim read from its interval."""
     if not row.get("saving", ""):
         return "no saving (none never reached it)"
-    word = aim_word(_num(row["saving_low"]), _num(row["saving_high"]), threshold)
-    return f"{_saving(row)}: **{word}** (aim {100 * threshold:.0f} %)"
+    saving = Estimate(_num(row["saving"]), _num(row["saving_low"]), _num(row["saving_high"]))
+    return _aim(saving, threshold)[0]
 
 
 def _teach_row(env: str, sweep: str, c: str, rows: dict[tuple[str, str], dict[str, str]]) -> str:
@@ -351,6 +357,17 @@ def _plain_row(
     return "| " + " | ".join(cells) + " |"
 
 
+def _sac_missing(env: str) -> str:
+    """Why ``env`` has no plain SAC sweep: the amendment that governs it, or none."""
+    governs = [a.number for a in AMENDMENT_LIST if "none-sac" in a.conditions and env in a.envs]
+    return f"not run yet (Amendment {governs[0]})" if governs else "not run (no amendment governs it)"
+
+
+def _unfinished(env: str, name: str, record: dict) -> str:
+    """A published sweep's "in progress: k of n runs finished", or "" once all its runs are in."""
+    return _progress(name, record, _budget(env, name, record)).strip("; *")
+
+
 def baselines() -> str:
     """Each env's best plain baseline by Amendment 8's rule, with the numbers it was read from."""
     head = ["env", "plain learner", "median env steps to the agent-alone target (rule)",
@@ -361,14 +378,13 @@ def baselines() -> str:
     for env in ENVS:
         loaded = _load(f"{env}-sac")
         if loaded is None:
-            governs = [a.number for a in AMENDMENT_LIST if "none-sac" in a.conditions and env in a.envs]
-            why = f"not run yet (Amendment {governs[0]})" if governs else "not run (no amendment governs it)"
+            why = _sac_missing(env)
             out.append(f"| {env} | none (PPO) | - | - | - | - | - | none (PPO): plain SAC {why} | - |")
             continue
         rows, record = loaded
         learners = _learners(f"{env}-sac")
         # a sweep split over sessions names no baseline until all its runs are in
-        progress = _progress(f"{env}-sac", record, _budget(env, f"{env}-sac", record)).strip("; *")
+        progress = _unfinished(env, f"{env}-sac", record)
         best = None if progress else best_plain_baseline(learners)
         test = rows.get(("none-sac", "env_steps_to_alone_target"))
         verdict = "-" if test is None else f"{test['verdict']} (Holm {p_text(float(test['p_holm']))})"
@@ -390,10 +406,8 @@ def named_baseline(env: str) -> tuple[str, str] | str:
     name = f"{env}-sac"
     loaded = _load(name)
     if loaded is None:
-        governs = [a.number for a in AMENDMENT_LIST if "none-sac" in a.conditions and env in a.envs]
-        why = f"not run yet (Amendment {governs[0]})" if governs else "not run (no amendment governs it)"
-        return f"not named: plain SAC {why}"
-    progress = _progress(name, loaded[1], _budget(env, name, loaded[1])).strip("; *")
+        return f"not named: plain SAC {_sac_missing(env)}"
+    progress = _unfinished(env, name, loaded[1])
     if progress:
         return f"not named: its sweep is {progress}"
     return name, best_plain_baseline(_learners(name)).condition
@@ -402,10 +416,7 @@ def named_baseline(env: str) -> tuple[str, str] | str:
 def _against(x: tuple[float, ...], y: tuple[float, ...], threshold: float) -> tuple[str, str]:
     """The saving of the median of ``x`` against ``y`` with its interval, and the aim's word."""
     e = median_saving(x, y, reps=BEST_REPS)
-    if e.value != e.value:
-        return f"saving {saving_text(e)}", "undecided"
-    word = aim_word(e.low, e.high, threshold)
-    return f"saving {saving_text(e)}: **{word}** (aim {100 * threshold:.0f} %)", word
+    return (f"saving {saving_text(e)}", "undecided") if e.value != e.value else _aim(e, threshold)
 
 
 def _best_rows(env: str, base: tuple[str, str]) -> list[str]:
@@ -417,7 +428,7 @@ def _best_rows(env: str, base: tuple[str, str]) -> list[str]:
     for sweep in TEACH_SWEEPS:
         name = f"{env}-{sweep}"
         loaded = _load(name)
-        if loaded is None or _progress(name, loaded[1], _budget(env, name, loaded[1])):
+        if loaded is None or _unfinished(env, name, loaded[1]):
             continue
         x = {m: _per_run(name, m) for m in AIM}
         seeds = tuple(loaded[1]["identity"]["seeds"])
