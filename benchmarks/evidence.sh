@@ -40,6 +40,8 @@
 #                                                     # region over the legs (rescue-terminal-room-full)
 #   bash benchmarks/evidence.sh --roomfocus Hopper-v5  # Amendment 20: that region fitted again with focus
 #                                                     # (rescue-terminal-room-focus)
+#   bash benchmarks/evidence.sh --roommodel Hopper-v5  # Amendment 21: that region asked through a learned
+#                                                     # one-step model (rescue-terminal-room-focus-learned)
 #   bash benchmarks/evidence.sh --scoped InvertedDoublePendulum-v5  # Amendment 17: the learned model's
 #                                                     # margins where they decide a veto, the linear bound
 #                                                     # (rescue-terminal-full-scoped)
@@ -78,6 +80,7 @@ case "${1:-}" in
     --learned) mode=learned; shift ;;
     --room) mode=room; shift ;;
     --roomfocus) mode=roomfocus; shift ;;
+    --roommodel) mode=roommodel; shift ;;
     --scoped) mode=scoped; shift ;;
 esac
 while [ $# -gt 0 ]; do
@@ -100,6 +103,7 @@ design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
         learned) learned_design "$1"; return ;;
         room) room_design "$1"; return ;;
         roomfocus) roomfocus_design "$1"; return ;;
+        roommodel) roommodel_design "$1"; return ;;
         scoped) scoped_design "$1"; return ;;
     esac
     case $1 in
@@ -202,6 +206,13 @@ roomfocus_design() {  # Amendment 20: Hopper's room coach with its classifier re
     esac
 }
 
+roommodel_design() {  # Amendment 21: that region asked through a learned one-step model, on Hopper
+    case $1 in
+        Hopper-v5) echo "$1-roommodel none,rescue-terminal-room-focus,rescue-terminal-room-focus-learned 300000 100-109" ;;
+        *) echo "evidence.sh: --roommodel is for Hopper-v5 (docs/analysis-plan.md, Amendment 21)" >&2; exit 2 ;;
+    esac
+}
+
 scoped_design() {  # Amendment 17: the learned model's margins where they decide a veto, and the linear bound
     case $1 in
         InvertedDoublePendulum-v5) echo "$1-scoped none,rescue-terminal-full,rescue-terminal-full-learned,rescue-terminal-full-scoped 200000 100-109" ;;
@@ -236,7 +247,7 @@ for env in "${envs[@]}"; do
     fi
     args=(--envs "$env" --conditions "$conditions" --seeds "$seeds" --steps "$steps" --out "$out")
     reuse=()
-    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 teach8 model sac full edge offpolicy edgemodel learned room roomfocus scoped; do
+    [ "$mode" = evidence ] || [ "$mode" = confirm ] || for earlier in confirm teach teach2 teach3 teach4 teach5 teach6 teach7 teach8 model sac full edge offpolicy edgemodel learned room roomfocus roommodel scoped; do
         [ "$folder" != "$env-$earlier" ] || continue
         for place in results docs/results; do   # the finished runs here, or the published ones
             if [ -e "$place/$env-$earlier/experiment.json" ]; then

@@ -41,8 +41,10 @@ SPECS = (
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-scoped", "classifier over the full state"),
     ("Hopper-v5", "pidlab-rescue-model", "lookup grid over pitch"),
     ("Hopper-v5", "pidlab-room-full-learned", "room coach's classifier over pitch, legs and rates", 2000),
+    ("Hopper-v5", "pidlab-room-focus-learned",
+     "room coach's classifier over pitch, legs and rates, focused fit", 2000),
     ("Walker2d-v5", "pidlab-rescue-model", "lookup grid over pitch"),
-)
+)  # fmt: skip
 """(env, the spec with its measurement in tuning/, its rescue region[, states sampled for the share of
 the region kept, default :data:`KEPT_SAMPLES`]) per row of the error table. Hopper's region over the
 legs draws 2,000: most of its margin boxes are halved 8 times before they fail, 20,000 take minutes."""
@@ -52,6 +54,7 @@ TRAINED = (
     ("InvertedPendulum-v5-edgemodel", ("rescue-terminal-edge", "rescue-terminal-edge-model")),
     ("InvertedDoublePendulum-v5-learned", ("rescue-terminal-full", "rescue-terminal-full-learned")),
     ("InvertedDoublePendulum-v5-scoped", ("rescue-terminal-full-scoped",)),
+    ("Hopper-v5-roommodel", ("rescue-terminal-room-focus", "rescue-terminal-room-focus-learned")),
 )
 """(published folder, its conditions) per block of the training table (unpublished: skipped)."""
 START, END = "<!-- forecast-table -->", "<!-- /forecast-table -->"

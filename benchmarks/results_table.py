@@ -237,13 +237,15 @@ def tables(block: Block = EARLY) -> str:
 TEACH_BEGIN = "<!-- teaching: begin (benchmarks/results_table.py) -->"
 TEACH_END = "<!-- teaching: end -->"
 TEACH_SWEEPS = ("teach", "teach2", "teach3", "teach4", "teach5", "teach6", "teach7", "teach8", "sac", "full",
-                "edge", "offpolicy", "edgemodel", "learned", "room", "roomfocus", "scoped")  # fmt: skip
+                "edge", "offpolicy", "edgemodel", "learned", "room", "roomfocus", "roommodel",
+                "scoped")  # fmt: skip
 """The folders ENV-teach, ... ENV-teach8 (the plan's Amendments 1-5, 7, 10 and 19), ENV-sac (Amendment 8:
 plain SAC beside plain PPO), ENV-full (Amendments 9 and 11: the rescue region over the full state), ENV-edge
 (Amendment 12: that region validated at its edge), ENV-offpolicy (Amendment 13: SAC that learns from
 the coach), ENV-edgemodel (Amendment 14: the model predictor on that region), ENV-learned (Amendment 15:
 a learned one-step model on the full-state region), ENV-room (Amendment 16: Hopper's room coach and
-its region over the legs), ENV-roomfocus (Amendment 20: that region fitted again with focus) and
+its region over the legs), ENV-roomfocus (Amendment 20: that region fitted again with focus), ENV-roommodel
+(Amendment 21: that region asked through a learned one-step model) and
 ENV-scoped (Amendment 17: that learned model's margins where they decide a veto, and the linear bound)
 of each env."""
 AIM = {"falls": 0.9, "env_steps_to_alone_target": 0.5}

@@ -69,9 +69,11 @@ SAC_ONLY = (
 IP_ONLY = ("rescue-terminal-model",)  # the model predictor: on the other envs its error leaves no region
 FULL_ENVS = (IP, "InvertedDoublePendulum-v5")  # rescue-terminal-full: a classifier region fitted on the pendulums
 FULL_ONLY = ("rescue-terminal-full",)
-EDGE_ONLY = ("rescue-terminal-edge", "rescue-terminal-edge-model")
+EDGE_ONLY = ("rescue-terminal-edge", "rescue-terminal-edge-model")  # the classifier validated at its edge: fitted on InvertedPendulum
 LEARNED_ONLY = ("rescue-terminal-full-learned", "rescue-terminal-full-scoped")  # the learned forecast: fitted on InvertedDoublePendulum
-ROOM_ONLY = ("rescue-terminal-room-full", "rescue-terminal-room-focus")  # the room coach's classifier region: fitted on Hopper  # the classifier validated at its edge: fitted on InvertedPendulum
+ROOM_ONLY = (  # the room coach's classifier region: fitted on Hopper
+    "rescue-terminal-room-full", "rescue-terminal-room-focus", "rescue-terminal-room-focus-learned",
+)  # fmt: skip
 
 
 def test_a_condition_names_its_algorithm_for_every_env_or_one():

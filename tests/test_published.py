@@ -198,10 +198,11 @@ def test_the_sac_sweep_is_for_the_envs_an_amendment_governs(env):
     [("offpolicy", 13, "InvertedPendulum-v5", "Walker2d-v5"), ("edgemodel", 14, "InvertedPendulum-v5", "Hopper-v5"),
      ("learned", 15, "InvertedDoublePendulum-v5", "InvertedPendulum-v5"),
      ("room", 16, "Hopper-v5", "Walker2d-v5"), ("teach7", 10, "InvertedDoublePendulum-v5", "Hopper-v5"),
-     ("teach8", 19, "InvertedDoublePendulum-v5", "InvertedPendulum-v5"), ("roomfocus", 20, "Hopper-v5", "Walker2d-v5")],
+     ("teach8", 19, "InvertedDoublePendulum-v5", "InvertedPendulum-v5"), ("roomfocus", 20, "Hopper-v5", "Walker2d-v5"),
+     ("roommodel", 21, "Hopper-v5", "InvertedPendulum-v5")],
 )  # fmt: skip
 def test_the_one_env_sweeps_refuse_other_envs(env, sweep, amendment, home):
-    """Amendments 10, 13 to 16, 19 and 20 govern their couplings on one env each; other envs are refused at once."""
+    """Amendments 10, 13 to 16 and 19 to 21 govern their couplings on one env each; other envs are refused at once."""
     import subprocess
 
     done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), f"--{sweep}", env],

@@ -117,6 +117,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
         19, ("warm-start-hold-short",), envs=("InvertedDoublePendulum-v5",), seeds=tuple(range(120, 130))
     ),
     Amendment(20, ("rescue-terminal-room-focus",), envs=("Hopper-v5",)),
+    Amendment(21, ("rescue-terminal-room-focus-learned",), envs=("Hopper-v5",)),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 

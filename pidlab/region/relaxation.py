@@ -107,12 +107,9 @@ def _linear_chunk(layers: Layers, c: np.ndarray, r: np.ndarray) -> np.ndarray:
             mid, rad = c @ w + b, r @ np.abs(w)
             lines.append(tanh_lines(mid - rad, mid + rad))
             continue
-        a = np.broadcast_to(w.T, (len(c), *w.T.shape))
-        low = _back(layers, lines, a, b, c, r)
-        high = -_back(layers, lines, -a, -b, c, r)
-        lines.append(tanh_lines(low, high))
+        lines.append(tanh_lines(*_back(layers, lines, w.T, b, c, r)))
     w, b = layers[-1]
-    return _back(layers, lines, np.broadcast_to(w.T, (len(c), *w.T.shape)), b, c, r)[:, 0]
+    return _back(layers, lines, w.T, b, c, r)[0][:, 0]
 
 
 def _back(
@@ -122,18 +119,54 @@ def _back(
     const: np.ndarray,
     c: np.ndarray,
     r: np.ndarray,
-) -> np.ndarray:
-    """The lowest value over each box of ``a h + const``, ``h`` the output of hidden layer ``len(lines)``.
+) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest and highest value over each box of ``a h + const``, ``h`` hidden layer ``len(lines)``.
 
-    ``a``: coefficients, shape ``(n, m, units)``; returns shape ``(n, m)``.
+    ``a``: coefficients, shape ``(m, units)`` (a layer's weights, the same for every box); returns
+    two arrays of shape ``(n, m)``. One pass serves both: the highest value is the lowest of
+    ``-a h - const`` negated, whose coefficients are ``a``'s negated at every step, so each step
+    takes the upper lines where the lower pass takes the lower ones. The first step back is taken as
+    matrix products with ``a``'s positive and negative parts (each box's slopes are positive, so
+    scaling by them keeps the signs), without the ``(n, m, units)`` array of a per-box step.
     """
-    total = np.broadcast_to(np.asarray(const, dtype=float), a.shape[:2]).copy()
+    low = np.broadcast_to(np.asarray(const, dtype=float), (len(c), len(a))).copy()
+    high = low.copy()
+    coef: np.ndarray | None = None  # the per-box coefficients, shape (n, m, units), after the first step
     for j in range(len(lines), 0, -1):
         k, below, above = lines[j - 1]
-        total += np.einsum("nmd,nd->nm", np.maximum(a, 0.0), below)
-        total += np.einsum("nmd,nd->nm", np.minimum(a, 0.0), above)
         w, b = layers[j - 1]
-        a = a * k[:, None, :]  # on the pre-activation of layer j
-        total += a @ b
-        a = a @ w.T  # on that layer's input
-    return total + np.einsum("nmk,nk->nm", a, c) - np.einsum("nmk,nk->nm", np.abs(a), r)
+        if coef is None:
+            pos, neg = np.maximum(a, 0.0).T, np.minimum(a, 0.0).T
+            low += below @ pos + above @ neg
+            high += above @ pos + below @ neg
+            shift = (k * b) @ a.T
+            coef = _shared_times(a, k, w)
+        else:
+            pos, neg = np.maximum(coef, 0.0), np.minimum(coef, 0.0)
+            low += np.einsum("nmd,nd->nm", pos, below) + np.einsum("nmd,nd->nm", neg, above)
+            high += np.einsum("nmd,nd->nm", pos, above) + np.einsum("nmd,nd->nm", neg, below)
+            coef = coef * k[:, None, :]  # on the pre-activation of layer j
+            shift = coef @ b
+            coef = coef @ w.T  # on that layer's input
+        low += shift
+        high += shift
+    if coef is None:  # no hidden layer: a linear map of the box
+        mid, rad = c @ a.T, r @ np.abs(a).T
+    else:
+        mid, rad = np.einsum("nmk,nk->nm", coef, c), np.einsum("nmk,nk->nm", np.abs(coef), r)
+    return low + mid - rad, high + mid + rad
+
+
+def _shared_times(a: np.ndarray, k: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``a`` (shape ``(m, units)``) scaled by each box's slopes ``k``, through ``w``: ``(n, m, inputs)``.
+
+    The per-box ``(a * k[i]) @ w.T`` of every box as one matrix product, through whichever
+    intermediate array is smaller: the scaled coefficients ``(n, m, units)`` when ``a`` has fewer
+    rows than ``w`` has inputs (the output layer's one row), else the scaled weights
+    ``(units, n, inputs)`` (a hidden layer's many rows, carried back to a few inputs).
+    """
+    m, (inputs, units), n = len(a), w.shape, len(k)
+    if m <= inputs:
+        return ((a[None, :, :] * k[:, None, :]).reshape(n * m, units) @ w.T).reshape(n, m, inputs)
+    scaled = k.T[:, :, None] * w.T[:, None, :]  # (units, n, inputs)
+    return (a @ scaled.reshape(units, n * inputs)).reshape(m, n, inputs).transpose(1, 0, 2)

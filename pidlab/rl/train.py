@@ -906,11 +906,26 @@ a new start). Everything is checked before it writes the run's first files of th
 def _run(
     recipe: Recipe, spec: CoachSpec | None, run_dir: Path, progress_bar: bool, start: Start
 ) -> TrainResult:
-    import torch
+    """One training session, on ``recipe.threads`` threads: torch's, and the BLAS numpy calls.
 
+    The coach's own numerics (a classifier region's scores, the model predictor's bounds) are numpy
+    matrix products; left at the BLAS library's default they spread over every core, and in a sweep
+    whose workers already fill the cores they wait on each other (the model predictor on Hopper ran
+    several times slower so).
+    """
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    torch.set_num_threads(recipe.threads)
+    with threadpool_limits(limits=recipe.threads, user_api="blas"):
+        return _session(recipe, spec, run_dir, progress_bar, start)
+
+
+def _session(
+    recipe: Recipe, spec: CoachSpec | None, run_dir: Path, progress_bar: bool, start: Start
+) -> TrainResult:
     started = time.perf_counter()
     earlier_s = _earlier_wall_s(Path(run_dir))
-    torch.set_num_threads(recipe.threads)
     trainer = _Trainer(recipe, spec, run_dir, progress_bar)
     trainer.clock = lambda: earlier_s + time.perf_counter() - started
     trainer.couplings = couplings_of(recipe, spec)
