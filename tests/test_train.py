@@ -414,3 +414,22 @@ def test_no_stray_files_after_a_run(tmp_path, ip_spec):
     stray = [p for p in (tmp_path / "run").rglob("*") if p.name.endswith(".tmp") or ".tmp." in p.name]
     assert not stray
     assert len(list((tmp_path / "run" / "checkpoints").iterdir())) == 1
+
+
+def test_training_runs_blas_on_the_recipes_threads_and_gives_them_back(tmp_path, monkeypatch):
+    """The coach's numpy numerics (classifier scores, the model predictor's bounds) run on the recipe's
+    threads, as torch does; the caller's BLAS settings are back afterwards."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import pidlab.rl.train as train_module
+
+    seen = []
+    monkeypatch.setattr(train_module, "_session", lambda *args: seen.append(threadpool_info()) or "done")
+    recipe = load_recipe(tiny_recipe(tmp_path, threads=1))
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+        assert train_module._run(recipe, None, tmp_path / "run", False, lambda venv: None) == "done"
+        after = [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+    blas = [pool["num_threads"] for pool in seen[0] if pool["user_api"] == "blas"]
+    assert blas and all(n == 1 for n in blas)
+    assert after == before and before and all(n == 2 for n in before)

@@ -567,7 +567,7 @@ def kept_share(
         return 0.0
     rng = np.random.default_rng(seed)
     if isinstance(shrunk, ClassifierMarginRegion):
-        points = _classifier_points(shrunk.classifier, shrunk.threshold, samples, rng)
+        points = classifier_points(shrunk.classifier, shrunk.threshold, samples, rng)
         return float(np.mean(shrunk.hold(points))) if len(points) else 0.0
     grid = region.grid
     marked = np.argwhere(np.asarray(grid.table, dtype=bool))
@@ -584,7 +584,7 @@ def kept_share(
     return float(np.mean([shrunk.contains(o) for o in obs]))
 
 
-def _classifier_points(
+def classifier_points(
     clf: RescueClassifier, threshold: float, samples: int, rng: np.random.Generator
 ) -> np.ndarray:
     """Up to ``samples`` points drawn uniformly in a classifier region (rejection from its domain box)."""

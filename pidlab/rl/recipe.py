@@ -15,7 +15,7 @@ Schema ``pidlab.recipe/1``::
     n_envs = 1                   # parallel envs (default for every algorithm)
     vec_env = "dummy"            # dummy (one process) | subproc (one process per env)
     seed = 0
-    threads = 1                  # torch threads per training process
+    threads = 1                  # torch and BLAS threads per training process
 
     [normalize]                  # VecNormalize, as the zoo does (statistics saved with the model)
     obs = true

@@ -1,0 +1,125 @@
+"""What the model predictor's veto costs per agent step, against the env's control period.
+
+A trigger a real system could run must answer within one control period. The model predictor asks,
+for the forecast of each agent action, whether the whole box of the forecast's margins lies in the
+rescue region: a lookup grid answers cell by cell, a classifier region bounds its network's score
+over the box and halves a box it cannot prove, up to 8 times (pidlab.region.forecast). That bound is
+the cost measured here, on one thread (torch's and the BLAS library's), one query at a time as the
+trigger asks it.
+
+For each shipped spec with a classifier region and a forecast measurement, ``--queries`` forecasts
+are drawn uniformly in the rescue region (where every query needs the bound; a forecast outside it
+is refused by one score) and asked one at a time, after ``--warm`` unmeasured queries. The table
+gives the share proven (the margin box inside), and the wall time per query: median, 99th
+percentile and largest (ms), and the env's control period (ms). The section "What the model
+predictor's veto costs" of docs/rescue.md is written between its markers.
+
+Run: .venv/bin/python benchmarks/model_trigger_latency.py [--queries 400] [--warm 20]
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_cli import Parser, count, run
+from threadpoolctl import threadpool_limits
+
+from pidlab import __version__
+from pidlab.controller.spec import load_spec
+from pidlab.files import atomic_write_text
+from pidlab.plant.model import load_model
+from pidlab.provenance import git_state
+from pidlab.region.forecast import ClassifierMarginRegion, classifier_points
+from pidlab.region.takeover import region_from_bounds
+from pidlab.rl.coaching import model_region
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGE = ROOT / "docs" / "rescue.md"
+START, END = "<!-- trigger-latency -->", "<!-- /trigger-latency -->"
+SPECS = (
+    ("InvertedPendulum-v5", "pidlab-rescue-edge-model"),
+    ("InvertedPendulum-v5", "pidlab-rescue-edge-scoped"),
+    ("InvertedDoublePendulum-v5", "pidlab-rescue-full-learned"),
+    ("InvertedDoublePendulum-v5", "pidlab-rescue-full-scoped"),
+    ("Hopper-v5", "pidlab-room-full-learned"),
+    ("Hopper-v5", "pidlab-room-focus-learned"),
+)
+"""(env, spec in tuning/) per row: the classifier regions with a forecast measurement."""
+
+
+def _control_period_ms(loaded) -> float:
+    """The env's control period: the MuJoCo time step times the frame skip, in ms."""
+    return 1e3 * float(loaded.model.opt.timestep) * int(loaded.frame_skip)
+
+
+def measure(env: str, name: str, queries: int, warm: int) -> dict[str, float]:
+    """Proven share and per-query times (ms) of one spec's model predictor, on one thread."""
+    spec = load_spec(ROOT / "tuning" / f"{env}.{name}.toml")
+    loaded = load_model(env)
+    region = region_from_bounds(spec.bounds, loaded.require_card().observation_names, "rescue", spec.name)
+    shrunk = model_region(spec, loaded, region)
+    if not isinstance(shrunk, ClassifierMarginRegion):
+        raise TypeError(f"{name}: not a classifier region")
+    points = classifier_points(shrunk.classifier, shrunk.threshold, queries + warm, np.random.default_rng(0))
+    times, proven = [], []
+    for i, y in enumerate(points):
+        start = time.perf_counter()
+        inside = shrunk.holds(y)
+        if i >= warm:
+            times.append(1e3 * (time.perf_counter() - start))
+            proven.append(inside)
+    t = np.array(times)
+    return {
+        "queries": len(t), "proven": float(np.mean(proven)), "median": float(np.median(t)),
+        "p99": float(np.percentile(t, 99)), "max": float(t.max()), "period": _control_period_ms(loaded),
+    }  # fmt: skip
+
+
+def table(queries: int, warm: int) -> str:
+    """The Markdown table, one row per spec."""
+    head = (
+        "| env | spec | queries | margin box proven inside | per query: median (ms) | 99th percentile (ms) | "
+        "largest (ms) | control period (ms) |\n|---|---|---|---|---|---|---|---|"
+    )
+    rows = []
+    with threadpool_limits(limits=1):
+        for env, name in SPECS:
+            m = measure(env, name, queries, warm)
+            rows.append(
+                f"| {env} | {name} | {m['queries']:,} | {100 * m['proven']:.1f} % | {m['median']:.2f} | "
+                f"{m['p99']:.2f} | {m['max']:.2f} | {m['period']:g} |"
+            )
+            print(rows[-1], flush=True)
+    return "\n".join([head, *rows])
+
+
+def main(argv: list[str]) -> int:
+    """Measure, print and write the section."""
+    p = Parser(description=__doc__.splitlines()[0])
+    p.add_argument("--queries", type=count, default=400, help="measured queries per spec")
+    p.add_argument("--warm", type=count, default=20, help="unmeasured queries first")
+    args = p.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(1)
+    body = table(args.queries, args.warm)
+    git = git_state()
+    sha = (git.get("sha") or "unknown")[:10] if isinstance(git, dict) else "unknown"
+    how = (
+        f"Measured by `.venv/bin/python benchmarks/model_trigger_latency.py --queries {args.queries} "
+        f"--warm {args.warm}` (pidlab {__version__}, git {sha}, {platform.machine()}, "
+        f"{os.cpu_count()} cores, one thread; the machine ran other work at the same time)."
+    )
+    text = PAGE.read_text()
+    start, end = text.index(START) + len(START), text.index(END)
+    atomic_write_text(PAGE, text[:start] + "\n" + how + "\n\n" + body + "\n" + text[end:])
+    return 0
+
+
+if __name__ == "__main__":
+    run(lambda: main(sys.argv[1:]))
