@@ -52,11 +52,6 @@ SPECS = (
 """(env, spec in tuning/) per row: the classifier regions with a forecast measurement."""
 
 
-def _control_period_ms(loaded) -> float:
-    """The env's control period: the MuJoCo time step times the frame skip, in ms."""
-    return 1e3 * float(loaded.model.opt.timestep) * int(loaded.frame_skip)
-
-
 def measure(env: str, name: str, queries: int, warm: int) -> dict[str, float]:
     """Proven share and per-query times (ms) of one spec's model predictor, on one thread."""
     spec = load_spec(ROOT / "tuning" / f"{env}.{name}.toml")
@@ -76,7 +71,7 @@ def measure(env: str, name: str, queries: int, warm: int) -> dict[str, float]:
     t = np.array(times)
     return {
         "queries": len(t), "proven": float(np.mean(proven)), "median": float(np.median(t)),
-        "p99": float(np.percentile(t, 99)), "max": float(t.max()), "period": _control_period_ms(loaded),
+        "p99": float(np.percentile(t, 99)), "max": float(t.max()), "period": 1e3 * loaded.control_dt,
     }  # fmt: skip
 
 
