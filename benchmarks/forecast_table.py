@@ -67,6 +67,8 @@ def _unit(unit: str) -> str:
 def _model_cell(f, region) -> str:
     """The forecast model, how a classifier's score is bounded over a margin box, the margins' scope."""
     cell = f"{f.model}, {f.bound} bound" if isinstance(region, ClassifierRegion) else f.model
+    if f.pieces is not None:
+        cell += f", at most {f.pieces} boxes per halving"
     if f.scope == "domain":
         cell += f"; margins from the {f.in_scope:,} of {f.transitions:,} forecasts in the region's domain"
     return cell
@@ -105,13 +107,14 @@ def row(env: str, name: str, shape: str, samples: int = KEPT_SAMPLES) -> str:
         usable = "no"
     a = f.agreement
     units = {v.name: v.unit for v in card.observation}
+    kept = kept_share(region, f.margin, samples=samples, bound=f.bound, pieces=f.pieces)
     return (
         f"| {env} | {shape} | {_model_cell(f, region)} | {_error_cell(f, units)} | "
         f"{_escapes_cell(f)} | "
         f"{a['both']:,} | "
         f"{a['exact_only']:,} | {a['model_only']:,} | {a['neither']:,} | "
         f"**{100 * f.veto_agreement:.1f} %** | "
-        f"{_kept_cell(kept_share(region, f.margin, samples=samples, bound=f.bound), samples)} | {usable} |"
+        f"{_kept_cell(kept, samples)} | {usable} |"
     )
 
 

@@ -9,12 +9,15 @@ trigger asks it.
 
 For each shipped spec with a classifier region and a forecast measurement, ``--queries`` forecasts
 are drawn uniformly in the rescue region (where every query needs the bound; a forecast outside it
-is refused by one score) and asked one at a time, after ``--warm`` unmeasured queries. The table
-gives the share proven (the margin box inside), and the wall time per query: median, 99th
-percentile and largest (ms), and the env's control period (ms). The section "What the model
-predictor's veto costs" of docs/rescue.md is written between its markers.
+is refused by one score) and asked one at a time, after ``--warm`` unmeasured queries, once with
+the spec's own settings (no cap on a query's boxes) and once per cap in ``--pieces`` (the same
+forecasts: at most that many boxes bounded at one halving, a box that needs more counts as
+unproven, so a query bounds fewer than twice that many). The table gives the share proven (the
+margin box inside), and the wall time per query: median, 99th percentile and largest (ms), and the
+env's control period (ms). The section "What the model predictor's veto costs" of docs/rescue.md is
+written between its markers.
 
-Run: .venv/bin/python benchmarks/model_trigger_latency.py [--queries 400] [--warm 20]
+Run: .venv/bin/python benchmarks/model_trigger_latency.py [--queries 400] [--warm 20] [--pieces 64,16]
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_cli import Parser, count, run
+from bench_cli import Parser, count, counts, run
 from threadpoolctl import threadpool_limits
 
 from pidlab import __version__
@@ -52,14 +55,19 @@ SPECS = (
 """(env, spec in tuning/) per row: the classifier regions with a forecast measurement."""
 
 
-def measure(env: str, name: str, queries: int, warm: int) -> dict[str, float]:
-    """Proven share and per-query times (ms) of one spec's model predictor, on one thread."""
+def measure(env: str, name: str, queries: int, warm: int, pieces: int | None) -> dict[str, float]:
+    """Proven share and per-query times (ms) of one spec's model predictor, on one thread.
+
+    ``pieces``: the cap on a query's boxes at one halving (None: the spec's own, no cap).
+    """
     spec = load_spec(ROOT / "tuning" / f"{env}.{name}.toml")
     loaded = load_model(env)
     region = region_from_bounds(spec.bounds, loaded.require_card().observation_names, "rescue", spec.name)
     shrunk = model_region(spec, loaded, region)
     if not isinstance(shrunk, ClassifierMarginRegion):
         raise TypeError(f"{name}: not a classifier region")
+    if pieces is not None:
+        shrunk = ClassifierMarginRegion(shrunk.region, shrunk.margins, shrunk.bound, pieces)
     points = classifier_points(shrunk.classifier, shrunk.threshold, queries + warm, np.random.default_rng(0))
     times, proven = [], []
     for i, y in enumerate(points):
@@ -75,21 +83,24 @@ def measure(env: str, name: str, queries: int, warm: int) -> dict[str, float]:
     }  # fmt: skip
 
 
-def table(queries: int, warm: int) -> str:
-    """The Markdown table, one row per spec."""
+def table(queries: int, warm: int, caps: list[int]) -> str:
+    """The Markdown table, one row per spec and cap."""
     head = (
-        "| env | spec | queries | margin box proven inside | per query: median (ms) | 99th percentile (ms) | "
-        "largest (ms) | control period (ms) |\n|---|---|---|---|---|---|---|---|"
+        "| env | spec | boxes per halving at most | queries | margin box proven inside | "
+        "per query: median (ms) | 99th percentile (ms) | largest (ms) | control period (ms) |\n"
+        "|---|---|---|---|---|---|---|---|---|"
     )
     rows = []
     with threadpool_limits(limits=1):
         for env, name in SPECS:
-            m = measure(env, name, queries, warm)
-            rows.append(
-                f"| {env} | {name} | {m['queries']:,} | {100 * m['proven']:.1f} % | {m['median']:.2f} | "
-                f"{m['p99']:.2f} | {m['max']:.2f} | {m['period']:g} |"
-            )
-            print(rows[-1], flush=True)
+            for pieces in (None, *caps):
+                m = measure(env, name, queries, warm, pieces)
+                cap = "no cap (the spec's)" if pieces is None else f"{pieces}"
+                rows.append(
+                    f"| {env} | {name} | {cap} | {m['queries']:,} | {100 * m['proven']:.1f} % | "
+                    f"{m['median']:.2f} | {m['p99']:.2f} | {m['max']:.2f} | {m['period']:g} |"
+                )
+                print(rows[-1], flush=True)
     return "\n".join([head, *rows])
 
 
@@ -98,17 +109,22 @@ def main(argv: list[str]) -> int:
     p = Parser(description=__doc__.splitlines()[0])
     p.add_argument("--queries", type=count, default=400, help="measured queries per spec")
     p.add_argument("--warm", type=count, default=20, help="unmeasured queries first")
+    p.add_argument(
+        "--pieces", type=counts, default=[64, 16], help="caps on a query's boxes per halving, e.g. 64,16"
+    )
     args = p.parse_args(argv)
     import torch
 
     torch.set_num_threads(1)
-    body = table(args.queries, args.warm)
+    load = os.getloadavg()[0]  # what else ran: the times are only as clean as the machine
+    body = table(args.queries, args.warm, args.pieces)
     git = git_state()
     sha = (git.get("sha") or "unknown")[:10] if isinstance(git, dict) else "unknown"
     how = (
         f"Measured by `.venv/bin/python benchmarks/model_trigger_latency.py --queries {args.queries} "
-        f"--warm {args.warm}` (pidlab {__version__}, git {sha}, {platform.machine()}, "
-        f"{os.cpu_count()} cores, one thread; the machine ran other work at the same time)."
+        f"--warm {args.warm} --pieces {','.join(map(str, args.pieces))}` "
+        f"(pidlab {__version__}, git {sha}, {platform.machine()}, "
+        f"{os.cpu_count()} cores, one thread; load average {load:.2f} when it started)."
     )
     text = PAGE.read_text()
     start, end = text.index(START) + len(START), text.index(END)

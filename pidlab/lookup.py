@@ -33,6 +33,10 @@ BOUNDS = ("interval", "linear")
 (:func:`pidlab.region.relaxation.lowest_scores`): interval arithmetic, or a linear relaxation (tighter). A
 ``[bounds.forecast]`` table without ``bound`` was measured with ``"interval"``."""
 
+SPLITS = 8
+"""How many times the model predictor halves a margin box whose score bound is inconclusive
+(:func:`pidlab.region.forecast.box_in_classifier`)."""
+
 TRIGGERS = ("reactive", "predictive")
 """What a rescue region was derived for: a check after the agent's step, or one before it."""
 
@@ -164,7 +168,7 @@ LOOKUP_FIELDS = ("trigger", "action_fraction", "variables", "lower", "upper", "c
 """The fields of a ``[bounds.rescue]`` table."""
 FORECAST_FIELDS = ("model", "region", "transitions", "held_out", "escapes", "seed", "margins", "median",
                    "p99", "agreement", "network", "bound", "scope", "in_scope",
-                   "held_out_in_scope")  # fmt: skip
+                   "held_out_in_scope", "pieces")  # fmt: skip
 """The fields of a ``[bounds.forecast]`` table."""
 
 
@@ -259,6 +263,10 @@ class ForecastError:
     in_scope, held_out_in_scope : int or None
         Of ``transitions`` and ``held_out``, how many were in scope (the margins, quantiles and
         escapes are over those); None: all of them.
+    pieces : int or None
+        The most boxes one query of a classifier region may bound at one halving (a box whose next
+        halving would ask more counts as unproven: the query's work is capped); None: no cap. The
+        agreement was measured with it.
     """
 
     model: str
@@ -277,6 +285,7 @@ class ForecastError:
     scope: str = "all"
     in_scope: int | None = None
     held_out_in_scope: int | None = None
+    pieces: int | None = None
 
     @property
     def margin(self) -> dict[str, float]:
@@ -307,6 +316,7 @@ class ForecastError:
             "scope": self.scope,
             **({"in_scope": self.in_scope} if self.in_scope is not None else {}),
             **({"held_out_in_scope": self.held_out_in_scope} if self.held_out_in_scope is not None else {}),
+            **({"pieces": self.pieces} if self.pieces is not None else {}),
             **({"network": self.network.to_table()} if self.network is not None else {}),
         }
 
@@ -359,8 +369,12 @@ def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
     if bound not in BOUNDS:
         raise SpecError(f"{where}.bound: {bound!r}; expected one of {', '.join(BOUNDS)}")
     scope, in_scope, held_in = _scope_of(t, where, counts)
+    pieces = t.get("pieces")
+    if pieces is not None and (isinstance(pieces, bool) or not isinstance(pieces, int) or pieces < 1):
+        raise SpecError(f"{where}.pieces: {pieces!r}; expected an integer >= 1 (or no pieces: no cap)")
     return ForecastError(
         network=network, bound=bound, scope=scope, in_scope=in_scope, held_out_in_scope=held_in,
+        pieces=pieces,
         model=t["model"], variables=names, margins=tuple(margins.values()),
         median=tuple(median[n] for n in names),
         p99=tuple(p99[n] for n in names), transitions=counts["transitions"], held_out=counts["held_out"],

@@ -119,6 +119,7 @@ def test_an_unknown_flag_is_one_line_and_exit_2(script, monkeypatch, capsys):
             "cannot read coach spec '/nonexistent/coach.toml'",
         ),
         ("coaching_throughput.py", ["--envs", "Nope-v5"], "cannot read recipe"),
+        ("model_trigger_latency.py", ["--pieces", "64,0"], "argument --pieces: '0': expected a whole number >= 1"),
         ("recompute.py", ["/nonexistent"], "/nonexistent: cannot be read"),
     ],
 )

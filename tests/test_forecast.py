@@ -27,6 +27,7 @@ from pidlab.lookup import (
 )
 from pidlab.plant.model import load_model
 from pidlab.plant.operating_point import resolve_operating_point
+from pidlab.region import forecast as forecast_module
 from pidlab.region.forecast import (
     ClassifierMarginRegion,
     MarginRegion,
@@ -218,6 +219,49 @@ def test_halving_proves_a_box_the_interval_bound_alone_cannot() -> None:
     assert not box_in_classifier(bump, np.array([0.0]), np.array([0.3]), 0.0, splits=8)
 
 
+def test_a_cap_on_a_querys_boxes_refuses_exactly_the_proofs_that_need_more(monkeypatch) -> None:
+    # tanh(3 x) + tanh(-3 x) >= -0.1 over 0 +- 0.5: the bound of a piece c +- r is
+    # tanh(3 c - 3 r) - tanh(3 c + 3 r). Pieces of r = 0.5, 0.25, 0.125 prove none (1, 2, 4 boxes);
+    # of the 8 of r = 0.0625 only c = +-0.4375 (tanh(1.125) - tanh(1.5) = -0.096); the 6 open ones
+    # halve into 12 of r = 0.03125, of which c = +-0.34375, +-0.28125 prove (-0.099, -0.098); the
+    # 8 open ones into 16 of r = 0.015625, all proven (the worst, c = r: -tanh(0.09375) = -0.093).
+    # So the proof asks 1 + 2 + 4 + 8 + 12 + 16 = 43 boxes, at most 16 at one halving.
+    flat = _net([[3.0, -3.0]], [0.0, 0.0], [[1.0], [1.0]], [0.0])
+    asked: list[int] = []
+    proven = forecast_module._proven
+
+    def counted(clf, c, m, threshold, bound):
+        asked.append(len(c))
+        return proven(clf, c, m, threshold, bound)
+
+    monkeypatch.setattr(forecast_module, "_proven", counted)
+    found = {}
+    for pieces in (None, 16, 15, 8, 1):
+        asked.clear()
+        found[pieces] = (box_in_classifier(flat, np.array([0.0]), np.array([0.5]), -0.1, pieces=pieces), list(asked))
+    assert found[None] == found[16] == (True, [1, 2, 4, 8, 12, 16])
+    assert found[15] == (False, [1, 2, 4, 8, 12])  # the next halving would ask 16 boxes
+    assert found[8] == (False, [1, 2, 4, 8])  # 12 > 8
+    assert found[1] == (False, [1])  # no halving at all
+
+
+def test_a_capped_query_proves_a_subset_of_the_uncapped_ones() -> None:
+    clf = parse_rescue(load_spec(EDGE).bounds["rescue"])
+    lo, hi = np.array(clf.lower), np.array(clf.upper)
+    margins = (hi - lo) * 0.02
+    centres = lo + margins + (hi - lo - 2 * margins) * np.random.default_rng(5).random((300, len(lo)))
+    free = boxes_in_classifier(clf, centres, margins, clf.threshold, bound="linear")
+    assert np.array_equal(boxes_in_classifier(clf, centres, margins, clf.threshold, bound="linear", pieces=256), free)
+    proofs = [free.sum()]
+    for pieces in (16, 4, 1):
+        capped = boxes_in_classifier(clf, centres, margins, clf.threshold, bound="linear", pieces=pieces)
+        assert not np.any(capped & ~free)  # a cap only refuses
+        one_by_one = [box_in_classifier(clf, c, margins, clf.threshold, bound="linear", pieces=pieces) for c in centres]
+        assert capped.tolist() == one_by_one  # the cap is per query, also in a batch
+        proofs.append(capped.sum())
+    assert proofs == sorted(proofs, reverse=True) and proofs[-1] < proofs[0]
+
+
 def test_the_linear_bound_is_the_hand_computed_relaxation() -> None:
     # tanh(3 x) + tanh(-3 x) over 0.5 +- 0.25: the units' pre-activations span [0.75, 2.25] and
     # [-2.25, -0.75], both relaxed by lines of slope k = 1 - tanh(2.25)^2; the x terms cancel and
@@ -298,6 +342,9 @@ def test_the_classifier_margin_region_asks_the_whole_box(ip) -> None:
         margin_region(region, {**none, "hinge_pos": 0.2})
     with pytest.raises(CoachingError, match="bound='cubic': expected one of interval, linear"):
         margin_region(region, none, "cubic")
+    with pytest.raises(CoachingError, match=r"pieces=0: expected an integer >= 1 \(or none: no cap\)"):
+        margin_region(region, none, "linear", 0)
+    assert margin_region(region, none, "linear", 4).pieces == 4
     assert kept_share(region, none, samples=2000) == 1.0
     assert 0.0 < kept_share(region, {v: 0.02 * (h - lo_) for v, lo_, h in zip(clf.variables, lo, hi, strict=True)},
                             samples=2000) < 1.0  # fmt: skip
@@ -316,6 +363,9 @@ def test_the_model_shield_proves_each_forecasts_box_in_a_classifier_region(ip, e
     assert sum(found.agreement.values()) == 200
     env = _shield(_with(spec, found), ip, predictor="model")
     assert isinstance(env.region, ClassifierMarginRegion) and env.region.margins == found.margin
+    assert env.region.pieces is None
+    capped = _shield(_with(spec, dataclasses.replace(found, pieces=8)), ip, predictor="model")
+    assert capped.region.pieces == 8  # the spec's cap is the shield's
     _vetoes_exactly_the_boxes_that_leave(env, 300)
 
 
@@ -340,6 +390,9 @@ def test_the_measurement_accounts_for_every_action_and_repeats(ip, measured) -> 
     older = ("bound", "scope", "in_scope", "held_out_in_scope")  # measured before these fields
     published = {k: v for k, v in found.to_table().items() if k not in older}
     assert parse_forecast(published).bound == "interval" and parse_forecast(published).scope == "all"
+    assert "pieces" not in found.to_table() and found.pieces is None  # no cap: the table as before
+    capped = dataclasses.replace(found, pieces=32)
+    assert capped.to_table()["pieces"] == 32 and parse_forecast(capped.to_table()) == capped
 
 
 def test_no_forecast_in_scope_is_refused_in_one_line() -> None:
@@ -386,6 +439,9 @@ def test_a_spec_keeps_its_forecast_through_a_file(tmp_path, measured) -> None:
         ({"bound": "cubic"}, r"bound: 'cubic'; expected one of interval, linear"),
         ({"bound": ["linear"]}, r"bound: \['linear'\]; expected one of"),
         ({"scope": "everywhere"}, r"scope: 'everywhere'; expected one of all, domain"),
+        ({"pieces": 0}, r"pieces: 0; expected an integer >= 1 \(or no pieces: no cap\)"),
+        ({"pieces": True}, r"pieces: True; expected an integer >= 1"),
+        ({"pieces": 2.5}, r"pieces: 2.5; expected an integer >= 1"),
         ({"in_scope": 301}, r"in_scope: 301; expected an integer in \[1, transitions = 300\]"),
         ({"held_out_in_scope": -1}, r"held_out_in_scope: -1; expected an integer in \[0, held_out = 200\]"),
         ({"scope": "all"}, r"scope 'domain' needs in_scope and held_out_in_scope; scope 'all' has neither"),
@@ -485,6 +541,7 @@ def test_forecast_writes_a_named_copy_of_the_spec(tmp_path) -> None:
         (["--model", "learned", "--width", "1"], "--width 1: expected an integer in [2, 512]"),
         (["--bound", "cubic"], "--bound 'cubic': expected one of interval, linear"),
         (["--scope", "near"], "--scope 'near': expected one of all, domain"),
+        (["--pieces", "0"], "--pieces 0: expected an integer >= 1 (or none: no cap)"),
     ],
 )
 def test_forecast_refuses_bad_options_in_one_line(args, message) -> None:

@@ -1218,12 +1218,8 @@ def forecast(
         str, typer.Argument(metavar="SPEC", help="A coach spec (TOML) with a rescue region.")
     ],
     transitions: Annotated[int, typer.Option(help="Actions put to the shield that set the margins.")] = 5000,
-    held_out: Annotated[
-        int, typer.Option(help="Further actions that check the margins and the vetoes.")
-    ] = 5000,
-    seed: Annotated[
-        int, typer.Option(help="Seed of the env's resets, the random agent and the network's fit.")
-    ] = 0,
+    held_out: Annotated[int, typer.Option(help="Further actions that check the margins and vetoes.")] = 5000,
+    seed: Annotated[int, typer.Option(help="Seed of the resets, the random agent, the network's fit.")] = 0,
     model: Annotated[
         str,
         typer.Option(
@@ -1253,6 +1249,10 @@ def forecast(
             "box (the only ones whose error can decide a veto), or all. Kept in [bounds.forecast].",
         ),
     ] = "domain",
+    pieces: Annotated[int | None, typer.Option(
+        help="The most boxes one query of a classifier region bounds at one halving: caps a veto's work (a "
+        "box it cannot prove within counts as outside). Default: no cap. Kept in [bounds.forecast].",
+    )] = None,
     write: Annotated[bool, typer.Option("--write", help="Write [bounds.forecast] into SPEC.")] = False,
     output: Annotated[
         str | None,
@@ -1280,7 +1280,7 @@ def forecast(
             found = measure_forecast(
                 spec, loaded, transitions=transitions, held_out=held_out, seed=seed,
                 progress=lambda done, total: bar(done), model=model, fit=fit, width=width, epochs=epochs,
-                bound=bound, scope=scope,
+                bound=bound, scope=scope, pieces=pieces,
             )  # fmt: skip
         con = wide_console()
         con.print(_forecast_view(spec, loaded, found))
@@ -1301,7 +1301,8 @@ def _forecast_view(spec: Any, loaded: Any, found: Any) -> Any:
     card = loaded.require_card()
     units = {v.name: v.unit for v in card.observation}
     region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
-    return forecast_view(found, units, kept_share(region, found.margin, bound=found.bound))
+    kept = kept_share(region, found.margin, bound=found.bound, pieces=found.pieces)
+    return forecast_view(found, units, kept)
 
 
 def _copy_name(spec: Any, output: str) -> str:

@@ -230,7 +230,7 @@ def _through_margins(spec: CoachSpec, names: tuple[str, ...], obs: np.ndarray) -
     region = region_from_bounds(spec.bounds, names, "rescue", spec.name)
     try:
         forecast = spec_forecast(spec.bounds, spec.name)
-        shrunk = margin_region(region, forecast.margin, forecast.bound)
+        shrunk = margin_region(region, forecast.margin, forecast.bound, forecast.pieces)
     except CoachingError:  # the margins leave nothing of the region
         return np.zeros(len(obs), dtype=bool)
     return np.array([shrunk.contains(o) for o in obs], dtype=bool)

@@ -31,14 +31,19 @@ import mujoco
 import numpy as np
 
 from pidlab.errors import CoachingError, SpecError
-from pidlab.lookup import BOUNDS, ForecastError, RescueClassifier, ResidualNet, parse_forecast, region_digest
+from pidlab.lookup import (
+    BOUNDS,
+    SPLITS,
+    ForecastError,
+    RescueClassifier,
+    ResidualNet,
+    parse_forecast,
+    region_digest,
+)  # fmt: skip
 from pidlab.plant.card import ModelCard
 from pidlab.plant.observation import variable_address
 from pidlab.region.relaxation import lowest_scores
 from pidlab.region.takeover import ClassifierRegion, GridRegion, checked_observation, observation_indices
-
-SPLITS = 8
-"""How many times :func:`box_in_classifier` halves a box whose interval bound is inconclusive."""
 
 SOURCES = ("qpos", "qvel")
 """The observation sources a forecast of the joint state can give."""
@@ -344,7 +349,7 @@ class MarginRegion(GridRegion):
 
 def box_in_classifier(
     classifier: RescueClassifier, centre: np.ndarray, margins: np.ndarray, threshold: float,
-    splits: int = SPLITS, bound: str = "interval",
+    splits: int = SPLITS, bound: str = "interval", pieces: int | None = None,
 ) -> bool:  # fmt: skip
     """Whether every state of the box ``centre +- margins`` scores at least ``threshold``.
 
@@ -353,22 +358,25 @@ def box_in_classifier(
     relaxation); where the bound falls short, the box is halved along its widest side (in the
     network's scaled units) and each half asked again, ``splits`` times at most. A box any of whose
     pieces' centres scores below the threshold fails at once (that state is outside); one still
-    unproven after the last halving fails too. So a True is proof (every state of the box is
-    inside) and a False may be a box that is inside but too close to the edge to prove it. The
-    domain box is not checked here.
+    unproven after the last halving fails too, and so does one whose next halving would ask more
+    than ``pieces`` boxes at once: that caps a query's work at fewer than ``2 * pieces`` bounded
+    boxes, whatever the box (None: no cap but ``splits``, at most ``2 ** (splits + 1) - 1``). So a True is
+    proof (every state of the box is inside) and a False may be a box that is inside but too close
+    to the edge to prove it. The domain box is not checked here.
     """
     c = np.atleast_2d(np.asarray(centre, dtype=float))
     m = np.asarray(margins, dtype=float)
-    return bool(boxes_in_classifier(classifier, c, m, threshold, splits, bound)[0])
+    return bool(boxes_in_classifier(classifier, c, m, threshold, splits, bound, pieces)[0])
 
 
 def boxes_in_classifier(
     classifier: RescueClassifier, centres: np.ndarray, margins: np.ndarray, threshold: float,
-    splits: int = SPLITS, bound: str = "interval",
+    splits: int = SPLITS, bound: str = "interval", pieces: int | None = None,
 ) -> np.ndarray:  # fmt: skip
     """:func:`box_in_classifier` of each row of ``centres`` (shape ``(n, k)``), all at once: bool ``(n,)``.
 
-    ``margins``: shape ``(k,)`` (the same for every box) or ``(n, k)``.
+    ``margins``: shape ``(k,)`` (the same for every box) or ``(n, k)``. ``pieces`` caps each row's
+    boxes at one halving, as for one box.
     """
     c = np.atleast_2d(np.asarray(centres, dtype=float))
     m = np.array(np.broadcast_to(np.asarray(margins, dtype=float), c.shape))
@@ -385,6 +393,10 @@ def boxes_in_classifier(
         if level == splits:
             failed[owner] = True  # still unproven after the last halving
             break
+        if pieces is not None:
+            c, m, owner = _within(failed, c, m, owner, pieces)
+            if not len(c):
+                break
         rows = np.arange(len(m))
         side = np.argmax(m / width, axis=1)
         m[rows, side] /= 2.0
@@ -392,6 +404,16 @@ def boxes_in_classifier(
         step[rows, side] = m[rows, side]
         c, m, owner = np.concatenate([c - step, c + step]), np.concatenate([m, m]), np.tile(owner, 2)
     return ~failed
+
+
+def _within(
+    failed: np.ndarray, c: np.ndarray, m: np.ndarray, owner: np.ndarray, pieces: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The open boxes of the rows whose halving asks at most ``pieces`` boxes; the others fail."""
+    over = 2 * np.bincount(owner, minlength=len(failed)) > pieces
+    failed[over] = True
+    keep = ~over[owner]
+    return c[keep], m[keep], owner[keep]
 
 
 def _proven(
@@ -426,21 +448,29 @@ class ClassifierMarginRegion:
         ``variable -> margin`` for every variable the classifier tests.
     bound : {"interval", "linear"}
         How the score is bounded over a box (:data:`pidlab.lookup.BOUNDS`, :func:`box_in_classifier`).
+    pieces : int or None
+        The most boxes one query bounds at one halving (:func:`box_in_classifier`); None: no cap.
 
     Raises
     ------
     CoachingError
-        A domain range no wider than twice its margin (no box fits), or an unknown ``bound``.
+        A domain range no wider than twice its margin (no box fits), an unknown ``bound``, or
+        ``pieces`` below 1.
     """
 
     kind = "rescue"
     trigger = "predictive"
 
-    def __init__(self, region: ClassifierRegion, margins: dict[str, float], bound: str = "interval") -> None:
+    def __init__(
+        self, region: ClassifierRegion, margins: dict[str, float], bound: str = "interval",
+        pieces: int | None = None,
+    ) -> None:  # fmt: skip
         check_bound(bound)
+        check_pieces(pieces)
         clf = region.classifier
         self.region = region
         self.bound = bound
+        self.pieces = pieces
         self.classifier = clf
         self.variables = clf.variables
         self.observation_names = region.observation_names
@@ -479,7 +509,7 @@ class ClassifierMarginRegion:
         out = np.zeros(len(ys), dtype=bool)
         if inside.any():
             out[inside] = boxes_in_classifier(
-                self.classifier, ys[inside], self._m, self.threshold, bound=self.bound
+                self.classifier, ys[inside], self._m, self.threshold, bound=self.bound, pieces=self.pieces
             )
         return out
 
@@ -489,21 +519,24 @@ class ClassifierMarginRegion:
 
 
 def margin_region(
-    region: Any, margins: dict[str, float], bound: str = "interval"
+    region: Any, margins: dict[str, float], bound: str = "interval", pieces: int | None = None
 ) -> MarginRegion | ClassifierMarginRegion:
     """The rescue region ``region`` asked of a forecast with ``margins`` (a grid's or a classifier's).
 
-    ``bound`` is how a classifier's score is bounded over a margin box (:data:`pidlab.lookup.BOUNDS`);
-    a grid is asked cell by cell, exactly.
+    ``bound`` is how a classifier's score is bounded over a margin box (:data:`pidlab.lookup.BOUNDS`)
+    and ``pieces`` caps a query's boxes at one halving (:func:`box_in_classifier`); a grid is asked
+    cell by cell, exactly.
 
     Raises
     ------
     CoachingError
-        ``region`` is no rescue region, a margin leaves nothing of it, or ``bound`` is unknown.
+        ``region`` is no rescue region, a margin leaves nothing of it, ``bound`` is unknown or
+        ``pieces`` below 1.
     """
     check_bound(bound)
+    check_pieces(pieces)
     if isinstance(region, ClassifierRegion):
-        return ClassifierMarginRegion(region, margins, bound)
+        return ClassifierMarginRegion(region, margins, bound, pieces)
     if isinstance(region, GridRegion):
         return MarginRegion(region, margins)
     raise CoachingError(f"the model predictor narrows a rescue region, not a {type(region).__name__}")
@@ -513,6 +546,12 @@ def check_bound(bound: str) -> None:
     """Refuse a score bound that is not one of :data:`pidlab.lookup.BOUNDS` (a :class:`CoachingError`)."""
     if bound not in BOUNDS:
         raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
+
+
+def check_pieces(pieces: int | None) -> None:
+    """Refuse a cap on a query's boxes that is not an integer >= 1 or None (a :class:`CoachingError`)."""
+    if pieces is not None and (isinstance(pieces, bool) or not isinstance(pieces, int) or pieces < 1):
+        raise CoachingError(f"pieces={pieces!r}: expected an integer >= 1 (or none: no cap)", param="pieces")
 
 
 def margin_variables(region: Any) -> tuple[str, ...]:
@@ -552,8 +591,9 @@ def _check_room(name: str, margin: float, lo: float, hi: float) -> None:
 
 
 def kept_share(
-    region: Any, margins: dict[str, float], samples: int = 20000, seed: int = 0, bound: str = "interval"
-) -> float:
+    region: Any, margins: dict[str, float], samples: int = 20000, seed: int = 0, bound: str = "interval",
+    pieces: int | None = None,
+) -> float:  # fmt: skip
     """The share of the rescue region whose margin box fits in it (a Monte Carlo estimate).
 
     ``samples`` points drawn uniformly in the region (a grid: a marked cell, then a point in it, and
@@ -561,8 +601,9 @@ def kept_share(
     ``samples`` are found or ``50 * samples`` drawn); 0 when no box fits at all.
     """
     check_bound(bound)
+    check_pieces(pieces)
     try:
-        shrunk = margin_region(region, margins, bound)
+        shrunk = margin_region(region, margins, bound, pieces)
     except CoachingError:  # no box fits
         return 0.0
     rng = np.random.default_rng(seed)

@@ -605,11 +605,16 @@ def train_view(result: Any, win_target: float) -> Group:
     return Group(t, status)
 
 
+def _pieces(pieces: int | None) -> str:
+    """How a query's boxes are capped, for a header line."""
+    return "" if pieces is None else f", at most {pieces} boxes per halving"
+
+
 def forecast_view(f: Any, units: dict[str, str], kept: float | None = None) -> Group:
     """What ``pidlab forecast`` prints: the forecast's error per region variable, and the vetoes."""
     head = Text()
     head.append(f"{f.model} forecast, measured behind the exact shield with a random agent (seed {f.seed}); "
-                f"{f.bound} bound\n", style="bold")  # fmt: skip
+                f"{f.bound} bound{_pieces(f.pieces)}\n", style="bold")  # fmt: skip
     if f.network is not None:
         head.append(f"its correction fitted on {f.network.fitted:,} earlier actions\n")
     if f.in_scope is None:

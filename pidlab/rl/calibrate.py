@@ -42,6 +42,7 @@ from pidlab.region.forecast import (
     MarginRegion,
     check_bound,
     check_forecastable,
+    check_pieces,
     in_domain,
     learned_forecast,
     margin_region,
@@ -95,7 +96,7 @@ def _record(
 
 
 def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: int, width: int,
-                   epochs: int, bound: str, scope: str) -> None:  # fmt: skip
+                   epochs: int, bound: str, scope: str, pieces: int | None) -> None:  # fmt: skip
     integer(transitions, "transitions", CoachingError, low=1, high=MAX_TRANSITIONS, param="transitions")
     integer(held_out, "held_out", CoachingError, low=0, high=MAX_TRANSITIONS, param="held_out")
     checked_seed(seed, "seed", CoachingError, param="seed")
@@ -106,6 +107,7 @@ def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: 
         integer(width, "width", CoachingError, low=2, high=MAX_WIDTH, param="width")
         integer(epochs, "epochs", CoachingError, low=1, high=10_000, param="epochs")
     check_bound(bound)
+    check_pieces(pieces)
     if scope not in SCOPES:
         raise CoachingError(f"scope={scope!r}: expected one of {', '.join(SCOPES)}", param="scope")
 
@@ -123,6 +125,7 @@ def measure_forecast(
     epochs: int = 100,
     bound: str = "linear",
     scope: str = "domain",
+    pieces: int | None = None,
 ) -> ForecastError:
     """The forecast's error on the spec's rescue region, and what it does to the shield.
 
@@ -142,9 +145,11 @@ def measure_forecast(
         The linear forecast, or the linear forecast corrected by a network fitted on ``fit``
         actions recorded first (:func:`pidlab.region.dynamics.fit_residual`, ``width`` units per
         hidden layer, ``epochs`` passes); the margins are then measured on actions it never saw.
-    bound : {"linear", "interval"}
-        How a classifier region's score is bounded over a margin box for the veto agreement, and
-        then by the shield (:data:`pidlab.lookup.BOUNDS`; a lookup grid is asked exactly either way).
+    bound : {"linear", "interval"}, pieces : int, optional
+        How a classifier region's score is bounded over a margin box (:data:`pidlab.lookup.BOUNDS`),
+        and the most boxes one query bounds at one halving (None: no cap;
+        :func:`pidlab.region.forecast.box_in_classifier`), for the veto agreement and then by the
+        shield (a lookup grid is asked exactly either way).
     scope : {"domain", "all"}
         Which transitions set the margins (and count as escapes): those whose forecast lies in the
         rescue region's domain box (:func:`pidlab.region.forecast.domain_box`), or all
@@ -160,10 +165,10 @@ def measure_forecast(
     ------
     CoachingError
         Counts below 1 (``held_out`` below 0; ``fit`` below 100) or above :data:`MAX_TRANSITIONS`,
-        an unknown model, no rescue region, a region over a variable no joint-state forecast gives,
-        or no forecast in scope.
+        an unknown model or bound, ``pieces`` below 1, no rescue region, a region over a variable no
+        joint-state forecast gives, or no forecast in scope.
     """
-    _check_options(transitions, held_out, seed, model, fit, width, epochs, bound, scope)
+    _check_options(transitions, held_out, seed, model, fit, width, epochs, bound, scope, pieces)
     loaded = loaded if loaded is not None else load_model(spec.env_id)
     card = loaded.require_card()
     region = _rescue_region(spec, card)
@@ -172,13 +177,11 @@ def measure_forecast(
     learned = (int(fit), width, epochs) if model == "learned" else None
     recorded = transitions + held_out
     truth, guess, network = _forecasts(spec, loaded, names, recorded, learned, int(seed), progress)
-    err = np.abs(truth[:, cols] - guess[:, cols])
-    scoped = in_domain(region, guess[:, cols]) if scope == "domain" else np.ones(len(err), dtype=bool)
-    fitted, check = _in_scope(spec.name, err, scoped, int(transitions))
+    fitted, check = _errors(spec.name, region, truth[:, cols], guess[:, cols], int(transitions), scope)
     margins = fitted.max(axis=0)
     margin = dict(zip(names, margins, strict=True))
-    obs_names = card.observation_names
-    agreement = _agreement(region, margin, bound, obs_names, truth[transitions:], guess[transitions:])
+    held = truth[transitions:], guess[transitions:]
+    agreement = _agreement(region, margin, (bound, pieces), card.observation_names, *held)
     counted = {"in_scope": len(fitted), "held_out_in_scope": len(check)} if scope == "domain" else {}
     return ForecastError(
         model=model, variables=names, margins=tuple(float(m) for m in margins),
@@ -186,8 +189,17 @@ def measure_forecast(
         p99=tuple(float(v) for v in np.quantile(fitted, 0.99, axis=0)), transitions=int(transitions),
         held_out=int(held_out), escapes=int(np.any(check > margins, axis=1).sum()), seed=int(seed),
         agreement=agreement, region=region_digest((spec.bounds or {})["rescue"]), network=network,
-        bound=bound, scope=scope, **counted,
+        bound=bound, scope=scope, pieces=pieces, **counted,
     )  # fmt: skip
+
+
+def _errors(
+    name: str, region: Region, truth: np.ndarray, guess: np.ndarray, transitions: int, scope: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_in_scope` of the forecast's absolute errors (``truth``, ``guess``: the region's variables)."""
+    err = np.abs(truth - guess)
+    scoped = in_domain(region, guess) if scope == "domain" else np.ones(len(err), dtype=bool)
+    return _in_scope(name, err, scoped, transitions)
 
 
 def _forecasts(
@@ -257,14 +269,17 @@ def _rescue_region(spec: CoachSpec, card: Any) -> Region:
 def _agreement(
     region: Region,
     margins: dict[str, float],
-    bound: str,
+    proof: tuple[str, int | None],
     names: tuple[str, ...],
     truth: np.ndarray,
     guess: np.ndarray,
 ) -> dict[str, int]:
-    """Veto by veto: the exact look-ahead's state in the region, the forecast's margin box in it."""
+    """Veto by veto: the exact look-ahead's state in the region, the forecast's margin box in it.
+
+    ``proof``: the score bound and the cap on a query's boxes (:func:`margin_region`).
+    """
     try:
-        shrunk: MarginRegion | ClassifierMarginRegion | None = margin_region(region, margins, bound)
+        shrunk: MarginRegion | ClassifierMarginRegion | None = margin_region(region, margins, *proof)
     except CoachingError:  # nothing fits: the model vetoes every action
         shrunk = None
     counts = dict.fromkeys(AGREEMENT, 0)

@@ -303,7 +303,7 @@ def model_region(
     check_forecastable(card, margin_variables(region), f"{spec.name}: predictor 'model'")
     forecast = spec_forecast(spec.bounds, spec.name)
     try:
-        shrunk = margin_region(region, forecast.margin, forecast.bound)
+        shrunk = margin_region(region, forecast.margin, forecast.bound, forecast.pieces)
         if forecast.network is not None:  # a learned correction must fit this env's linear model
             learned_forecast(forecast_of(loaded), forecast.network, card)
     except CoachingError as exc:
