@@ -109,6 +109,14 @@ COACHES = {
         Coach("room coach, classifier over pitch, legs and rates, focused fit (80,000 more labels where a "
               "first fit scored high; width 128)", "tuning/Hopper-v5.pidlab-room-focus.toml",
               runs=("Hopper-v5-roomfocus", "rescue-terminal-room-focus")),
+        Coach("room coach, classifier over pitch, legs and rates, asked through the learned forecast's "
+              "margins with the linear bound, margins measured where the forecast lies in the region's "
+              "domain (the model predictor)", "tuning/Hopper-v5.pidlab-room-full-learned.toml",
+              kind=MODEL_KIND),
+        Coach("room coach, classifier over pitch, legs and rates, focused fit, asked through the learned "
+              "forecast's margins with the linear bound, margins measured where the forecast lies in the "
+              "region's domain (the model predictor)", "tuning/Hopper-v5.pidlab-room-focus-learned.toml",
+              runs=("Hopper-v5-roommodel", "rescue-terminal-room-focus-learned"), kind=MODEL_KIND),
     ),
     "Walker2d-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Walker2d-v5-evidence", "rescue-terminal")),
@@ -228,6 +236,9 @@ def main() -> None:
     command = f"`.venv/bin/python benchmarks/coverage_table.py --states {args.states}`"
     block = f"\nMeasured with {command} (figures: docs/results/coverage/ENV.json).\n\n"
     block += "\n".join(head + lines) + "\n"
+    reach = [line for env in DOMAINS for line in _reach_rows(env)]
+    if reach:
+        block += "\n" + "\n".join([*REACH_HEAD, *reach]) + "\n"
     PAGE.write_text(text[:i] + block + text[j:], encoding="utf-8")
     print(f"wrote the table into {PAGE}")
 
@@ -241,6 +252,38 @@ def _rows_from_json(env: str) -> list[str]:
     for d, coach in zip(json.loads(path.read_text()), COACHES[env], strict=True):
         out.append(row(env, coach, _coverage_of(d)))
     return out
+
+
+REACH_HEAD = (
+    "Where each coach's rescued states lie: per domain variable, the largest distance of a rescued "
+    "state from the operating point, and the 95th percentile, in the variable's units (hinges rad, "
+    "their rates rad/s; slides and the root's x and z m, their rates m/s; a sine none). A coach "
+    "measured before this was recorded is left out; one coach scored with several regions is listed "
+    "once. The last column is the `pidlab rescue-classifier --domain` that holds every rescued state.",
+    "",
+    "| env | coach | rescued states | largest / 95th percentile distance from the operating point | "
+    "classifier domain holding them all |",
+    "|---|---|---|---|---|",
+)
+
+
+def _reach_rows(env: str) -> list[str]:
+    """One row per distinct coach of ``env`` whose JSON records where its rescued states lie."""
+    path = OUT / f"{env}.json"
+    if not path.exists():
+        return []
+    rows, seen = [], set()
+    for d, coach in zip(json.loads(path.read_text()), COACHES[env], strict=True):
+        c = _coverage_of(d)
+        key = (c.rescuable, c.reach)
+        if not c.reach or not c.rescuable or key in seen:
+            continue
+        seen.add(key)
+        far = "; ".join(
+            f"{v} {a:.2g} / {b:.2g}" for v, a, b in zip(c.settings.variables, c.reach, c.reach95, strict=True)
+        )
+        rows.append(f"| {env} | {coach.label} | {c.rescuable:,} | {far} | `{c.classifier_domain()}` |")
+    return rows
 
 
 def _coverage_of(d: dict) -> DomainCoverage:
@@ -258,7 +301,8 @@ def _coverage_of(d: dict) -> DomainCoverage:
         for x in d["scores"]
     )
     return DomainCoverage(d["env_id"], d["spec_name"], settings, d["grounded"], d["rescuable"], scores,
-                          d["simulations"], d["elapsed_s"])  # fmt: skip
+                          d["simulations"], d["elapsed_s"], tuple(d.get("reach", ())),
+                          tuple(d.get("reach95", ())))  # fmt: skip
 
 
 if __name__ == "__main__":

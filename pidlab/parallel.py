@@ -75,7 +75,14 @@ _worker_stop: Any = None
 
 
 def _init_worker(build: Callable[..., Any], args: tuple[Any, ...], stop: Any, parent: int) -> None:
-    """Worker set-up: its state ``build(*args)``; Ctrl-C left to the parent; stop with the parent."""
+    """Worker set-up: its state ``build(*args)``; Ctrl-C left to the parent; stop with the parent.
+
+    A worker is one of the processes that share the cores, so its BLAS library runs on one thread:
+    left at the library's default (one thread per core), the workers' matrix products would wait
+    on each other, as training's did (:func:`pidlab.rl.train._run`).
+    """
+    from threadpoolctl import threadpool_limits
+
     from pidlab.orphans import stop_with_parent
 
     global _worker_state, _worker_stop
@@ -83,6 +90,7 @@ def _init_worker(build: Callable[..., Any], args: tuple[Any, ...], stop: Any, pa
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     stop_with_parent(parent, lambda: os.kill(os.getpid(), signal.SIGTERM))
     _worker_state = build(*args)
+    threadpool_limits(1, "blas")  # for the worker's life (it is not restored)
     _worker_stop = stop
 
 

@@ -479,6 +479,8 @@ def test_the_model_shield_vetoes_exactly_the_forecasts_whose_box_leaves_the_regi
     env = _shield(_with(spec, found), ip, predictor="model")
     assert isinstance(env.lookahead, ModelPredictor)
     assert isinstance(env.region, MarginRegion) and env.region.margins == found.margin
+    with pytest.raises(CoachingError, match="pieces=8: a cap on a query's boxes is for a classifier region"):
+        _shield(_with(spec, dataclasses.replace(found, pieces=8)), ip, predictor="model")  # a grid: no boxes
     _vetoes_exactly_the_boxes_that_leave(env, 400)
 
 
@@ -542,6 +544,8 @@ def test_forecast_writes_a_named_copy_of_the_spec(tmp_path) -> None:
         (["--bound", "cubic"], "--bound 'cubic': expected one of interval, linear"),
         (["--scope", "near"], "--scope 'near': expected one of all, domain"),
         (["--pieces", "0"], "--pieces 0: expected an integer >= 1 (or none: no cap)"),
+        (["--pieces", "64"], "--pieces 64: a cap on a query's boxes is for a classifier region; this rescue "
+         "region is a lookup grid"),  # RESCUE's region is a grid
     ],
 )
 def test_forecast_refuses_bad_options_in_one_line(args, message) -> None:

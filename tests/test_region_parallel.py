@@ -138,6 +138,24 @@ def test_pools_stop_their_workers_on_exit_errors_and_interrupts():
     assert _gone(pids)
 
 
+def _blas_threads(state, item):
+    from threadpoolctl import threadpool_info
+
+    np.ones((64, 64)) @ np.ones((64, 64))  # the BLAS library is loaded and used
+    return sorted({lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"})
+
+
+def test_workers_run_blas_on_one_thread_and_leave_the_callers_alone():
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    with threadpool_limits(2, "blas"):
+        before = _blas_threads(None, 0)
+        with WorkerPool(int, (1,), workers=2) as pool:
+            assert pool.run(_blas_threads, list(range(8))).results == [[1]] * 8
+        assert _blas_threads(None, 0) == before
+    assert before and all(lib["num_threads"] >= 1 for lib in threadpool_info())
+
+
 def test_a_batch_stops_at_a_failure_and_is_complete_otherwise():
     for workers in (1, 2):
         with WorkerPool(int, (1,), workers=workers) as pool:

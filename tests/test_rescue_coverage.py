@@ -17,7 +17,15 @@ from scipy.stats import binomtest
 
 from pidlab.controller.spec import load_spec
 from pidlab.errors import RegionError
-from pidlab.region.coverage import DomainSettings, _score, draw_states, measure_domain_coverage
+from pidlab.region.coverage import (
+    DomainCoverage,
+    DomainSettings,
+    _reach,
+    _round_up,
+    _score,
+    draw_states,
+    measure_domain_coverage,
+)
 from pidlab.region.rescue import _rescued, simulations, state_domain
 from tests.helpers import TUNING, cli_in_process
 
@@ -48,6 +56,23 @@ def test_scores_are_counted_as_by_hand() -> None:
     assert empty.inside == 0 and empty.coverage == 0.0 and np.isnan(empty.false_claims)
 
 
+def test_the_rescued_states_reach_is_counted_as_by_hand() -> None:
+    from types import SimpleNamespace
+
+    domain = SimpleNamespace(lower=(-1.0, 1.0), upper=(1.0, 3.0))  # centres 0 and 2
+    states = np.array([[0.1, 1.5], [-0.3, 2.2], [0.9, 2.9]])
+    reach, reach95 = _reach(states, domain, np.array([True, True, False]))  # the third is not rescued
+    assert reach == pytest.approx((0.3, 0.5)) and reach95 == pytest.approx((0.29, 0.485))
+    nothing = _reach(states, domain, np.zeros(3, dtype=bool))
+    assert all(np.isnan(v) for part in nothing for v in part)
+    assert [_round_up(x) for x in (0.537, 0.54, 2.61, 0.0999, 0.0)] == [0.54, 0.54, 2.7, 0.1, 0.0]
+    settings = DomainSettings(("a", "b"), (0.4, 0.45))
+    found = DomainCoverage("E", "s", settings, False, 2, (), 3, 0.0, (0.3, 0.5), (0.29, 0.485))
+    assert found.classifier_domain() == "a=0.3,b=0.45"  # capped at the domain's own half-width
+    assert found.classifier_domain("95") == "a=0.29,b=0.45"
+    assert DomainCoverage("E", "s", settings, False, 0, (), 3, 0.0, *nothing).classifier_domain() == ""
+
+
 def test_a_spec_with_a_forecast_is_also_scored_as_the_model_predictor_asks_it(models) -> None:
     from pidlab.region.coverage import MODEL_KIND
 
@@ -70,6 +95,8 @@ def test_the_same_seed_scores_the_same_states(models) -> None:
     rescue = a.score("rescue region")
     assert rescue is not None and rescue.held <= min(rescue.inside, a.rescuable)
     assert a.simulations == IP_DOMAIN.states and not a.grounded
+    assert a.rescuable > 0 and len(a.reach) == len(a.reach95) == 4
+    assert all(0 <= q <= r <= h for q, r, h in zip(a.reach95, a.reach, IP_DOMAIN.half_range, strict=True))
     assert da["settings"]["domain"] == dict(zip(IP_DOMAIN.variables, IP_DOMAIN.half_range, strict=True))
 
 
@@ -147,6 +174,8 @@ def test_coverage_cli_prints_and_writes_the_figures(tmp_path) -> None:
     ])  # fmt: skip
     assert result.exit_code == 0, result.stderr
     assert "rescue region" in result.stdout and "false claims" in result.stdout
+    assert "pidlab-rescue: the rescued states lie within" in result.stdout
+    assert "a classifier domain holding them all: --domain hinge_pos=" in result.stdout
     data = json.loads(out_file.read_text())
     assert [d["spec_name"] for d in data] == ["pidlab-rescue", "pidlab-robust"]
     for d in data:

@@ -14,6 +14,7 @@ import functools
 import json
 import os
 import re
+import shutil
 import signal
 import sys
 import threading
@@ -1050,7 +1051,7 @@ def rescue_classifier(
     """Fit, validate and score a rescue region over every listed variable: a learned classifier."""
     from pidlab.controller.spec import editing_spec, save_spec, writing_spec
     from pidlab.plant.model import load_model
-    from pidlab.region.classifier import ClassifierSettings, estimate_classifier, with_classifier
+    from pidlab.region.classifier import ClassifierSettings, with_classifier
     from pidlab.report.console import classifier_view, wide_console
 
     if write and output:
@@ -1062,12 +1063,12 @@ def rescue_classifier(
         focus=focus,
     )  # fmt: skip
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
+    journal = _labels_journal(output or spec_file)
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
-        found = _with_bar("classifier region", lambda progress: estimate_classifier(
-            spec, loaded, settings, workers=workers, progress=progress))  # fmt: skip
-        units = {v.name: v.unit for v in loaded.require_card().observation}
         con = wide_console()
+        found = _resumable_classifier(con, spec, loaded, settings, workers, journal)
+        units = {v.name: v.unit for v in loaded.require_card().observation}
         con.print(classifier_view(found, spec.name, spec.env_id, units))
         new = with_classifier(spec, found)
         if write:
@@ -1075,6 +1076,30 @@ def rescue_classifier(
         elif output and write_copy is not None:
             path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
             con.print(f"wrote the spec with its classifier region to {path}")
+    shutil.rmtree(journal, ignore_errors=True)  # its outcomes are in the region written
+
+
+def _resumable_classifier(
+    con: Any, spec: Any, loaded: Any, settings: Any, workers: int | None, journal: Any
+) -> Any:
+    """:func:`~pidlab.region.classifier.estimate_classifier` with its outcomes kept in ``journal``."""
+    from pidlab.region.classifier import estimate_classifier
+
+    con.print(f"each simulation's outcome is kept in {journal} as it is found: if stopped, the same "
+              "command resumes from them")  # fmt: skip
+    found = _with_bar("classifier region", lambda progress: estimate_classifier(
+        spec, loaded, settings, workers=workers, progress=progress, journal=journal))  # fmt: skip
+    if found.reused:
+        con.print(f"resumed: {found.reused:,} of the simulations were read from {journal}")
+    return found
+
+
+def _labels_journal(target: str) -> Any:
+    """Where ``pidlab rescue-classifier`` keeps its outcomes: ``.NAME.labels`` beside the spec it writes."""
+    from pathlib import Path
+
+    path = Path(target)
+    return path.parent / f".{path.name}.labels"
 
 
 def _with_bar(label: str, work: Callable[[Callable[[str, float | None], None]], Any]) -> Any:

@@ -44,6 +44,7 @@ import contextlib
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -170,6 +171,10 @@ class ClassifierRescue:
     calibration_accuracy : float
         Share of calibration states the network's sign classifies right (score >= 0: rescued).
     provenance : dict
+    reused : int
+        Of the simulations, the outcomes read from the labels' journal of an earlier, stopped run
+        instead of simulated again (not compared, not in the provenance: a resumed estimate writes
+        the same region).
     """
 
     classifier: RescueClassifier
@@ -184,6 +189,7 @@ class ClassifierRescue:
     edge_failures_removed: int
     calibration_accuracy: float
     provenance: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
+    reused: int = field(default=0, compare=False)
 
     @property
     def failure_bound_95(self) -> float:
@@ -277,11 +283,12 @@ def _working(
     s: ClassifierSettings,
     workers: int | None,
     progress: Progress | None,
+    journal: str | Path | None = None,
 ) -> Iterator[_Work]:
     def domain_of(card: Any, model: LoadedModel, y_op: np.ndarray) -> _Domain:
         return state_domain(s.variables, s.half_range, card, model, y_op)
 
-    with simulations(spec, loaded, s, domain_of, workers, progress) as (est, _, _):
+    with simulations(spec, loaded, s, domain_of, workers, progress, journal) as (est, _, _):
         yield _Work(est, s, time.perf_counter(), progress or (lambda stage, f: None))
 
 
@@ -291,6 +298,7 @@ def estimate_classifier(
     settings: ClassifierSettings,
     workers: int | None = None,
     progress: Progress | None = None,
+    journal: str | Path | None = None,
 ) -> ClassifierRescue:
     """Estimate, validate and score a classifier rescue region (see the module docstring).
 
@@ -304,6 +312,10 @@ def estimate_classifier(
         Worker processes for the simulations (default: the machine's cores).
     progress : callable, optional
         ``progress(stage, fraction)``.
+    journal : path, optional
+        A folder that keeps every simulation's outcome as it is found: the same estimate run again
+        (after a stop) reads them instead of simulating them, and gives the same region
+        (:mod:`pidlab.region.journal`). None keeps nothing.
 
     Returns
     -------
@@ -316,7 +328,7 @@ def estimate_classifier(
         termination rule leaves (almost) empty; a region that leaves out the operating point, or that
         validation cannot clear in :data:`MAX_ROUNDS` draws.
     """
-    with _working(spec, loaded, settings, workers, progress) as work:
+    with _working(spec, loaded, settings, workers, progress, journal) as work:
         s, est = settings, work.est
         labelled = draw_states(work.est, s.samples + s.calibration)
         rescued, _ = est.rescued(labelled, "labelling")
@@ -461,7 +473,7 @@ def _scored(
                   "edge_rounds": edge_rounds, "edge_failures_removed": edge_removed}  # fmt: skip
     if est.grounded:
         facts["starts"] = STARTS_ON_FLOOR
-    return replace(result, provenance=_provenance(result, facts))
+    return replace(result, provenance=_provenance(result, facts), reused=est.reused)
 
 
 def _grid_region(spec: CoachSpec, names: tuple[str, ...]) -> GridRegion | None:

@@ -28,6 +28,7 @@ Deterministic from ``seed``.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -152,6 +153,11 @@ class DomainCoverage:
         Per region of the spec's ``[bounds]``.
     simulations : int
     elapsed_s : float
+    reach, reach95 : tuple of float
+        Per domain variable, the largest and the 95th percentile of the rescued states' distance
+        from the operating point (nan when none is rescued): the box a classifier region's domain
+        needs to hold every rescued state, or 95 % of them along each variable
+        (:meth:`classifier_domain`). Empty for a measurement made before they were recorded.
     """
 
     env_id: str
@@ -162,6 +168,20 @@ class DomainCoverage:
     scores: tuple[RegionScore, ...]
     simulations: int
     elapsed_s: float
+    reach: tuple[float, ...] = ()
+    reach95: tuple[float, ...] = ()
+
+    def classifier_domain(self, share: str = "all") -> str:
+        """``pidlab rescue-classifier --domain`` for a box about the rescued states (``all`` or ``95``).
+
+        Each half-width is the rescued states' reach (:attr:`reach` or :attr:`reach95`) rounded up
+        to two significant digits, capped at this domain's own; empty when none is rescued.
+        """
+        reach = self.reach if share == "all" else self.reach95
+        if not reach or not np.all(np.isfinite(reach)):
+            return ""
+        pairs = zip(self.settings.variables, reach, self.settings.half_range, strict=True)
+        return ",".join(f"{name}={min(_round_up(r), h):g}" for name, r, h in pairs)
 
     @property
     def rescuable_share(self) -> float:
@@ -275,6 +295,7 @@ def measure_domain_coverage(
         names = est.pool.sim.card.observation_names
         grounded = est.grounded
         sims = est.simulations
+    reach, reach95 = _reach(states, est.domain, rescued)
     scores = []
     for key, kind in REGION_KINDS.items():
         if key not in (spec.bounds or {}):
@@ -286,5 +307,24 @@ def measure_domain_coverage(
         scores.append(_score(MODEL_KIND, _through_margins(spec, names, obs), rescued))
     return DomainCoverage(
         str(spec.env_id), spec.name, s, grounded, int(rescued.sum()), tuple(scores), sims,
-        round(time.perf_counter() - t0, 1),
+        round(time.perf_counter() - t0, 1), reach, reach95,
     )  # fmt: skip
+
+
+def _round_up(x: float) -> float:
+    """``x`` >= 0 rounded up to two significant digits (0 stays 0)."""
+    if x <= 0:
+        return 0.0
+    step = 10.0 ** (math.floor(math.log10(x)) - 1)
+    return float(f"{math.ceil(round(x / step, 9)) * step:.2g}")
+
+
+def _reach(
+    states: np.ndarray, domain: Any, rescued: np.ndarray
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Per variable, the largest and the 95th-percentile distance of a rescued state from the box's centre."""
+    if not rescued.any():
+        nan = (float("nan"),) * states.shape[1]
+        return nan, nan
+    away = np.abs(states[rescued] - 0.5 * (np.asarray(domain.lower) + np.asarray(domain.upper)))
+    return tuple(float(v) for v in away.max(axis=0)), tuple(float(v) for v in np.quantile(away, 0.95, axis=0))

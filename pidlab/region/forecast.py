@@ -530,11 +530,11 @@ def margin_region(
     Raises
     ------
     CoachingError
-        ``region`` is no rescue region, a margin leaves nothing of it, ``bound`` is unknown or
-        ``pieces`` below 1.
+        ``region`` is no rescue region, a margin leaves nothing of it, ``bound`` is unknown, or
+        ``pieces`` is below 1 or given for a lookup grid.
     """
     check_bound(bound)
-    check_pieces(pieces)
+    check_pieces(pieces, region)
     if isinstance(region, ClassifierRegion):
         return ClassifierMarginRegion(region, margins, bound, pieces)
     if isinstance(region, GridRegion):
@@ -548,10 +548,20 @@ def check_bound(bound: str) -> None:
         raise CoachingError(f"bound={bound!r}: expected one of {', '.join(BOUNDS)}", param="bound")
 
 
-def check_pieces(pieces: int | None) -> None:
-    """Refuse a cap on a query's boxes that is not an integer >= 1 or None (a :class:`CoachingError`)."""
-    if pieces is not None and (isinstance(pieces, bool) or not isinstance(pieces, int) or pieces < 1):
+def check_pieces(pieces: int | None, region: Any = None) -> None:
+    """Refuse a cap on a query's boxes that is not an integer >= 1 or None (a :class:`CoachingError`).
+
+    With ``region``, also a cap on a lookup grid, which is asked cell by cell (no boxes to cap).
+    """
+    if pieces is None:
+        return
+    if isinstance(pieces, bool) or not isinstance(pieces, int) or pieces < 1:
         raise CoachingError(f"pieces={pieces!r}: expected an integer >= 1 (or none: no cap)", param="pieces")
+    if isinstance(region, GridRegion):
+        raise CoachingError(
+            f"pieces={pieces}: a cap on a query's boxes is for a classifier region; this rescue region is a "
+            "lookup grid, asked cell by cell (leave pieces out)", param="pieces",
+        )  # fmt: skip
 
 
 def margin_variables(region: Any) -> tuple[str, ...]:
@@ -601,7 +611,7 @@ def kept_share(
     ``samples`` are found or ``50 * samples`` drawn); 0 when no box fits at all.
     """
     check_bound(bound)
-    check_pieces(pieces)
+    check_pieces(pieces, region)
     try:
         shrunk = margin_region(region, margins, bound, pieces)
     except CoachingError:  # no box fits

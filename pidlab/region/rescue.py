@@ -43,6 +43,7 @@ import itertools
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -53,7 +54,7 @@ from pidlab import __version__
 from pidlab.checks import instance, integer, number, shown
 from pidlab.checks import seed as check_seed
 from pidlab.controller.pid import Coach
-from pidlab.controller.spec import CoachSpec
+from pidlab.controller.spec import CoachSpec, law_digest
 from pidlab.errors import RegionError
 from pidlab.linear.linearize import Linearization
 from pidlab.lookup import TRIGGERS, LookupGrid
@@ -61,6 +62,7 @@ from pidlab.parallel import resolve_workers
 from pidlab.plant.card import ModelCard
 from pidlab.plant.model import LoadedModel
 from pidlab.region.bounds import MAX_VERTICES, _action_vertices
+from pidlab.region.journal import CHUNK, LabelJournal, Outcome, Start, journal_key
 from pidlab.region.shrink import halving_bisect
 from pidlab.region.simulate import SimulationPool, Simulator, horizon_steps
 from pidlab.region.takeover import EllipsoidRegion, GridRegion, region_from_bounds
@@ -344,19 +346,43 @@ class _Estimate:
     simulations: int = 0
     grounded: bool = False
     """Starts are put on the floor (a model that stands on one at its operating point)."""
+    journal: LabelJournal | None = None
+    """Where outcomes are kept as they are found, and found again (None: nowhere)."""
+    reused: int = 0
+    """Of :attr:`simulations`, the outcomes read from the journal instead of simulated."""
 
     def rescued(self, values: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
         """Per row of ``values`` (grid then guard variables): rescued after every kick, and its obs."""
         sim = self.pool.sim
         xs = [self.domain.to_plant(v, sim) for v in values]
         items = [(x, k) for x in xs for k in self.kicks]
-        task = functools.partial(_rescued, steps=self.steps, core=self.core, grounded=self.grounded)
-        n = max(len(items), 1)
-        results = self.pool.run(task, items, tick=lambda i: self.report(label, i / n)).results
+        results = self._outcomes(items, label)
         self.simulations += len(items)
         ok = np.array([r[0] for r in results], dtype=bool).reshape(len(xs), len(self.kicks))
         obs = np.array([r[1] for r in results[:: len(self.kicks)]])
         return np.asarray(ok.all(axis=1)), obs
+
+    def _outcomes(self, items: list[Start], label: str) -> list[Outcome]:
+        """The outcome of each start: from the journal where it has one, else simulated (and kept)."""
+        task = functools.partial(_rescued, steps=self.steps, core=self.core, grounded=self.grounded)
+        n = max(len(items), 1)
+        if self.journal is None:
+            return self.pool.run(task, items, tick=lambda i: self.report(label, i / n)).results
+        found: list[Outcome | None] = [self.journal.get(item) for item in items]
+        todo = [i for i, f in enumerate(found) if f is None]
+        self.reused += len(items) - len(todo)
+        for first in range(0, len(todo), CHUNK):
+            chunk = todo[first : first + CHUNK]
+            tick = functools.partial(self._tick, label, len(items) - len(todo) + first, n)
+            batch = self.pool.run(task, [items[i] for i in chunk], tick=tick)
+            self.journal.record([items[i] for i in chunk], batch.results)
+            for i, outcome in zip(chunk, batch.results, strict=True):
+                found[i] = outcome
+        return [f for f in found if f is not None]
+
+    def _tick(self, label: str, before: int, n: int, done: int) -> None:
+        """Progress of a chunk: ``done`` of its starts, after ``before`` of the ``n``."""
+        self.report(label, (before + done) / n)
 
     def guard_values(self, n: int) -> np.ndarray:
         """``n`` guard draws, uniform in the guard box."""
@@ -558,12 +584,16 @@ def simulations(
     domain_of: Callable[[ModelCard, LoadedModel, np.ndarray], _Domain],
     workers: int | None,
     progress: Progress | None = None,
+    journal: str | Path | None = None,
 ) -> Iterator[tuple[_Estimate, Coach, Linearization]]:
     """The rescue simulations' setting, with its worker pool open: the estimate, the coach, its linearization.
 
     ``settings`` needs ``horizon_s`` and ``seed`` (a :class:`RescueSettings`, or a classifier's
     settings); ``domain_of(card, loaded, y_op)`` lays out the states the simulations start from.
     Draws nothing: the estimate's random stream starts at ``settings.seed`` for its first user.
+    ``journal``: a folder that keeps every outcome as it is found (in a subfolder named by
+    :func:`outcome_facts`' digest), so that the same estimate run again simulates only what it
+    lacks (:mod:`pidlab.region.journal`); None keeps nothing.
     """
     from pidlab.controller.analysis import analyze_coach
 
@@ -577,7 +607,25 @@ def simulations(
             np.random.default_rng(settings.seed), progress or (lambda stage, f: None),
             grounded=pool.sim.ground is not None,
         )  # fmt: skip
+        if journal is not None:
+            facts = outcome_facts(spec, est.steps, est.grounded)
+            est.journal = LabelJournal(Path(journal) / journal_key(facts))
         yield est, coach, lin
+
+
+def outcome_facts(spec: CoachSpec, steps: int, grounded: bool) -> dict[str, Any]:
+    """What decides a rescue's outcome besides its start.
+
+    The coach's law, its certified core, the env, the horizon (control steps), starts on the floor,
+    and the versions that simulate it.
+    """
+    import gymnasium
+
+    core = {k: v for k, v in (spec.bounds or {}).items() if k in ("ellipsoid", "box")}
+    return {
+        "env": spec.env_id, "law": law_digest(spec), "core": core, "steps": steps, "grounded": grounded,
+        "pidlab": __version__, "mujoco": mujoco.__version__, "gymnasium": gymnasium.__version__,
+    }  # fmt: skip
 
 
 @contextlib.contextmanager

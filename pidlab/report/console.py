@@ -575,7 +575,23 @@ def coverage_view(found: Sequence[Any], units: dict[str, str]) -> Group:
             false = "-" if not r.inside else f"{100 * r.false_claims:.1f} % ({100 * lo:.1f}-{100 * hi:.1f})"
             t.add_row(c.spec_name if i == 0 else "", share if i == 0 else "", r.kind, f"{r.inside:,}",
                       f"{100 * r.coverage:.1f} %", false)  # fmt: skip
-    return Group(head, t)
+    return Group(head, t, *(_reach_lines(c, units) for c in found if c.reach))
+
+
+def _reach_lines(c: Any, units: dict[str, str]) -> Text:
+    """Where one coach's rescued states lie, and the classifier domain that holds them."""
+    out = Text()
+    if not c.rescuable:
+        out.append(f"{c.spec_name}: no state rescued\n")
+        return out
+    reach = ", ".join(
+        f"{v} {a:.3g}/{b:.3g}{' ' + units[v] if units.get(v) else ''}"
+        for v, a, b in zip(c.settings.variables, c.reach, c.reach95, strict=True)
+    )
+    out.append(f"{c.spec_name}: the rescued states lie within (largest / 95 %, off the operating point) ")
+    out.append(f"{reach}\n")
+    out.append(f"  a classifier domain holding them all: --domain {c.classifier_domain()}\n")
+    return out
 
 
 def train_view(result: Any, win_target: float) -> Group:

@@ -165,13 +165,14 @@ def measure_forecast(
     ------
     CoachingError
         Counts below 1 (``held_out`` below 0; ``fit`` below 100) or above :data:`MAX_TRANSITIONS`,
-        an unknown model or bound, ``pieces`` below 1, no rescue region, a region over a variable no
-        joint-state forecast gives, or no forecast in scope.
+        an unknown model or bound, ``pieces`` below 1 or for a lookup grid, no rescue region, a
+        region over a variable no joint-state forecast gives, or no forecast in scope.
     """
     _check_options(transitions, held_out, seed, model, fit, width, epochs, bound, scope, pieces)
     loaded = loaded if loaded is not None else load_model(spec.env_id)
     card = loaded.require_card()
     region = _rescue_region(spec, card)
+    check_pieces(pieces, region)
     names = margin_variables(region)
     cols = observation_indices(names, card.observation_names, "bounds.rescue")
     learned = (int(fit), width, epochs) if model == "learned" else None
