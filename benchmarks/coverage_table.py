@@ -24,7 +24,7 @@ from bench_cli import Parser, count, names, run
 from run_accounts import falls_under_coach
 
 from pidlab.controller.spec import load_spec
-from pidlab.files import write_json
+from pidlab.files import atomic_write_text, write_json
 from pidlab.plant.model import load_model
 from pidlab.region.coverage import MODEL_KIND, DomainCoverage, DomainSettings, measure_domain_coverage
 
@@ -239,7 +239,7 @@ def main() -> None:
     reach = [line for env in DOMAINS for line in _reach_rows(env)]
     if reach:
         block += "\n" + "\n".join([*REACH_HEAD, *reach]) + "\n"
-    PAGE.write_text(text[:i] + block + text[j:], encoding="utf-8")
+    atomic_write_text(PAGE, text[:i] + block + text[j:])
     print(f"wrote the table into {PAGE}")
 
 

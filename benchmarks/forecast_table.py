@@ -23,6 +23,7 @@ from bench_cli import run
 
 from pidlab.controller.spec import load_spec
 from pidlab.errors import CoachingError
+from pidlab.files import atomic_write_text
 from pidlab.plant.model import load_model
 from pidlab.region.forecast import kept_share, spec_forecast
 from pidlab.region.takeover import ClassifierRegion, region_from_bounds
@@ -165,9 +166,9 @@ def tables() -> str:
 
 def main(argv: list[str]) -> int:
     """Print the tables; write them into the page (or, with --check, compare)."""
+    body = tables()  # minutes of work: the page is read after it, so edits made meanwhile are kept
     text = PAGE.read_text()
     start, end = text.index(START) + len(START), text.index(END)
-    body = tables()
     new = text[:start] + "\n" + body + "\n" + text[end:]
     print(body)
     if "--check" in argv:
@@ -176,7 +177,7 @@ def main(argv: list[str]) -> int:
                   file=sys.stderr)  # fmt: skip
             return 1
         return 0
-    PAGE.write_text(new)
+    atomic_write_text(PAGE, new)
     return 0
 
 
