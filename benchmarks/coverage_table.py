@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import tomllib
@@ -66,6 +66,8 @@ class Coach:
     runs: tuple[str, str] | None = None
     kind: str = "rescue region"
     """The region scored in the table: the rescue region, or it as the model predictor asks it."""
+    into: str = "core"
+    """Where a rescue ends (``pidlab rescue-coverage --into``): the core, or the horizon's end in the box."""
 
 
 def _runs(folder: str, env: str, condition: str) -> Path:
@@ -104,6 +106,8 @@ COACHES = {
     "Hopper-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Hopper-v5-rescue", "rescue-terminal")),
         Coach("room coach (gains searched on the env), no region", "tuning/Hopper-v5.pidlab-room.toml"),
+        Coach("room coach, no region; rescued only when it holds 3 s and ends in its recoverable box "
+              "(pitch and its rate near upright)", "tuning/Hopper-v5.pidlab-room.toml", into="box"),
         Coach("room coach, classifier over pitch, legs and rates (thigh within 0.6 rad, knee 0.8 rad)",
               "tuning/Hopper-v5.pidlab-room-full.toml", runs=("Hopper-v5-room", "rescue-terminal-room-full")),
         Coach("room coach, classifier over pitch, legs and rates, focused fit (80,000 more labels where a "
@@ -121,6 +125,8 @@ COACHES = {
     "Walker2d-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Walker2d-v5-evidence", "rescue-terminal")),
         Coach("room coach (gains searched on the env), no region", "tuning/Walker2d-v5.pidlab-room.toml"),
+        Coach("room coach, no region; rescued only when it holds 3 s and ends in its recoverable box "
+              "(pitch and its rate near upright)", "tuning/Walker2d-v5.pidlab-room.toml", into="box"),
     ),
 }  # fmt: skip
 
@@ -205,7 +211,8 @@ def measure(env: str, states: int, workers: int | None) -> list[str]:
     found, lines = [], []
     for coach in COACHES[env]:
         path = spec_file(env, coach)
-        c = measure_domain_coverage(load_spec(path), loaded, settings, workers=workers)
+        mine = replace(settings, into=coach.into)
+        c = measure_domain_coverage(load_spec(path), loaded, mine, workers=workers)
         found.append({"label": coach.label, "spec_file": str(path.relative_to(ROOT)), **c.to_dict()})
         lines.append(row(env, coach, c))
         print(lines[-1], f"({c.elapsed_s:.0f} s)", flush=True)
@@ -292,7 +299,8 @@ def _coverage_of(d: dict) -> DomainCoverage:
 
     s = d["settings"]
     settings = DomainSettings(
-        tuple(s["variables"]), tuple(s["half_range"]), s["states"], s["horizon_s"], s["seed"]
+        tuple(s["variables"]), tuple(s["half_range"]), s["states"], s["horizon_s"], s["seed"],
+        s.get("into", "core"),
     )
     scores = tuple(
         RegionScore(

@@ -257,6 +257,8 @@ def test_settings_out_of_range_are_refused() -> None:
     for share in (-0.1, 1.5, math.nan):
         with pytest.raises(RegionError, match="edge_share"):
             _small(edge_share=share)
+    with pytest.raises(RegionError, match="into='floor': expected one of core, box"):
+        _small(into="floor")
 
 
 @pytest.mark.parametrize(
@@ -272,6 +274,7 @@ def test_settings_out_of_range_are_refused() -> None:
         (["--domain", "hinge_sin=1", "--write", "-o", "x.toml"], "--write and --output: choose one"),
         (["--domain", "hinge_sin=1", "--edge-share", "2"], "--edge-share 2"),
         (["--domain", "hinge_sin=1", "--focus", "-1"], "--focus -1: expected an integer in [0, 2000000]"),
+        (["--domain", "hinge_sin=1", "--into", "up"], "--into 'up': expected one of core, box"),
     ],
 )
 def test_the_command_refuses_bad_input_in_one_line(args: list[str], message: str) -> None:

@@ -73,6 +73,37 @@ def test_the_rescued_states_reach_is_counted_as_by_hand() -> None:
     assert DomainCoverage("E", "s", settings, False, 0, (), 3, 0.0, *nothing).classifier_domain() == ""
 
 
+def test_a_rescue_into_the_box_must_hold_the_horizon_and_end_in_it(models) -> None:
+    import dataclasses
+
+    from pidlab.controller.analysis import analyze_coach
+    from pidlab.controller.pid import Coach
+    from pidlab.region.rescue import _core
+    from pidlab.region.simulate import Simulator
+    from pidlab.region.takeover import BoxRegion
+
+    spec, loaded = _spec(HOPPER, "pidlab-room"), models[HOPPER]
+    card = loaded.require_card()
+    box = _core(spec, card, "box")
+    assert isinstance(box.region, BoxRegion) and _core(spec, card).region is None  # "core": hold the horizon
+    sim = Simulator(spec, loaded, analyze_coach(Coach(spec, loaded), loaded).linearization)
+    upright = np.zeros(2 * loaded.model.nv)  # a deviation from the operating point
+    tilted = upright.copy()
+    tilted[2] = 0.15  # the torso's pitch (rooty) past the box's 0.10 rad
+    assert _rescued(sim, (upright, None), 1, box)[0]  # it holds the step and ends in the box
+    assert not _rescued(sim, (tilted, None), 1, box)[0]  # one step does not bring it back
+    assert _rescued(sim, (tilted, None), 1, _core(spec, card))[0]  # but it holds that step
+    legs = DomainSettings(HOPPER_LEGS, (0.2, 0.5, 0.5, 0.5), states=40)
+    held = measure_domain_coverage(spec, loaded, legs, workers=1)
+    upright_too = measure_domain_coverage(spec, loaded, dataclasses.replace(legs, into="box"), workers=1)
+    assert upright_too.rescuable <= held.rescuable  # the same states: held, and upright at the end
+    bare = dataclasses.replace(spec, bounds={k: v for k, v in spec.bounds.items() if k != "box"})
+    with pytest.raises(RegionError, match="a rescue into the recoverable box needs \\[bounds.box\\]"):
+        _core(bare, card, "box")
+    with pytest.raises(RegionError, match="into='up': expected one of core, box"):
+        DomainSettings(("rooty_pos",), (0.1,), into="up")
+
+
 def test_a_spec_with_a_forecast_is_also_scored_as_the_model_predictor_asks_it(models) -> None:
     from pidlab.region.coverage import MODEL_KIND
 

@@ -995,6 +995,17 @@ def rescue(
             con.print(f"wrote the rescue region into {path} as its takeover region")
 
 
+IntoOption = Annotated[
+    str,
+    typer.Option(
+        metavar="core|box",
+        help="Where a rescue ends: the certified core (a coach certified by simulation: the horizon held), "
+        "or the horizon held and ended in the recoverable box [bounds.box] (upright and slow).",
+    ),
+]
+"""``--into`` of the rescue commands (:data:`pidlab.region.rescue.RESCUE_ENDS`)."""
+
+
 @app.command("rescue-classifier")
 @friendly_errors
 def rescue_classifier(
@@ -1009,9 +1020,7 @@ def rescue_classifier(
         ),
     ],
     samples: Annotated[int, typer.Option(help="Labelled states the classifier is fitted on.")] = 160_000,
-    calibration: Annotated[
-        int, typer.Option(help="Further labelled states that set its threshold.")
-    ] = 25_000,
+    calibration: Annotated[int, typer.Option(help="Further labelled states that set its threshold.")] = 25000,
     validation: Annotated[int, typer.Option(help="Fresh states per validation draw.")] = 2000,
     edge_share: Annotated[
         float,
@@ -1031,6 +1040,7 @@ def rescue_classifier(
     width: Annotated[int, typer.Option(help="Units per hidden layer (two hidden layers).")] = 64,
     epochs: Annotated[int, typer.Option(help="Passes over the labelled states.")] = 100,
     horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
+    into: IntoOption = "core",
     seed: Annotated[int, typer.Option(help="Sampling and fitting seed.")] = 0,
     write: Annotated[
         bool, typer.Option("--write", help="Write the region into SPEC as its takeover region.")
@@ -1060,7 +1070,7 @@ def rescue_classifier(
     settings = ClassifierSettings(
         tuple(box), tuple(box.values()), samples=samples, calibration=calibration, validation=validation,
         coverage=coverage, width=width, epochs=epochs, horizon_s=horizon, seed=seed, edge_share=edge_share,
-        focus=focus,
+        focus=focus, into=into,
     )  # fmt: skip
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     journal = _labels_journal(output or spec_file)
@@ -1147,6 +1157,7 @@ def rescue_coverage(
     states: Annotated[int, typer.Option(help="States drawn over the domain and simulated.")] = 2000,
     horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
     seed: Annotated[int, typer.Option(help="Sampling seed (the same states for every coach).")] = 0,
+    into: IntoOption = "core",
     workers: Annotated[
         int | None, typer.Option(help="Worker processes for the simulations (default: the machine's cores).")
     ] = None,
@@ -1160,7 +1171,7 @@ def rescue_coverage(
     from pidlab.report.console import coverage_view, wide_console
 
     box = _domain_box(domain)
-    settings = DomainSettings(tuple(box), tuple(box.values()), states=states, horizon_s=horizon, seed=seed)
+    settings = DomainSettings(tuple(box), tuple(box.values()), states, horizon, seed, into)
     if json_file is not None:
         check_output_file(json_file, "json")
     specs, loaded = _specs_of_one_env(spec_files)

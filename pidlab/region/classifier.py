@@ -58,7 +58,15 @@ from pidlab.lookup import MAX_CLASSIFIER_VARIABLES, MAX_WIDTH, RescueClassifier,
 from pidlab.plant.model import LoadedModel
 from pidlab.region.coverage import draw_states
 from pidlab.region.networks import fit_tanh_network
-from pidlab.region.rescue import MAX_ROUNDS, STARTS_ON_FLOOR, _Domain, _Estimate, simulations, state_domain
+from pidlab.region.rescue import (
+    MAX_ROUNDS,
+    STARTS_ON_FLOOR,
+    _Domain,
+    _Estimate,
+    check_into,
+    simulations,
+    state_domain,
+)  # fmt: skip
 from pidlab.region.takeover import ClassifierRegion, GridRegion, region_from_bounds
 
 Progress = Callable[[str, "float | None"], None]
@@ -103,6 +111,10 @@ class ClassifierSettings:
     focus : int
         Further labelled states drawn where a first fit scores at least :func:`focus_level`, fitted
         on too (0: none).
+    into : {"core", "box"}
+        Where a rescue ends (:data:`pidlab.region.rescue.RESCUE_ENDS`): the certified core (a coach
+        certified by simulation: the horizon held), or the horizon held and ended in the
+        recoverable box ``[bounds.box]``.
     """
 
     variables: tuple[str, ...]
@@ -118,6 +130,7 @@ class ClassifierSettings:
     seed: int = 0
     edge_share: float = 0.05
     focus: int = 0
+    into: str = "core"
 
     def __post_init__(self) -> None:
         """Refuse settings out of range at once (:class:`RegionError` naming the field)."""
@@ -142,6 +155,7 @@ def _check_settings(s: ClassifierSettings) -> None:
     number(s.horizon_s, "horizon_s", RegionError, low=0.0, low_open=True, high=600.0)
     number(s.edge_share, "edge_share", RegionError, low=0.0, high=1.0, param="edge_share")
     check_seed(s.seed, "seed", RegionError, param="seed")
+    check_into(s.into)
 
 
 @dataclass(frozen=True)
@@ -288,7 +302,7 @@ def _working(
     def domain_of(card: Any, model: LoadedModel, y_op: np.ndarray) -> _Domain:
         return state_domain(s.variables, s.half_range, card, model, y_op)
 
-    with simulations(spec, loaded, s, domain_of, workers, progress, journal) as (est, _, _):
+    with simulations(spec, loaded, s, domain_of, workers, progress, journal, s.into) as (est, _, _):
         yield _Work(est, s, time.perf_counter(), progress or (lambda stage, f: None))
 
 
@@ -496,6 +510,7 @@ def _provenance(r: ClassifierRescue, facts: dict[str, Any]) -> dict[str, Any]:
         "domain_rule": "box about the operating point, states the env's termination rule ends (or outside a "
         "joint's range) dropped",
         "horizon_s": s.horizon_s,
+        "rescued_into": s.into,
         "samples": s.samples,
         "calibration": s.calibration,
         "width": s.width,

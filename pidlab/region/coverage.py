@@ -43,7 +43,7 @@ from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError, RegionError
 from pidlab.plant.model import LoadedModel
 from pidlab.region.forecast import margin_region, spec_forecast
-from pidlab.region.rescue import _Estimate, simulations, state_domain
+from pidlab.region.rescue import _Estimate, check_into, simulations, state_domain
 from pidlab.region.takeover import region_from_bounds
 
 Progress = Callable[[str, "float | None"], None]
@@ -86,6 +86,10 @@ class DomainSettings:
     horizon_s : float
         Simulated time per rescue, s.
     seed : int
+    into : {"core", "box"}
+        Where a rescue ends (:data:`pidlab.region.rescue.RESCUE_ENDS`): the certified core (a coach
+        certified by simulation: the horizon held), or the horizon held and ended in the
+        recoverable box ``[bounds.box]``.
     """
 
     variables: tuple[str, ...]
@@ -93,6 +97,7 @@ class DomainSettings:
     states: int = 2000
     horizon_s: float = 3.0
     seed: int = 0
+    into: str = "core"
 
     def __post_init__(self) -> None:
         """Refuse settings out of range at once (:class:`RegionError` naming the field)."""
@@ -107,6 +112,7 @@ class DomainSettings:
         number(self.horizon_s, "horizon_s", RegionError, low=0.0, low_open=True, high=600.0, unit="s",
                param="horizon_s")  # fmt: skip
         check_seed(self.seed, "seed", RegionError, param="seed")
+        check_into(self.into)
 
 
 @dataclass(frozen=True)
@@ -289,7 +295,7 @@ def measure_domain_coverage(
     def domain_of(card: Any, model: LoadedModel, y_op: np.ndarray) -> Any:
         return state_domain(s.variables, s.half_range, card, model, y_op)
 
-    with simulations(spec, loaded, s, domain_of, workers, progress) as (est, _, _):
+    with simulations(spec, loaded, s, domain_of, workers, progress, into=s.into) as (est, _, _):
         states = draw_states(est, s.states)
         rescued, obs = est.rescued(states, "labelling")
         names = est.pool.sim.card.observation_names

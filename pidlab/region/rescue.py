@@ -65,7 +65,7 @@ from pidlab.region.bounds import MAX_VERTICES, _action_vertices
 from pidlab.region.journal import CHUNK, LabelJournal, Outcome, Start, journal_key
 from pidlab.region.shrink import halving_bisect
 from pidlab.region.simulate import SimulationPool, Simulator, horizon_steps
-from pidlab.region.takeover import EllipsoidRegion, GridRegion, region_from_bounds
+from pidlab.region.takeover import BoxRegion, EllipsoidRegion, GridRegion, region_from_bounds
 
 Progress = Callable[[str, "float | None"], None]
 
@@ -264,26 +264,53 @@ def state_domain(
     return _Domain(tuple(names), (), centre - half, centre + half, empty, empty, tuple(addr))
 
 
+RESCUE_ENDS = ("core", "box")
+"""Where a rescue ends (:func:`_core`): the certified core (a coach certified by simulation: the
+horizon held), or the recoverable box ``[bounds.box]`` at the horizon's end (held, and upright)."""
+
+
+def check_into(into: str) -> None:
+    """Refuse an unknown end of a rescue (a :class:`RegionError` naming ``into``)."""
+    if into not in RESCUE_ENDS:
+        raise RegionError(f"into={into!r}: expected one of {', '.join(RESCUE_ENDS)}", param="into")
+
+
 @dataclass(frozen=True)
 class _Core:
-    """What a rescue must achieve: enter the certified core (``region``), or (None) survive the horizon."""
+    """What a rescue must achieve: enter the certified core (``region``), or (None) survive the horizon.
+
+    With ``at_end``, survive the horizon and end it in ``region`` (a box that is not invariant: a
+    fall can cross it on its way down).
+    """
 
     region: Any
+    at_end: bool = False
 
 
-def _core(spec: CoachSpec, card: ModelCard) -> _Core:
-    """The spec's certified core: its Lyapunov level set (to be entered), else survival of the horizon.
+def _core(spec: CoachSpec, card: ModelCard, into: str = "core") -> _Core:
+    """Where a rescue ends (:data:`RESCUE_ENDS`).
 
-    A coach certified by simulation only (a recoverable box) has no certificate to enter: its
-    box was certified by surviving the horizon, and so is a rescue.
+    ``into = "core"``: the spec's certified core, its Lyapunov level set (to be entered), else
+    survival of the horizon: a coach certified by simulation only (a recoverable box) has no
+    certificate to enter, its box was certified by surviving the horizon, and so is a rescue.
+    ``into = "box"``: survive the horizon and end it in the spec's recoverable box
+    (``[bounds.box]``): back near the operating point and slow, not merely still standing. (Not
+    "enter it": the box tests only the coached variables, and a fall crosses it on its way down.)
 
     Raises
     ------
     RegionError
-        The spec has neither (no ``pidlab bounds`` yet).
+        The spec has neither (no ``pidlab bounds`` yet), or no box for ``into = "box"``.
     """
     b = spec.bounds or {}
     names = card.observation_names
+    if into == "box":
+        if not b.get("box"):
+            raise RegionError(
+                f"{spec.name}: a rescue into the recoverable box needs [bounds.box]; run `pidlab bounds "
+                "SPEC --write` first, or rescue into the core"
+            )
+        return _Core(BoxRegion(b["box"], names), at_end=True)
     if b.get("ellipsoid"):
         return _Core(EllipsoidRegion(b["ellipsoid"], names, certified=True))
     if b.get("box"):
@@ -318,16 +345,19 @@ def _rescued(
         if card.terminated(d, obs):
             return False, obs0
         sim.coach.reset(obs)
-    contains, act = (core.region.contains if core.region is not None else None), sim.coach.act
+    entered = core.region.contains if core.region is not None and not core.at_end else None
+    act = sim.coach.act
     for _ in range(steps):
-        if contains is not None and contains(obs):
+        if entered is not None and entered(obs):
             return True, obs0
         d.ctrl[:] = act(obs)
         mujoco.mj_step(m, d, nstep=frame_skip)
         obs = card.observe(d)
         if card.terminated(d, obs):
             return False, obs0
-    return contains is None, obs0
+    if core.at_end:
+        return bool(core.region.contains(obs)), obs0
+    return entered is None, obs0
 
 
 @dataclass
@@ -585,6 +615,7 @@ def simulations(
     workers: int | None,
     progress: Progress | None = None,
     journal: str | Path | None = None,
+    into: str = "core",
 ) -> Iterator[tuple[_Estimate, Coach, Linearization]]:
     """The rescue simulations' setting, with its worker pool open: the estimate, the coach, its linearization.
 
@@ -593,7 +624,8 @@ def simulations(
     Draws nothing: the estimate's random stream starts at ``settings.seed`` for its first user.
     ``journal``: a folder that keeps every outcome as it is found (in a subfolder named by
     :func:`outcome_facts`' digest), so that the same estimate run again simulates only what it
-    lacks (:mod:`pidlab.region.journal`); None keeps nothing.
+    lacks (:mod:`pidlab.region.journal`); None keeps nothing. ``into``: where a rescue ends
+    (:data:`RESCUE_ENDS`, :func:`_core`).
     """
     from pidlab.controller.analysis import analyze_coach
 
@@ -603,12 +635,12 @@ def simulations(
     with SimulationPool(spec, loaded, lin, resolve_workers(workers, RegionError)) as pool:
         est = _Estimate(
             pool, domain_of(card, loaded, pool.sim.y_op), settings, [None],
-            horizon_steps(settings.horizon_s, loaded.control_dt), _core(spec, card),
+            horizon_steps(settings.horizon_s, loaded.control_dt), _core(spec, card, into),
             np.random.default_rng(settings.seed), progress or (lambda stage, f: None),
             grounded=pool.sim.ground is not None,
         )  # fmt: skip
         if journal is not None:
-            facts = outcome_facts(spec, est.steps, est.grounded)
+            facts = {**outcome_facts(spec, est.steps, est.grounded), "into": into}
             est.journal = LabelJournal(Path(journal) / journal_key(facts))
         yield est, coach, lin
 
