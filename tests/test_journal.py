@@ -61,13 +61,20 @@ def test_a_file_where_the_journal_goes_is_refused(tmp_path) -> None:
 
 
 def test_the_journal_is_named_by_what_decides_an_outcome() -> None:
-    spec = load_spec(SPEC)
-    base = journal_key(outcome_facts(spec, 75, False))
-    assert base == journal_key(outcome_facts(spec, 75, False))
-    assert base != journal_key(outcome_facts(spec, 76, False))  # another horizon
-    assert base != journal_key(outcome_facts(spec, 75, True))  # starts on the floor
+    import dataclasses
+
+    spec, loaded = load_spec(SPEC), load_model(IP)
+    base = journal_key(outcome_facts(spec, loaded, 75, False))
+    assert base == journal_key(outcome_facts(spec, load_model(IP), 75, False))  # loaded again: the same
+    assert base != journal_key(outcome_facts(spec, loaded, 76, False))  # another horizon
+    assert base != journal_key(outcome_facts(spec, loaded, 75, True))  # starts on the floor
     other = load_spec(TUNING / f"{IP}.pidlab-robust.toml")
-    assert base != journal_key(outcome_facts(other, 75, False))  # another coach
+    assert base != journal_key(outcome_facts(other, loaded, 75, False))  # another coach
+    heavier = load_model(IP)
+    heavier.model.body_mass[1] *= 1.5  # an edited MJCF file compiles to another model
+    assert base != journal_key(outcome_facts(spec, heavier, 75, False))
+    skipped = dataclasses.replace(loaded, frame_skip=loaded.frame_skip + 1)
+    assert base != journal_key(outcome_facts(spec, skipped, 75, False))
 
 
 class _Stop(Exception):

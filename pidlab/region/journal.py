@@ -8,9 +8,10 @@ states from its seed, finds their outcomes in the journal and simulates only the
 is the same as an uninterrupted run's.
 
 An outcome is keyed by its start (the MuJoCo state, and the agent step before the rescue, if any),
-inside a folder named by the digest of everything else that decides it (:func:`journal_key`: the
-coach's law and certified core, the env, the horizon, whether starts are put on the floor, and the
-versions of pidlab, MuJoCo and Gymnasium). A journal of another coach or setting lies in another
+inside a folder named by the digest of everything else that decides it (:func:`journal_key` of
+:func:`pidlab.region.rescue.outcome_facts`: the coach's law and certified core, the env, the
+compiled model and its card, the horizon, whether starts are put on the floor, where a rescue
+ends, and the versions of pidlab, MuJoCo and Gymnasium). A journal of another coach or setting lies in another
 folder and is never read. A chunk file that cannot be read (cut short, edited) is ignored: its
 states are simulated again.
 """
