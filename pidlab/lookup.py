@@ -37,6 +37,10 @@ SPLITS = 8
 """How many times the model predictor halves a margin box whose score bound is inconclusive
 (:func:`pidlab.region.forecast.box_in_classifier`)."""
 
+MAX_PIECES = 65_536
+"""The largest cap on a model-predictor query's boxes per halving (``[bounds.forecast] pieces``);
+with :data:`SPLITS` halvings no query asks more than ``2 ** SPLITS`` = 256 at once."""
+
 TRIGGERS = ("reactive", "predictive")
 """What a rescue region was derived for: a check after the agent's step, or one before it."""
 
@@ -370,8 +374,11 @@ def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
         raise SpecError(f"{where}.bound: {bound!r}; expected one of {', '.join(BOUNDS)}")
     scope, in_scope, held_in = _scope_of(t, where, counts)
     pieces = t.get("pieces")
-    if pieces is not None and (isinstance(pieces, bool) or not isinstance(pieces, int) or pieces < 1):
-        raise SpecError(f"{where}.pieces: {pieces!r}; expected an integer >= 1 (or no pieces: no cap)")
+    if pieces is not None and (isinstance(pieces, bool) or not isinstance(pieces, int)
+                               or not 1 <= pieces <= MAX_PIECES):  # fmt: skip
+        raise SpecError(
+            f"{where}.pieces: {pieces!r}; expected an integer in [1, {MAX_PIECES}] (or no pieces: no cap)"
+        )
     return ForecastError(
         network=network, bound=bound, scope=scope, in_scope=in_scope, held_out_in_scope=held_in,
         pieces=pieces,

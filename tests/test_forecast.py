@@ -342,7 +342,7 @@ def test_the_classifier_margin_region_asks_the_whole_box(ip) -> None:
         margin_region(region, {**none, "hinge_pos": 0.2})
     with pytest.raises(CoachingError, match="bound='cubic': expected one of interval, linear"):
         margin_region(region, none, "cubic")
-    with pytest.raises(CoachingError, match=r"pieces=0: expected an integer >= 1 \(or none: no cap\)"):
+    with pytest.raises(CoachingError, match=r"pieces=0: expected an integer in \[1, 65536\] \(or none: no cap\)"):
         margin_region(region, none, "linear", 0)
     assert margin_region(region, none, "linear", 4).pieces == 4
     assert kept_share(region, none, samples=2000) == 1.0
@@ -439,9 +439,10 @@ def test_a_spec_keeps_its_forecast_through_a_file(tmp_path, measured) -> None:
         ({"bound": "cubic"}, r"bound: 'cubic'; expected one of interval, linear"),
         ({"bound": ["linear"]}, r"bound: \['linear'\]; expected one of"),
         ({"scope": "everywhere"}, r"scope: 'everywhere'; expected one of all, domain"),
-        ({"pieces": 0}, r"pieces: 0; expected an integer >= 1 \(or no pieces: no cap\)"),
-        ({"pieces": True}, r"pieces: True; expected an integer >= 1"),
-        ({"pieces": 2.5}, r"pieces: 2.5; expected an integer >= 1"),
+        ({"pieces": 0}, r"pieces: 0; expected an integer in \[1, 65536\] \(or no pieces: no cap\)"),
+        ({"pieces": True}, r"pieces: True; expected an integer in \[1, 65536\]"),
+        ({"pieces": 2.5}, r"pieces: 2.5; expected an integer in \[1, 65536\]"),
+        ({"pieces": 65537}, r"pieces: 65537; expected an integer in \[1, 65536\]"),
         ({"in_scope": 301}, r"in_scope: 301; expected an integer in \[1, transitions = 300\]"),
         ({"held_out_in_scope": -1}, r"held_out_in_scope: -1; expected an integer in \[0, held_out = 200\]"),
         ({"scope": "all"}, r"scope 'domain' needs in_scope and held_out_in_scope; scope 'all' has neither"),
@@ -543,7 +544,8 @@ def test_forecast_writes_a_named_copy_of_the_spec(tmp_path) -> None:
         (["--model", "learned", "--width", "1"], "--width 1: expected an integer in [2, 512]"),
         (["--bound", "cubic"], "--bound 'cubic': expected one of interval, linear"),
         (["--scope", "near"], "--scope 'near': expected one of all, domain"),
-        (["--pieces", "0"], "--pieces 0: expected an integer >= 1 (or none: no cap)"),
+        (["--pieces", "0"], "--pieces 0: expected an integer in [1, 65536] (or none: no cap)"),
+        (["--pieces", "9" * 23], "expected an integer in [1, 65536]"),  # TOML holds no such integer
         (["--pieces", "64"], "--pieces 64: a cap on a query's boxes is for a classifier region; this rescue "
          "region is a lookup grid"),  # RESCUE's region is a grid
     ],

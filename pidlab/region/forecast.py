@@ -33,6 +33,7 @@ import numpy as np
 from pidlab.errors import CoachingError, SpecError
 from pidlab.lookup import (
     BOUNDS,
+    MAX_PIECES,
     SPLITS,
     ForecastError,
     RescueClassifier,
@@ -555,8 +556,10 @@ def check_pieces(pieces: int | None, region: Any = None) -> None:
     """
     if pieces is None:
         return
-    if isinstance(pieces, bool) or not isinstance(pieces, int) or pieces < 1:
-        raise CoachingError(f"pieces={pieces!r}: expected an integer >= 1 (or none: no cap)", param="pieces")
+    if isinstance(pieces, bool) or not isinstance(pieces, int) or not 1 <= pieces <= MAX_PIECES:
+        raise CoachingError(
+            f"pieces={pieces!r}: expected an integer in [1, {MAX_PIECES}] (or none: no cap)", param="pieces"
+        )
     if isinstance(region, GridRegion):
         raise CoachingError(
             f"pieces={pieces}: a cap on a query's boxes is for a classifier region; this rescue region is a "
