@@ -328,6 +328,13 @@ class ForecastError:
 AGREEMENT = ("both", "exact_only", "model_only", "neither")
 
 
+def valid_pieces(pieces: Any) -> bool:
+    """Whether ``pieces`` caps a query's boxes: None (no cap), or an integer in [1, :data:`MAX_PIECES`]."""
+    if pieces is None:
+        return True
+    return not isinstance(pieces, bool) and isinstance(pieces, int) and 1 <= pieces <= MAX_PIECES
+
+
 def region_digest(rescue: dict[str, Any]) -> str:
     """The digest that ties a forecast's measurement to the ``[bounds.rescue]`` table it was made on."""
     return digest(rescue, 16)
@@ -374,8 +381,7 @@ def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
         raise SpecError(f"{where}.bound: {bound!r}; expected one of {', '.join(BOUNDS)}")
     scope, in_scope, held_in = _scope_of(t, where, counts)
     pieces = t.get("pieces")
-    if pieces is not None and (isinstance(pieces, bool) or not isinstance(pieces, int)
-                               or not 1 <= pieces <= MAX_PIECES):  # fmt: skip
+    if not valid_pieces(pieces):
         raise SpecError(
             f"{where}.pieces: {pieces!r}; expected an integer in [1, {MAX_PIECES}] (or no pieces: no cap)"
         )

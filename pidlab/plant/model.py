@@ -20,6 +20,7 @@ import numpy as np
 from pidlab.checks import exists, path_argument, shown
 from pidlab.errors import ModelCardError, ModelCompileError, UnknownEnvError
 from pidlab.plant.card import MJCF_SUFFIXES, ModelCard, card_for_mjcf, find_card
+from pidlab.provenance import digest
 
 _LOG = logging.getLogger("pidlab.mujoco")
 
@@ -213,6 +214,14 @@ def actuator_names(model: mujoco.MjModel) -> tuple[str, ...]:
 def _is_mjcf_path(target: str) -> bool:
     return target.lower().endswith(MJCF_SUFFIXES) or exists(target)
 
+
+
+def model_digest(loaded: LoadedModel) -> str:
+    """A digest of the compiled model (MuJoCo's binary form), its frame skip and its card."""
+    m = loaded.model
+    buf = np.zeros(mujoco.mj_sizeModel(m), dtype=np.uint8)
+    mujoco.mj_saveModel(m, None, buf)
+    return digest(buf.tobytes() + f"|{loaded.frame_skip}|{loaded.card!r}".encode(), 16)
 
 def load_model(target: str | Path) -> LoadedModel:
     """Load a Gymnasium MuJoCo env id or an MJCF file.

@@ -40,6 +40,7 @@ from pidlab.lookup import (
     ResidualNet,
     parse_forecast,
     region_digest,
+    valid_pieces,
 )  # fmt: skip
 from pidlab.plant.card import ModelCard
 from pidlab.plant.observation import variable_address
@@ -554,13 +555,11 @@ def check_pieces(pieces: int | None, region: Any = None) -> None:
 
     With ``region``, also a cap on a lookup grid, which is asked cell by cell (no boxes to cap).
     """
-    if pieces is None:
-        return
-    if isinstance(pieces, bool) or not isinstance(pieces, int) or not 1 <= pieces <= MAX_PIECES:
+    if not valid_pieces(pieces):
         raise CoachingError(
             f"pieces={pieces!r}: expected an integer in [1, {MAX_PIECES}] (or none: no cap)", param="pieces"
         )
-    if isinstance(region, GridRegion):
+    if pieces is not None and isinstance(region, GridRegion):
         raise CoachingError(
             f"pieces={pieces}: a cap on a query's boxes is for a classifier region; this rescue region is a "
             "lookup grid, asked cell by cell (leave pieces out)", param="pieces",

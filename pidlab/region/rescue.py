@@ -60,7 +60,7 @@ from pidlab.linear.linearize import Linearization
 from pidlab.lookup import TRIGGERS, LookupGrid
 from pidlab.parallel import resolve_workers
 from pidlab.plant.card import ModelCard
-from pidlab.plant.model import LoadedModel
+from pidlab.plant.model import LoadedModel, model_digest
 from pidlab.region.bounds import MAX_VERTICES, _action_vertices
 from pidlab.region.journal import CHUNK, LabelJournal, Outcome, Start, journal_key
 from pidlab.region.shrink import halving_bisect
@@ -640,38 +640,28 @@ def simulations(
             grounded=pool.sim.ground is not None,
         )  # fmt: skip
         if journal is not None:
-            facts = {**outcome_facts(spec, loaded, est.steps, est.grounded), "into": into}
+            facts = outcome_facts(spec, loaded, est.steps, est.grounded, into)
             est.journal = LabelJournal(Path(journal) / journal_key(facts))
         yield est, coach, lin
 
 
-def outcome_facts(spec: CoachSpec, loaded: LoadedModel, steps: int, grounded: bool) -> dict[str, Any]:
+def outcome_facts(
+    spec: CoachSpec, loaded: LoadedModel, steps: int, grounded: bool, into: str = "core"
+) -> dict[str, Any]:
     """What decides a rescue's outcome besides its start.
 
     The coach's law, its certified core, the env, the compiled model and its card
-    (:func:`model_digest`: an edited MJCF file is another model), the horizon (control steps),
-    starts on the floor, and the versions that simulate it.
+    (:func:`pidlab.plant.model.model_digest`: an edited MJCF file is another model), the horizon
+    (control steps), starts on the floor, where a rescue ends, and the versions that simulate it.
     """
     import gymnasium
 
     core = {k: v for k, v in (spec.bounds or {}).items() if k in ("ellipsoid", "box")}
     return {
         "env": spec.env_id, "law": law_digest(spec), "core": core, "model": model_digest(loaded),
-        "steps": steps, "grounded": grounded, "pidlab": __version__, "mujoco": mujoco.__version__,
-        "gymnasium": gymnasium.__version__,
+        "steps": steps, "grounded": grounded, "into": into, "pidlab": __version__,
+        "mujoco": mujoco.__version__, "gymnasium": gymnasium.__version__,
     }  # fmt: skip
-
-
-def model_digest(loaded: LoadedModel) -> str:
-    """A digest of the compiled model (MuJoCo's binary form), its frame skip and its card."""
-    import hashlib
-
-    m = loaded.model
-    buf = np.zeros(mujoco.mj_sizeModel(m), dtype=np.uint8)
-    mujoco.mj_saveModel(m, None, buf)
-    h = hashlib.sha256(buf.tobytes())
-    h.update(f"{loaded.frame_skip}|{loaded.card!r}".encode())
-    return h.hexdigest()[:16]
 
 
 @contextlib.contextmanager
