@@ -172,7 +172,7 @@ LOOKUP_FIELDS = ("trigger", "action_fraction", "variables", "lower", "upper", "c
 """The fields of a ``[bounds.rescue]`` table."""
 FORECAST_FIELDS = ("model", "region", "transitions", "held_out", "escapes", "seed", "margins", "median",
                    "p99", "agreement", "network", "bound", "scope", "in_scope",
-                   "held_out_in_scope", "pieces")  # fmt: skip
+                   "held_out_in_scope", "pieces", "adaptive")  # fmt: skip
 """The fields of a ``[bounds.forecast]`` table."""
 
 
@@ -271,6 +271,9 @@ class ForecastError:
         The most boxes one query of a classifier region may bound at one halving (a box whose next
         halving would ask more counts as unproven: the query's work is capped); None: no cap. The
         agreement was measured with it.
+    adaptive : MarginScale or None
+        Margins that depend on the state and the action (:meth:`margins_at`); the escapes and the
+        agreement were measured with them. None: the constant ``margins``.
     """
 
     model: str
@@ -290,11 +293,22 @@ class ForecastError:
     in_scope: int | None = None
     held_out_in_scope: int | None = None
     pieces: int | None = None
+    adaptive: MarginScale | None = None
 
     @property
     def margin(self) -> dict[str, float]:
-        """``variable -> margin``."""
+        """``variable -> margin``: the constant margins (with :attr:`adaptive`, the largest)."""
         return dict(zip(self.variables, self.margins, strict=True))
+
+    def margins_at(self, inputs: np.ndarray) -> np.ndarray:
+        """The margins of forecasts made from ``inputs`` (rows: the linear model's inputs), shape ``(n, k)``.
+
+        The constant margins, or with :attr:`adaptive` its margins (never above the constant ones).
+        """
+        n = len(np.atleast_2d(inputs))
+        if self.adaptive is None:
+            return np.tile(np.array(self.margins), (n, 1))
+        return self.adaptive.margins(inputs, np.array(self.margins))
 
     @property
     def veto_agreement(self) -> float:
@@ -322,7 +336,77 @@ class ForecastError:
             **({"held_out_in_scope": self.held_out_in_scope} if self.held_out_in_scope is not None else {}),
             **({"pieces": self.pieces} if self.pieces is not None else {}),
             **({"network": self.network.to_table()} if self.network is not None else {}),
+            **({"adaptive": self.adaptive.to_table()} if self.adaptive is not None else {}),
         }
+
+
+LOG_LIMIT = 30.0
+"""The log error scale a :class:`MarginScale` network may give is clipped to ``+-LOG_LIMIT``."""
+
+
+@dataclass(frozen=True)
+class MarginScale:
+    """Margins that depend on where a forecast is made: a calibrated multiple of a predicted error scale.
+
+    A network (:class:`ResidualNet`, same inputs as the forecast) predicts the log of the
+    forecast's error per variable, ``sigma(z)``; a forecast's margins are ``factors * sigma(z)``,
+    and never more than the constant margins. ``factors`` are the largest ratio
+    ``error / sigma`` over the transitions that set the constant margins (normalized conformal
+    calibration), so on those transitions no error exceeds its margin, as with constant margins,
+    while a forecast made where the error is small gets a small box.
+
+    Attributes
+    ----------
+    network : ResidualNet
+        ``network.correction(z)`` is ``log sigma(z)`` (clipped to :data:`LOG_LIMIT`).
+    factors : tuple of float
+        Per variable (the network's), the calibrated multiple.
+    transitions : int
+        The transitions recorded for the network's fit (before those that set the margins).
+    """
+
+    network: ResidualNet
+    factors: tuple[float, ...]
+    transitions: int
+
+    def margins(self, inputs: np.ndarray, ceiling: np.ndarray) -> np.ndarray:
+        """Per row of ``inputs``, the margins: ``factors * sigma``, at most ``ceiling``, shape ``(n, k)``.
+
+        A row the network cannot score (not finite) gets the ceiling.
+        """
+        log = np.clip(self.network.correction(inputs), -LOG_LIMIT, LOG_LIMIT)
+        return np.fmin(np.asarray(ceiling, dtype=float), np.array(self.factors) * np.exp(log))
+
+    def to_table(self) -> dict[str, Any]:
+        """The ``[bounds.forecast.adaptive]`` table."""
+        return {
+            "transitions": int(self.transitions),
+            "factors": dict(zip(self.network.variables, self.factors, strict=True)),
+            "network": self.network.to_table(),
+        }
+
+
+ADAPTIVE_FIELDS = ("transitions", "factors", "network")
+"""The fields of a ``[bounds.forecast.adaptive]`` table."""
+
+
+def parse_adaptive(t: Any, names: tuple[str, ...], where: str = "bounds.forecast.adaptive") -> MarginScale:
+    """Read and check a ``[bounds.forecast.adaptive]`` table (over the margins' variables ``names``).
+
+    Raises
+    ------
+    SpecError
+        A field missing, of the wrong type or out of range; the message names it.
+    """
+    _check_fields(t, where, ADAPTIVE_FIELDS)
+    n = t.get("transitions")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise SpecError(f"{where}.transitions: {n!r}; expected an integer >= 1")
+    factors = _per_variable(t.get("factors"), f"{where}.factors", names)
+    network = parse_residual(t.get("network"), f"{where}.network")
+    if network.variables != names:
+        raise SpecError(f"{where}.network.variables: expected the margins' variables {', '.join(names)}")
+    return MarginScale(network, tuple(factors[v] for v in names), n)
 
 
 AGREEMENT = ("both", "exact_only", "model_only", "neither")
@@ -385,9 +469,10 @@ def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
         raise SpecError(
             f"{where}.pieces: {pieces!r}; expected an integer in [1, {MAX_PIECES}] (or no pieces: no cap)"
         )
+    adaptive = parse_adaptive(t["adaptive"], names, f"{where}.adaptive") if "adaptive" in t else None
     return ForecastError(
         network=network, bound=bound, scope=scope, in_scope=in_scope, held_out_in_scope=held_in,
-        pieces=pieces,
+        pieces=pieces, adaptive=adaptive,
         model=t["model"], variables=names, margins=tuple(margins.values()),
         median=tuple(median[n] for n in names),
         p99=tuple(p99[n] for n in names), transitions=counts["transitions"], held_out=counts["held_out"],
@@ -432,7 +517,10 @@ class ResidualNet:
     Its inputs are the linear model's: the state's tangent-space deviation from the operating point
     (``2 nv + na`` entries) and the control's (``nu``), standardized as
     ``(inputs - input_mean) / input_scale``; ``tanh`` hidden layers and a linear output, times
-    ``output_scale``, give the correction per variable.
+    ``output_scale``, give the correction per variable. The ``blind`` inputs are set to 0 first: the
+    positions the observation leaves out (a walker's forward position), which the dynamics do not
+    depend on and which grow without bound as the robot moves
+    (:func:`pidlab.region.forecast.blind_inputs`).
 
     Attributes
     ----------
@@ -443,6 +531,8 @@ class ResidualNet:
         ``(weights, bias)`` per layer; weights of shape ``(inputs, outputs)``.
     fitted : int
         The transitions it was fitted on.
+    blind : tuple of int
+        Inputs set to 0 before the network (ascending). A table without ``blind`` read every input.
     """
 
     variables: tuple[str, ...]
@@ -451,6 +541,7 @@ class ResidualNet:
     output_scale: tuple[float, ...]
     layers: tuple[tuple[np.ndarray, np.ndarray], ...] = field(compare=False, hash=False)
     fitted: int = 0
+    blind: tuple[int, ...] = ()
 
     @property
     def inputs(self) -> int:
@@ -459,7 +550,8 @@ class ResidualNet:
 
     def correction(self, inputs: np.ndarray) -> np.ndarray:
         """The correction of each row of ``inputs`` (shape ``(n, inputs)``), shape ``(n, len(variables))``."""
-        x = np.atleast_2d(np.asarray(inputs, dtype=float))
+        x = np.array(np.atleast_2d(np.asarray(inputs, dtype=float)))
+        x[:, list(self.blind)] = 0.0
         h = tanh_forward(self.layers, (x - np.array(self.input_mean)) / np.array(self.input_scale))
         return h * np.array(self.output_scale)
 
@@ -471,11 +563,12 @@ class ResidualNet:
             "input_mean": [float(v) for v in self.input_mean],
             "input_scale": [float(v) for v in self.input_scale],
             "output_scale": [float(v) for v in self.output_scale],
+            **({"blind": list(self.blind)} if self.blind else {}),
             "layers": layers_table(self.layers),
         }
 
 
-RESIDUAL_FIELDS = ("variables", "fitted", "input_mean", "input_scale", "output_scale", "layers")
+RESIDUAL_FIELDS = ("variables", "fitted", "input_mean", "input_scale", "output_scale", "blind", "layers")
 """The fields of a ``[bounds.forecast.network]`` table."""
 MAX_RESIDUAL_INPUTS = 1000
 """The most inputs a learned forecast may take (``2 nv + na + nu``)."""
@@ -505,7 +598,12 @@ def parse_residual(t: Any, where: str = "bounds.forecast.network") -> ResidualNe
     if min(scale) <= 0 or min(out) <= 0:
         raise SpecError(f"{where}: input_scale and output_scale must be > 0")
     layers = _check_layers(t.get("layers"), len(mean), f"{where}.layers", outputs=len(names))
-    return ResidualNet(tuple(names), tuple(mean), tuple(scale), tuple(out), layers, fitted)
+    blind = t.get("blind", [])
+    if not isinstance(blind, list) or not all(
+        isinstance(k, int) and not isinstance(k, bool) and 0 <= k < len(mean) for k in blind
+    ) or blind != sorted(set(blind)):  # fmt: skip
+        raise SpecError(f"{where}.blind: expected ascending distinct input indices in [0, {len(mean) - 1}]")
+    return ResidualNet(tuple(names), tuple(mean), tuple(scale), tuple(out), layers, fitted, tuple(blind))
 
 
 def _per_variable(value: Any, where: str, names: tuple[str, ...] | None) -> dict[str, float]:

@@ -1247,6 +1247,13 @@ def _counted_bar(label: str, total: int) -> Iterator[Callable[[int], None]]:
         yield lambda done: bar.update(task, completed=done)
 
 
+ADAPTIVE_HELP = (
+    "Margins that depend on the state and the action: a network fitted on this many actions (recorded "
+    "before those that set the margins) gives the error's scale, calibrated on those that set them. 0: "
+    "constant margins. A classifier region only. Kept in [bounds.forecast]."
+)
+
+
 @app.command()
 @friendly_errors
 def forecast(
@@ -1289,6 +1296,7 @@ def forecast(
         help="The most boxes one query of a classifier region bounds at one halving: caps a veto's work (a "
         "box it cannot prove within counts as outside). Default: no cap. Kept in [bounds.forecast].",
     )] = None,
+    adaptive: Annotated[int, typer.Option(help=ADAPTIVE_HELP)] = 0,
     write: Annotated[bool, typer.Option("--write", help="Write [bounds.forecast] into SPEC.")] = False,
     output: Annotated[
         str | None,
@@ -1311,12 +1319,12 @@ def forecast(
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
-        recorded = transitions + held_out + (fit if model == "learned" else 0)
+        recorded = transitions + held_out + (fit if model == "learned" else 0) + max(adaptive, 0)
         with _counted_bar("forecast error", recorded) as bar:
             found = measure_forecast(
                 spec, loaded, transitions=transitions, held_out=held_out, seed=seed,
                 progress=lambda done, total: bar(done), model=model, fit=fit, width=width, epochs=epochs,
-                bound=bound, scope=scope, pieces=pieces,
+                bound=bound, scope=scope, pieces=pieces, adaptive=adaptive,
             )  # fmt: skip
         con = wide_console()
         con.print(_forecast_view(spec, loaded, found))
@@ -1330,14 +1338,16 @@ def forecast(
 
 def _forecast_view(spec: Any, loaded: Any, found: Any) -> Any:
     """``pidlab forecast``'s view: the error per variable, the vetoes, the share of the region kept."""
-    from pidlab.region.forecast import kept_share
+    from pidlab.region.forecast import kept_inputs, kept_share
     from pidlab.region.takeover import region_from_bounds
     from pidlab.report.console import forecast_view
 
     card = loaded.require_card()
     units = {v.name: v.unit for v in card.observation}
     region = region_from_bounds(spec.bounds, card.observation_names, "rescue", spec.name)
-    kept = kept_share(region, found.margin, bound=found.bound, pieces=found.pieces)
+    inputs_of = kept_inputs(region, loaded) if found.adaptive is not None else None
+    kept = kept_share(region, found.margin, bound=found.bound, pieces=found.pieces, adaptive=found.adaptive,
+                      inputs_of=inputs_of)  # fmt: skip
     return forecast_view(found, units, kept)
 
 

@@ -41,8 +41,9 @@ from pidlab.checks import integer, number
 from pidlab.checks import seed as check_seed
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError, RegionError
+from pidlab.linear.linearize import linearize
 from pidlab.plant.model import LoadedModel
-from pidlab.region.forecast import margin_region, spec_forecast
+from pidlab.region.forecast import ClassifierMarginRegion, linear_forecast, margin_region, spec_forecast
 from pidlab.region.rescue import _Estimate, check_into, simulations, state_domain
 from pidlab.region.takeover import region_from_bounds
 
@@ -251,15 +252,25 @@ def _score(kind: str, inside: np.ndarray, rescued: np.ndarray) -> RegionScore:
     return RegionScore(kind, n_in, held, held / rescuable if rescuable else 0.0, false, bounds)
 
 
-def _through_margins(spec: CoachSpec, names: tuple[str, ...], obs: np.ndarray) -> np.ndarray:
-    """Whether the box of the spec's forecast margins about each observation lies in its rescue region."""
+def _through_margins(
+    spec: CoachSpec, loaded: LoadedModel, names: tuple[str, ...], obs: np.ndarray
+) -> np.ndarray:
+    """Whether the box of the spec's forecast margins about each observation lies in its rescue region.
+
+    Adaptive margins are those of a forecast made from the state itself with the operating point's
+    control (:meth:`pidlab.region.forecast.LinearForecast.observed_inputs`).
+    """
     region = region_from_bounds(spec.bounds, names, "rescue", spec.name)
     try:
         forecast = spec_forecast(spec.bounds, spec.name)
-        shrunk = margin_region(region, forecast.margin, forecast.bound, forecast.pieces)
+        shrunk = margin_region(region, forecast.margin, forecast.bound, forecast.pieces, forecast.adaptive)
     except CoachingError:  # the margins leave nothing of the region
         return np.zeros(len(obs), dtype=bool)
-    return np.array([shrunk.contains(o) for o in obs], dtype=bool)
+    if not isinstance(shrunk, ClassifierMarginRegion) or forecast.adaptive is None:
+        return np.array([shrunk.contains(o) for o in obs], dtype=bool)
+    linear = linear_forecast(linearize(loaded), loaded.require_card(), loaded.model)
+    inputs = linear.observed_inputs(loaded.model, obs)
+    return np.array([shrunk.contains(o, z) for o, z in zip(obs, inputs, strict=True)], dtype=bool)
 
 
 def measure_domain_coverage(
@@ -310,7 +321,7 @@ def measure_domain_coverage(
         inside = np.array([region.contains(o) for o in obs], dtype=bool)
         scores.append(_score(kind, inside, rescued))
     if "rescue" in (spec.bounds or {}) and "forecast" in (spec.bounds or {}):
-        scores.append(_score(MODEL_KIND, _through_margins(spec, names, obs), rescued))
+        scores.append(_score(MODEL_KIND, _through_margins(spec, loaded, names, obs), rescued))
     return DomainCoverage(
         str(spec.env_id), spec.name, s, grounded, int(rescued.sum()), tuple(scores), sims,
         round(time.perf_counter() - t0, 1), reach, reach95,

@@ -31,6 +31,7 @@ def fit_residual(
     width: int = 64,
     epochs: int = 100,
     seed: int = 0,
+    blind: tuple[int, ...] = (),
 ) -> ResidualNet:
     """Fit a two-hidden-layer ``tanh`` network to the linear forecast's residuals, deterministically.
 
@@ -47,6 +48,9 @@ def fit_residual(
         True next observation less the linear forecast, per variable.
     variables : tuple of str
     width, epochs, seed : int
+    blind : tuple of int
+        Inputs set to 0 before the fit and in every use of the network
+        (:func:`pidlab.region.forecast.blind_inputs`).
 
     Returns
     -------
@@ -54,7 +58,8 @@ def fit_residual(
     """
     import torch
 
-    x = np.asarray(inputs, dtype=float)
+    x = np.array(inputs, dtype=float)
+    x[:, list(blind)] = 0.0
     y = np.asarray(residuals, dtype=float)
     mean = x.mean(axis=0)
     scale = np.where(x.std(axis=0) > 1e-12, x.std(axis=0), 1.0)
@@ -63,7 +68,7 @@ def fit_residual(
     yt = torch.tensor(y / out, dtype=torch.float32)
     layers = fit_tanh_network(x.shape[1], y.shape[1], width, seed, lambda net: _train(net, xt, yt, epochs))
     return ResidualNet(tuple(variables), tuple(float(v) for v in mean), tuple(float(v) for v in scale),
-                       tuple(float(v) for v in out), layers, fitted=len(x))  # fmt: skip
+                       tuple(float(v) for v in out), layers, fitted=len(x), blind=tuple(blind))  # fmt: skip
 
 
 def _train(net: Any, x: Any, y: Any, epochs: int) -> None:
@@ -80,3 +85,47 @@ def _train(net: Any, x: Any, y: Any, epochs: int) -> None:
             loss.backward()
             opt.step()
         schedule.step()
+
+
+def fit_error_scale(
+    inputs: np.ndarray,
+    errors: np.ndarray,
+    variables: tuple[str, ...],
+    width: int = 64,
+    epochs: int = 100,
+    seed: int = 0,
+    blind: tuple[int, ...] = (),
+) -> ResidualNet:
+    """Fit a network to the log of a forecast's absolute error, per variable (adaptive margins).
+
+    The target is ``log(error + floor)``, ``floor`` the median error per variable (no log of 0, and
+    errors far below the typical one are not told apart); the network (:func:`fit_residual`) then
+    gives ``log sigma(z)``, its mean folded into the last layer's bias. What multiple of ``sigma``
+    makes a margin is calibrated afterwards on other transitions
+    (:class:`pidlab.lookup.MarginScale`).
+
+    Parameters
+    ----------
+    inputs : ndarray, shape (n, k)
+        The linear model's inputs of each transition.
+    errors : ndarray, shape (n, len(variables))
+        The forecast's absolute error per variable.
+    variables : tuple of str
+    width, epochs, seed : int
+    blind : tuple of int
+        As :func:`fit_residual`.
+
+    Returns
+    -------
+    ResidualNet
+        ``correction(z)`` is ``log sigma(z)``.
+    """
+    err = np.abs(np.asarray(errors, dtype=float))
+    floor = np.maximum(np.median(err, axis=0), 1e-12)
+    target = np.log(err + floor)
+    mean = target.mean(axis=0)
+    net = fit_residual(inputs, target - mean, variables, width, epochs, seed, blind)
+    *hidden, (w, b) = net.layers
+    shifted = (*hidden, (w, b + mean / np.array(net.output_scale)))
+    return ResidualNet(net.variables, net.input_mean, net.input_scale, net.output_scale, shifted,
+                       fitted=net.fitted, blind=net.blind)  # fmt: skip

@@ -24,6 +24,7 @@ forecast of another region is refused.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,6 +37,7 @@ from pidlab.lookup import (
     MAX_PIECES,
     SPLITS,
     ForecastError,
+    MarginScale,
     RescueClassifier,
     ResidualNet,
     parse_forecast,
@@ -69,6 +71,8 @@ class LinearForecast:
         (``qpos``/``qvel``), its address there, its transform and its clip.
     size : int
         The observation's length.
+    blind : tuple of int
+        The inputs (:meth:`inputs`) a learned network must not read (:func:`blind_inputs`).
     """
 
     Ad: np.ndarray
@@ -81,6 +85,7 @@ class LinearForecast:
     ctrl_high: np.ndarray
     columns: tuple[tuple[int, str, int, str | None, tuple[float, float] | None], ...]
     size: int
+    blind: tuple[int, ...] = ()
 
     @property
     def variables(self) -> tuple[int, ...]:
@@ -131,6 +136,24 @@ class LinearForecast:
         u = np.clip(np.asarray(action, dtype=float).reshape(-1), self.ctrl_low, self.ctrl_high) - self.ctrl_op
         return np.concatenate([self.state(model, qpos, qvel, act), u])
 
+    def observed_inputs(self, model: mujoco.MjModel, obs: np.ndarray) -> np.ndarray:
+        """The inputs of a forecast made from each observation row, with the operating point's control.
+
+        The joint state is the operating point's, with every position and velocity the observation
+        reads set from it (an angle from its sine, or from its cosine when the sine is not observed);
+        the control's deviation is 0. Used where margins are asked of a state, not of a forecast
+        (coverage, the share of a region kept).
+        """
+        rows = np.atleast_2d(np.asarray(obs, dtype=float))
+        out = np.empty((len(rows), self.Ad.shape[0] + self.Bd.shape[1]))
+        order = sorted(self.columns, key=lambda c: c[3] == "sin")  # a sine overrides a cosine
+        for r, row in enumerate(rows):
+            q, v = self.qpos_op.copy(), self.qvel_op.copy()
+            for col, source, address, transform, _ in order:
+                (q if source == "qpos" else v)[address] = _angle(float(row[col]), transform)
+            out[r] = np.concatenate([self.state(model, q, v, self.act_op), np.zeros(self.Bd.shape[1])])
+        return out
+
 
 @dataclass(frozen=True)
 class LearnedForecast:
@@ -160,7 +183,16 @@ class LearnedForecast:
         self, model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, action: np.ndarray
     ) -> np.ndarray:
         """The corrected forecast observation one control period after ``action``."""
-        z = self.linear.inputs(model, qpos, qvel, act, action)
+        return self.from_inputs(model, self.inputs(model, qpos, qvel, act, action))
+
+    def inputs(
+        self, model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, action: np.ndarray
+    ) -> np.ndarray:
+        """The linear model's inputs (:meth:`LinearForecast.inputs`)."""
+        return self.linear.inputs(model, qpos, qvel, act, action)
+
+    def from_inputs(self, model: mujoco.MjModel, z: np.ndarray) -> np.ndarray:
+        """:meth:`observation` from the linear model's inputs ``z``."""
         return self.correct(self.linear.from_inputs(model, z)[None, :], z[None, :])[0]
 
     def correct(self, linear: np.ndarray, inputs: np.ndarray) -> np.ndarray:
@@ -173,6 +205,29 @@ class LearnedForecast:
         return out
 
 
+def check_network(linear: LinearForecast, network: ResidualNet, what: str) -> None:
+    """Refuse a network fitted on other inputs than this env's linear model gives (or blinds).
+
+    Raises
+    ------
+    CoachingError
+        Another number of inputs, or other blind inputs (:func:`blind_inputs`).
+    """
+    k = linear.Ad.shape[0] + linear.Bd.shape[1]
+    if network.inputs != k:
+        raise CoachingError(
+            f"{what} takes {network.inputs} inputs, and this env's linear model has {k} "
+            "(states and controls): it was fitted for another model; run `pidlab forecast SPEC` again"
+        )
+    if network.blind != linear.blind:
+        raise CoachingError(
+            f"{what} reads inputs {list(network.blind)} as blind, and this env's are "
+            f"{list(linear.blind)} (the positions its observation leaves out, which the dynamics do not "
+            "depend on and which grow as the robot moves: a network that reads them answers for a robot "
+            "that has moved away with figures its margins never measured); run `pidlab forecast SPEC` again"
+        )
+
+
 def learned_forecast(linear: LinearForecast, network: ResidualNet, card: ModelCard) -> LearnedForecast:
     """The linear forecast with ``network``'s correction, checked against the card and the linear model.
 
@@ -182,13 +237,7 @@ def learned_forecast(linear: LinearForecast, network: ResidualNet, card: ModelCa
         The network takes another number of inputs than the linear model has, or corrects a
         variable the forecast does not give.
     """
-    k = linear.Ad.shape[0] + linear.Bd.shape[1]
-    if network.inputs != k:
-        raise CoachingError(
-            f"the learned forecast takes {network.inputs} inputs, and this env's linear model has {k} "
-            "(states and controls): it was fitted for another model; "
-            "run `pidlab forecast SPEC --model learned` again"
-        )
+    check_network(linear, network, "the learned forecast")
     names = [v.name for v in card.observation]
     clips = {c[0]: c[4] for c in linear.columns}
     corrected = []
@@ -227,6 +276,33 @@ def check_forecastable(card: ModelCard, variables: tuple[str, ...] | list[str], 
             )
 
 
+def _angle(x: float, transform: str | None) -> float:
+    """The coordinate an observed value reads: an angle from its sine or cosine, else the value."""
+    if transform == "sin":
+        return float(np.arcsin(np.clip(x, -1.0, 1.0)))
+    if transform == "cos":
+        return float(np.arccos(np.clip(x, -1.0, 1.0)))
+    return x
+
+
+def blind_inputs(card: ModelCard, model: mujoco.MjModel) -> tuple[int, ...]:
+    """The linear model's inputs a learned network must not read: positions the observation leaves out.
+
+    A joint whose position no observation variable reads (Gymnasium's walkers leave out the forward
+    position ``rootx``: the dynamics do not depend on it) has its tangent-space position entries
+    here. Such a coordinate grows without bound as the robot moves, far past the values the network
+    was fitted and its margins measured on; zeroed, it cannot move the correction.
+    """
+    seen = {v.joint for v in card.observation if v.source == "qpos"}
+    out: list[int] = []
+    for j in range(model.njnt):
+        if mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) in seen:
+            continue
+        end = int(model.jnt_dofadr[j + 1]) if j + 1 < model.njnt else model.nv
+        out.extend(range(int(model.jnt_dofadr[j]), end))
+    return tuple(out)
+
+
 def linear_forecast(lin: Any, card: ModelCard, model: mujoco.MjModel) -> LinearForecast:
     """The forecast of a :class:`~pidlab.linear.linearize.Linearization` (``discretization="step"``).
 
@@ -256,6 +332,7 @@ def linear_forecast(lin: Any, card: ModelCard, model: mujoco.MjModel) -> LinearF
         qpos_op=np.asarray(op.qpos, dtype=float), qvel_op=np.asarray(op.qvel, dtype=float),
         act_op=act if act.size == model.na else np.zeros(model.na), ctrl_op=np.asarray(op.ctrl, dtype=float),
         ctrl_low=low, ctrl_high=high, columns=columns, size=len(card.observation),
+        blind=blind_inputs(card, model),
     )  # fmt: skip
 
 
@@ -447,11 +524,15 @@ class ClassifierMarginRegion:
     region : ClassifierRegion
         The rescue region (its observation layout and threshold).
     margins : dict
-        ``variable -> margin`` for every variable the classifier tests.
+        ``variable -> margin`` for every variable the classifier tests (with ``adaptive``, the
+        largest: asked when a query comes without the forecast's inputs).
     bound : {"interval", "linear"}
         How the score is bounded over a box (:data:`pidlab.lookup.BOUNDS`, :func:`box_in_classifier`).
     pieces : int or None
         The most boxes one query bounds at one halving (:func:`box_in_classifier`); None: no cap.
+    adaptive : MarginScale, optional
+        Margins that depend on the forecast's inputs (:class:`pidlab.lookup.MarginScale`, over the
+        variables of ``margins``, in its order): :meth:`contains` and :meth:`hold` take the inputs.
 
     Raises
     ------
@@ -465,7 +546,7 @@ class ClassifierMarginRegion:
 
     def __init__(
         self, region: ClassifierRegion, margins: dict[str, float], bound: str = "interval",
-        pieces: int | None = None,
+        pieces: int | None = None, adaptive: MarginScale | None = None,
     ) -> None:  # fmt: skip
         check_bound(bound)
         check_pieces(pieces)
@@ -484,34 +565,49 @@ class ClassifierMarginRegion:
             _check_room(v, float(m), lo, hi)
         names = region.observation_names
         self._idx = np.array(observation_indices(clf.variables, names, "bounds.rescue.variables"))
-        self._lo = np.array(clf.lower) + self._m
-        self._hi = np.array(clf.upper) - self._m
+        self._lower, self._upper = np.array(clf.lower), np.array(clf.upper)
+        self.adaptive = adaptive
+        if adaptive is not None:
+            order = list(margins)
+            self._ceiling = np.array([float(margins[v]) for v in order])
+            self._pick = np.array([order.index(v) for v in clf.variables])
 
-    def contains(self, obs: np.ndarray) -> bool:
+    def contains(self, obs: np.ndarray, inputs: np.ndarray | None = None) -> bool:
         """Whether the box of the margins about ``obs`` lies in the region (proven, see the class).
+
+        ``inputs``: the linear model's inputs the forecast ``obs`` was made from (adaptive margins;
+        without them, the largest margins).
 
         Raises
         ------
         CoachingError
             ``obs`` is not an observation of the env (another length, not numbers).
         """
-        return checked_observation(obs, len(self.observation_names), self._contains)
+        return checked_observation(obs, len(self.observation_names), lambda o: self._contains(o, inputs))
 
-    def _contains(self, obs: np.ndarray) -> bool:
-        return self.holds(np.asarray(obs, dtype=float)[self._idx])
+    def _contains(self, obs: np.ndarray, inputs: np.ndarray | None = None) -> bool:
+        y = np.asarray(obs, dtype=float)[self._idx]
+        return bool(self.hold(y, None if inputs is None else np.atleast_2d(inputs))[0])
 
     def holds(self, y: np.ndarray) -> bool:
-        """:meth:`contains` of the classifier's variables ``y`` alone (in its order)."""
+        """:meth:`contains` of the classifier's variables ``y`` alone (its order), at the largest margins."""
         return bool(self.hold(y)[0])
 
-    def hold(self, ys: np.ndarray) -> np.ndarray:
-        """:meth:`holds` of each row of ``ys``, all at once."""
+    def margins_of(self, n: int, inputs: np.ndarray | None = None) -> np.ndarray:
+        """The margins of ``n`` queries (classifier order), shape ``(n, k)``: adaptive given ``inputs``."""
+        if self.adaptive is None or inputs is None:
+            return np.tile(self._m, (n, 1))
+        return self.adaptive.margins(inputs, self._ceiling)[:, self._pick]
+
+    def hold(self, ys: np.ndarray, inputs: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`holds` of each row of ``ys``, all at once (``inputs``: one row per row of ``ys``)."""
         ys = np.atleast_2d(np.asarray(ys, dtype=float))
-        inside = np.all((ys >= self._lo) & (ys <= self._hi), axis=1)  # also False for NaN
+        m = self.margins_of(len(ys), inputs)
+        inside = np.all((ys - m >= self._lower) & (ys + m <= self._upper), axis=1)  # also False for NaN
         out = np.zeros(len(ys), dtype=bool)
         if inside.any():
             out[inside] = boxes_in_classifier(
-                self.classifier, ys[inside], self._m, self.threshold, bound=self.bound, pieces=self.pieces
+                self.classifier, ys[inside], m[inside], self.threshold, bound=self.bound, pieces=self.pieces
             )
         return out
 
@@ -521,24 +617,27 @@ class ClassifierMarginRegion:
 
 
 def margin_region(
-    region: Any, margins: dict[str, float], bound: str = "interval", pieces: int | None = None
-) -> MarginRegion | ClassifierMarginRegion:
+    region: Any, margins: dict[str, float], bound: str = "interval", pieces: int | None = None,
+    adaptive: MarginScale | None = None,
+) -> MarginRegion | ClassifierMarginRegion:  # fmt: skip
     """The rescue region ``region`` asked of a forecast with ``margins`` (a grid's or a classifier's).
 
     ``bound`` is how a classifier's score is bounded over a margin box (:data:`pidlab.lookup.BOUNDS`)
     and ``pieces`` caps a query's boxes at one halving (:func:`box_in_classifier`); a grid is asked
-    cell by cell, exactly.
+    cell by cell, exactly. ``adaptive``: margins that depend on the forecast's inputs (a
+    classifier's only).
 
     Raises
     ------
     CoachingError
         ``region`` is no rescue region, a margin leaves nothing of it, ``bound`` is unknown, or
-        ``pieces`` is below 1 or given for a lookup grid.
+        ``pieces`` is below 1 or given for a lookup grid, or adaptive margins for a lookup grid.
     """
     check_bound(bound)
     check_pieces(pieces, region)
+    check_adaptive(adaptive, region)
     if isinstance(region, ClassifierRegion):
-        return ClassifierMarginRegion(region, margins, bound, pieces)
+        return ClassifierMarginRegion(region, margins, bound, pieces, adaptive)
     if isinstance(region, GridRegion):
         return MarginRegion(region, margins)
     raise CoachingError(f"the model predictor narrows a rescue region, not a {type(region).__name__}")
@@ -564,6 +663,22 @@ def check_pieces(pieces: int | None, region: Any = None) -> None:
             f"pieces={pieces}: a cap on a query's boxes is for a classifier region; this rescue region is a "
             "lookup grid, asked cell by cell (leave pieces out)", param="pieces",
         )  # fmt: skip
+
+
+def check_adaptive(adaptive: Any, region: Any = None) -> None:
+    """Refuse adaptive margins for a lookup grid (narrowed once, cell by cell, by constant margins).
+
+    Raises
+    ------
+    CoachingError
+        ``adaptive`` is given (truthy) and ``region`` is a lookup grid.
+    """
+    if adaptive and isinstance(region, GridRegion):
+        raise CoachingError(
+            "adaptive margins need a classifier rescue region (a lookup grid is narrowed once, by "
+            "constant margins); fit one with `pidlab rescue-classifier`, or measure constant margins",
+            param="adaptive",
+        )
 
 
 def margin_variables(region: Any) -> tuple[str, ...]:
@@ -604,24 +719,30 @@ def _check_room(name: str, margin: float, lo: float, hi: float) -> None:
 
 def kept_share(
     region: Any, margins: dict[str, float], samples: int = 20000, seed: int = 0, bound: str = "interval",
-    pieces: int | None = None,
+    pieces: int | None = None, adaptive: MarginScale | None = None,
+    inputs_of: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> float:  # fmt: skip
     """The share of the rescue region whose margin box fits in it (a Monte Carlo estimate).
 
     ``samples`` points drawn uniformly in the region (a grid: a marked cell, then a point in it, and
     the guard's ranges; a classifier: points of its domain box that it holds, drawn until
-    ``samples`` are found or ``50 * samples`` drawn); 0 when no box fits at all.
+    ``samples`` are found or ``50 * samples`` drawn); 0 when no box fits at all. With ``adaptive``
+    margins, each point's are those of a forecast made from it: ``inputs_of`` maps rows of the
+    classifier's variables to the forecast's inputs (:func:`inputs_at_points`).
     """
     check_bound(bound)
     check_pieces(pieces, region)
     try:
-        shrunk = margin_region(region, margins, bound, pieces)
+        shrunk = margin_region(region, margins, bound, pieces, adaptive)
     except CoachingError:  # no box fits
         return 0.0
     rng = np.random.default_rng(seed)
     if isinstance(shrunk, ClassifierMarginRegion):
         points = classifier_points(shrunk.classifier, shrunk.threshold, samples, rng)
-        return float(np.mean(shrunk.hold(points))) if len(points) else 0.0
+        if not len(points):
+            return 0.0
+        inputs = inputs_of(points) if adaptive is not None and inputs_of is not None else None
+        return float(np.mean(shrunk.hold(points, inputs)))
     grid = region.grid
     marked = np.argwhere(np.asarray(grid.table, dtype=bool))
     if len(marked) == 0:
@@ -635,6 +756,42 @@ def kept_share(
     for v, (lo, hi) in grid.guard.items():
         obs[:, names.index(v)] = rng.uniform(lo, hi, size=samples)
     return float(np.mean([shrunk.contains(o) for o in obs]))
+
+
+def inputs_at_points(
+    forecast: LinearForecast, model: mujoco.MjModel, base: np.ndarray, names: tuple[str, ...],
+    variables: tuple[str, ...],
+) -> Callable[[np.ndarray], np.ndarray]:  # fmt: skip
+    """Rows of ``variables`` to the inputs of forecasts made there (:meth:`LinearForecast.observed_inputs`).
+
+    ``base``: the observation the other variables keep (the operating point's); ``names``: the
+    observation's variable names.
+    """
+    cols = [names.index(v) for v in variables]
+
+    def inputs_of(points: np.ndarray) -> np.ndarray:
+        obs = np.tile(np.asarray(base, dtype=float), (len(points), 1))
+        obs[:, cols] = points
+        return forecast.observed_inputs(model, obs)
+
+    return inputs_of
+
+
+def kept_inputs(region: Any, loaded: Any) -> Callable[[np.ndarray], np.ndarray] | None:
+    """:func:`inputs_at_points` for a classifier ``region`` of ``loaded``'s env, about its operating point.
+
+    None for any other region (a lookup grid has no adaptive margins).
+    """
+    if not isinstance(region, ClassifierRegion):
+        return None
+    from pidlab.linear.linearize import linearize
+    from pidlab.plant.observation import observe_at
+    from pidlab.plant.operating_point import resolve_operating_point
+
+    card, op = loaded.require_card(), resolve_operating_point(loaded)
+    forecast = linear_forecast(linearize(loaded), card, loaded.model)
+    base = observe_at(card, loaded.model, op.qpos, op.qvel)
+    return inputs_at_points(forecast, loaded.model, base, card.observation_names, region.classifier.variables)
 
 
 def classifier_points(

@@ -644,14 +644,23 @@ def forecast_view(f: Any, units: dict[str, str], kept: float | None = None) -> G
             f"region's domain box; of the {f.held_out_in_scope:,} such of {f.held_out:,} held-out actions, "
             f"{f.escapes} outside the margins of their forecast\n"
         )
+    if f.adaptive is not None:
+        head.append(
+            f"adaptive margins: a network fitted on {f.adaptive.network.fitted:,} in-scope of "
+            f"{f.adaptive.transitions:,} earlier actions gives the error's scale at each state and action; "
+            "a margin is that scale times the variable's factor, at most its largest margin\n"
+        )
     if kept is not None:
         head.append(f"{kept:.1%} of the rescue region has its margin box inside it (sampled)\n")
     t = Table(title="Forecast error, |true - forecast| one control period ahead", title_justify="left")
-    for col in ("variable", "median", "99th percentile", "margin (largest)"):
+    cols = ("variable", "median", "99th percentile", "margin (largest)")
+    for col in (*cols, "factor (adaptive)") if f.adaptive is not None else cols:
         t.add_column(col, justify="left" if col == "variable" else "right")
-    for v, med, p99, m in zip(f.variables, f.median, f.p99, f.margins, strict=True):
+    factors = f.adaptive.factors if f.adaptive is not None else (None,) * len(f.variables)
+    for v, med, p99, m, k in zip(f.variables, f.median, f.p99, f.margins, factors, strict=True):
         unit = units.get(v, "")
-        t.add_row(f"{v} ({unit})", f"{med:.3g}", f"{p99:.3g}", f"{m:.3g}")
+        extra = () if k is None else (f"{k:.3g}",)
+        t.add_row(f"{v} ({unit})", f"{med:.3g}", f"{p99:.3g}", f"{m:.3g}", *extra)
     a = f.agreement
     v = Table(title=f"Vetoes on the held-out actions: agreement {f.veto_agreement:.1%}",
               title_justify="left")  # fmt: skip

@@ -17,6 +17,7 @@ or a classifier's rescue region).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -28,18 +29,21 @@ from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError
 from pidlab.lookup import (
     AGREEMENT,
+    LOG_LIMIT,
     MAX_WIDTH,
     MODELS,
     SCOPES,
     ForecastError,
+    MarginScale,
     ResidualNet,
     region_digest,
 )
 from pidlab.plant.model import LoadedModel, load_model
-from pidlab.region.dynamics import fit_residual
+from pidlab.region.dynamics import fit_error_scale, fit_residual
 from pidlab.region.forecast import (
     ClassifierMarginRegion,
     MarginRegion,
+    check_adaptive,
     check_bound,
     check_forecastable,
     check_pieces,
@@ -54,6 +58,9 @@ from pidlab.rl.predict import Predictor, forecast_of
 
 MAX_TRANSITIONS = 1_000_000
 """The most actions :func:`measure_forecast` records per part (about an hour of Walker2d)."""
+
+MIN_ADAPTIVE = 1000
+"""The fewest transitions adaptive margins are fitted on (and in scope of them, the fewest kept)."""
 
 
 def _record(
@@ -95,15 +102,22 @@ def _record(
     return np.array(truth), np.array(guess), np.array(inputs)
 
 
-def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: int, width: int,
-                   epochs: int, bound: str, scope: str, pieces: int | None) -> None:  # fmt: skip
+def _check_options(transitions: int, held_out: int, seed: int, model: str, fit: int, width: int, epochs: int,
+                   bound: str, scope: str, pieces: int | None, adaptive: int) -> None:  # fmt: skip
     integer(transitions, "transitions", CoachingError, low=1, high=MAX_TRANSITIONS, param="transitions")
+    integer(adaptive, "adaptive", CoachingError, low=0, high=MAX_TRANSITIONS, param="adaptive")
+    if 0 < adaptive < MIN_ADAPTIVE:
+        raise CoachingError(
+            f"adaptive={adaptive}: expected 0 (constant margins) or at least {MIN_ADAPTIVE} transitions "
+            "to fit the error's scale on", param="adaptive",
+        )  # fmt: skip
     integer(held_out, "held_out", CoachingError, low=0, high=MAX_TRANSITIONS, param="held_out")
     checked_seed(seed, "seed", CoachingError, param="seed")
     if model not in MODELS:
         raise CoachingError(f"model={model!r}: expected one of {', '.join(MODELS)}", param="model")
     if model == "learned":
         integer(fit, "fit", CoachingError, low=100, high=MAX_TRANSITIONS, param="fit")
+    if model == "learned" or adaptive:
         integer(width, "width", CoachingError, low=2, high=MAX_WIDTH, param="width")
         integer(epochs, "epochs", CoachingError, low=1, high=10_000, param="epochs")
     check_bound(bound)
@@ -126,6 +140,7 @@ def measure_forecast(
     bound: str = "linear",
     scope: str = "domain",
     pieces: int | None = None,
+    adaptive: int = 0,
 ) -> ForecastError:
     """The forecast's error on the spec's rescue region, and what it does to the shield.
 
@@ -154,6 +169,13 @@ def measure_forecast(
         Which transitions set the margins (and count as escapes): those whose forecast lies in the
         rescue region's domain box (:func:`pidlab.region.forecast.domain_box`), or all
         (:data:`pidlab.lookup.SCOPES`).
+    adaptive : int
+        0: constant margins. Else margins that depend on the state and the action
+        (:class:`pidlab.lookup.MarginScale`): ``adaptive`` transitions recorded after the learned
+        correction's and before those that set the margins fit a network to the log of the error
+        (:func:`pidlab.region.dynamics.fit_error_scale`, ``width``, ``epochs``); the transitions that
+        set the margins calibrate its factors, and the held-out ones are checked with the margins of
+        each. A classifier rescue region only.
 
     Returns
     -------
@@ -164,34 +186,104 @@ def measure_forecast(
     Raises
     ------
     CoachingError
-        Counts below 1 (``held_out`` below 0; ``fit`` below 100) or above :data:`MAX_TRANSITIONS`,
-        an unknown model or bound, ``pieces`` below 1 or for a lookup grid, no rescue region, a
-        region over a variable no joint-state forecast gives, or no forecast in scope.
+        Counts below 1 (``held_out`` below 0; ``fit`` below 100; ``adaptive`` neither 0 nor at least
+        :data:`MIN_ADAPTIVE`) or above :data:`MAX_TRANSITIONS`, an unknown model or bound,
+        ``pieces`` below 1 or for a lookup grid, adaptive margins for a lookup grid, no rescue
+        region, a region over a variable no joint-state forecast gives, or no forecast in scope.
     """
-    _check_options(transitions, held_out, seed, model, fit, width, epochs, bound, scope, pieces)
+    _check_options(transitions, held_out, seed, model, fit, width, epochs, bound, scope, pieces, adaptive)
     loaded = loaded if loaded is not None else load_model(spec.env_id)
     card = loaded.require_card()
     region = _rescue_region(spec, card)
     check_pieces(pieces, region)
+    check_adaptive(adaptive, region)
+    names = margin_variables(region)
+    learned = (int(fit), width, epochs) if model == "learned" else None
+    recorded = adaptive + transitions + held_out
+    truth, guess, inputs, network = _forecasts(spec, loaded, names, recorded, learned, int(seed), progress)
+    asked = _Asked(int(transitions), int(held_out), int(adaptive), (width, epochs, int(seed)), model, bound,
+                   scope, pieces)  # fmt: skip
+    return _measurement(spec, loaded, region, asked, (truth, guess, inputs), network)
+
+
+@dataclass(frozen=True)
+class _Asked:
+    """What :func:`measure_forecast` was asked: counts, the scale network's fit, the model and its proof."""
+
+    transitions: int
+    held_out: int
+    adaptive: int
+    fit: tuple[int, int, int]
+    """Width, epochs and seed of a network's fit."""
+    model: str
+    bound: str
+    scope: str
+    pieces: int | None
+
+
+def _measurement(
+    spec: CoachSpec, loaded: LoadedModel, region: Region, a: _Asked,
+    data: tuple[np.ndarray, np.ndarray, np.ndarray], network: ResidualNet | None,
+) -> ForecastError:  # fmt: skip
+    """:func:`measure_forecast` of recorded ``data``: true next observations, forecasts, inputs."""
+    card = loaded.require_card()
+    truth, guess, inputs = data
     names = margin_variables(region)
     cols = observation_indices(names, card.observation_names, "bounds.rescue")
-    learned = (int(fit), width, epochs) if model == "learned" else None
-    recorded = transitions + held_out
-    truth, guess, network = _forecasts(spec, loaded, names, recorded, learned, int(seed), progress)
-    fitted, check = _errors(spec.name, region, truth[:, cols], guess[:, cols], int(transitions), scope)
+    err = np.abs(truth[:, cols] - guess[:, cols])
+    scoped = in_domain(region, guess[:, cols]) if a.scope == "domain" else np.ones(len(err), dtype=bool)
+    n, t = a.adaptive, a.transitions
+    first = (err[:n], inputs[:n], scoped[:n])
+    scale = _error_scale(spec.name, *first, names, a.fit, forecast_of(loaded).blind) if n else None
+    err, inputs, scoped = err[n:], inputs[n:], scoped[n:]
+    fitted, check = _in_scope(spec.name, err, scoped, t)
     margins = fitted.max(axis=0)
-    margin = dict(zip(names, margins, strict=True))
-    held = truth[transitions:], guess[transitions:]
-    agreement = _agreement(region, margin, (bound, pieces), card.observation_names, *held)
-    counted = {"in_scope": len(fitted), "held_out_in_scope": len(check)} if scope == "domain" else {}
+    found = _calibrated(scale, fitted, inputs[:t][scoped[:t]], n) if scale is not None else None
+    ceiling = margins if found is None else found.margins(inputs[t:][scoped[t:]], margins)
+    held = truth[n + t :], guess[n + t :], inputs[t:]
+    agreement = _agreement(region, dict(zip(names, margins, strict=True)), (a.bound, a.pieces, found),
+                           card.observation_names, *held)  # fmt: skip
+    counted = {"in_scope": len(fitted), "held_out_in_scope": len(check)} if a.scope == "domain" else {}
     return ForecastError(
-        model=model, variables=names, margins=tuple(float(m) for m in margins),
+        model=a.model, variables=names, margins=tuple(float(m) for m in margins),
         median=tuple(float(v) for v in np.median(fitted, axis=0)),
-        p99=tuple(float(v) for v in np.quantile(fitted, 0.99, axis=0)), transitions=int(transitions),
-        held_out=int(held_out), escapes=int(np.any(check > margins, axis=1).sum()), seed=int(seed),
+        p99=tuple(float(v) for v in np.quantile(fitted, 0.99, axis=0)), transitions=t,
+        held_out=a.held_out, escapes=int(np.any(check > ceiling, axis=1).sum()), seed=a.fit[2],
         agreement=agreement, region=region_digest((spec.bounds or {})["rescue"]), network=network,
-        bound=bound, scope=scope, pieces=pieces, **counted,
+        bound=a.bound, scope=a.scope, pieces=a.pieces, adaptive=found, **counted,
     )  # fmt: skip
+
+
+def _error_scale(
+    name: str, err: np.ndarray, inputs: np.ndarray, scoped: np.ndarray, names: tuple[str, ...],
+    fit: tuple[int, int, int], blind: tuple[int, ...],
+) -> ResidualNet:  # fmt: skip
+    """The network of adaptive margins, fitted on the in-scope transitions recorded for it.
+
+    Raises
+    ------
+    CoachingError
+        Fewer than :data:`MIN_ADAPTIVE` of them are in scope.
+    """
+    if scoped.sum() < MIN_ADAPTIVE:
+        raise CoachingError(
+            f"{name}: {int(scoped.sum()):,} of the {len(err):,} transitions recorded for adaptive margins "
+            f"lie in the rescue region's domain box; at least {MIN_ADAPTIVE:,} are needed: record more "
+            "(adaptive)",
+            param="adaptive",
+        )  # fmt: skip
+    return fit_error_scale(inputs[scoped], err[scoped], names, *fit, blind=blind)
+
+
+def _calibrated(network: ResidualNet, errors: np.ndarray, inputs: np.ndarray, recorded: int) -> MarginScale:
+    """Adaptive margins whose factors cover every error of the transitions that set the margins.
+
+    Per variable, the factor is the largest ``error / sigma`` over them (normalized conformal
+    calibration, :class:`pidlab.lookup.MarginScale`).
+    """
+    sigma = np.exp(np.clip(network.correction(inputs), -LOG_LIMIT, LOG_LIMIT))
+    factors = (errors / sigma).max(axis=0)
+    return MarginScale(network, tuple(float(f) for f in factors), int(recorded))
 
 
 def _errors(
@@ -211,8 +303,8 @@ def _forecasts(
     learned: tuple[int, int, int] | None,
     seed: int,
     progress: Callable[[int, int], None] | None,
-) -> tuple[np.ndarray, np.ndarray, ResidualNet | None]:
-    """``count`` recorded transitions: true next observations, forecasts, and the learned correction.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, ResidualNet | None]:
+    """``count`` recorded transitions: true next observations, forecasts, inputs, the learned correction.
 
     With ``learned = (fit, width, epochs)``, ``fit`` transitions are recorded first and the
     correction fitted on them (:func:`pidlab.region.dynamics.fit_residual`); the forecasts returned
@@ -229,12 +321,13 @@ def _forecasts(
 
     truth, guess, inputs = _record(spec, loaded, total, seed, tick)
     if learned is None:
-        return truth, guess, None
+        return truth, guess, inputs, None
     cols = observation_indices(names, card.observation_names, "bounds.rescue")
     missed = truth[:first, cols] - guess[:first, cols]
-    network = fit_residual(inputs[:first], missed, names, learned[1], learned[2], seed)
+    blind = forecast_of(loaded).blind
+    network = fit_residual(inputs[:first], missed, names, learned[1], learned[2], seed, blind)
     guess = learned_forecast(forecast_of(loaded), network, card).correct(guess, inputs)
-    return truth[first:], guess[first:], network
+    return truth[first:], guess[first:], inputs[first:], network
 
 
 def _in_scope(
@@ -270,23 +363,30 @@ def _rescue_region(spec: CoachSpec, card: Any) -> Region:
 def _agreement(
     region: Region,
     margins: dict[str, float],
-    proof: tuple[str, int | None],
+    proof: tuple[str, int | None, MarginScale | None],
     names: tuple[str, ...],
     truth: np.ndarray,
     guess: np.ndarray,
+    inputs: np.ndarray,
 ) -> dict[str, int]:
     """Veto by veto: the exact look-ahead's state in the region, the forecast's margin box in it.
 
-    ``proof``: the score bound and the cap on a query's boxes (:func:`margin_region`).
+    ``proof``: the score bound, the cap on a query's boxes and the adaptive margins
+    (:func:`margin_region`); ``inputs``: each forecast's (for adaptive margins).
     """
     try:
         shrunk: MarginRegion | ClassifierMarginRegion | None = margin_region(region, margins, *proof)
     except CoachingError:  # nothing fits: the model vetoes every action
         shrunk = None
     counts = dict.fromkeys(AGREEMENT, 0)
-    for t, g in zip(truth, guess, strict=True):
+    for t, g, z in zip(truth, guess, inputs, strict=True):
         exact = not region.contains(t)
-        model = shrunk is None or not shrunk.contains(g)
+        if shrunk is None:
+            model = True
+        elif isinstance(shrunk, ClassifierMarginRegion):
+            model = not shrunk.contains(g, z)
+        else:
+            model = not shrunk.contains(g)
         key = "both" if exact and model else "exact_only" if exact else "model_only" if model else "neither"
         counts[key] += 1
     return counts

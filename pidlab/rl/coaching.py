@@ -133,6 +133,7 @@ from pidlab.region.forecast import (
     ClassifierMarginRegion,
     MarginRegion,
     check_forecastable,
+    check_network,
     learned_forecast,
     margin_region,
     margin_variables,
@@ -303,9 +304,11 @@ def model_region(
     check_forecastable(card, margin_variables(region), f"{spec.name}: predictor 'model'")
     forecast = spec_forecast(spec.bounds, spec.name)
     try:
-        shrunk = margin_region(region, forecast.margin, forecast.bound, forecast.pieces)
+        shrunk = margin_region(region, forecast.margin, forecast.bound, forecast.pieces, forecast.adaptive)
         if forecast.network is not None:  # a learned correction must fit this env's linear model
             learned_forecast(forecast_of(loaded), forecast.network, card)
+        if forecast.adaptive is not None:  # and so must the adaptive margins' network
+            check_network(forecast_of(loaded), forecast.adaptive.network, "the adaptive margins' network")
     except CoachingError as exc:
         raise CoachingError(f"{spec.name}: {exc}") from None
     op = resolve_operating_point(loaded)
@@ -716,7 +719,11 @@ class CoachingWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         obs = self._predictor.predict(action)
         # a state the env's termination rule ends lies in no rescue region, whatever a region's
         # membership test says of it (a classifier's box may reach past a limit)
-        return (self._predictor.terminal or not self.region.contains(obs)) and self._coin()
+        if isinstance(self.region, ClassifierMarginRegion) and isinstance(self._predictor, ModelPredictor):
+            inside = self.region.contains(obs, self._predictor.inputs)  # adaptive margins need its inputs
+        else:
+            inside = self.region.contains(obs)
+        return (self._predictor.terminal or not inside) and self._coin()
 
     def _coach_run(self, obs: Any, limit: int | None = None) -> _Run:
         """The coach acts from ``obs``: until hand-back (takeover) or ``nudge_steps``, or the episode ends.

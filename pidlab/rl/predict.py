@@ -203,11 +203,14 @@ class ModelPredictor:
         self._limits = observed_limits(loaded.require_card())
         self.terminal = False
         """Whether a termination limit on an observed variable ends the last forecast state."""
+        self.inputs: np.ndarray | None = None
+        """The linear model's inputs of the last forecast (its adaptive margins are asked of them)."""
 
     def predict(self, action: Any) -> np.ndarray:
         """The forecast observation after ``action`` (NaN where no joint state gives a column)."""
         d = self._env.data
-        obs = self.forecast.observation(self._model, d.qpos, d.qvel, d.act, action)
+        self.inputs = self.forecast.inputs(self._model, d.qpos, d.qvel, d.act, action)
+        obs = self.forecast.from_inputs(self._model, self.inputs)
         ends = (not (np.isnan(obs[i]) or limit.healthy(float(obs[i]))) for i, limit in self._limits)
         self.terminal = any(ends)
         return obs
