@@ -119,8 +119,15 @@ COACHES = {
               kind=MODEL_KIND),
         Coach("room coach, classifier over pitch, legs and rates, focused fit, asked through the learned "
               "forecast's margins with the linear bound, margins measured where the forecast lies in the "
-              "region's domain (the model predictor)", "tuning/Hopper-v5.pidlab-room-focus-learned.toml",
-              runs=("Hopper-v5-roommodel", "rescue-terminal-room-focus-learned"), kind=MODEL_KIND),
+              "region's domain (the model predictor; the published runs' measurement, whose network read the "
+              "forward position)", runs=("Hopper-v5-roommodel", "rescue-terminal-room-focus-learned"),
+              kind=MODEL_KIND),
+        Coach("the same measured again with the forward position left out of the network's inputs",
+              "tuning/Hopper-v5.pidlab-room-focus-learned.toml", kind=MODEL_KIND),
+        Coach("room coach, classifier over pitch, legs and rates, focused fit, asked through the learned "
+              "forecast's adaptive margins (each state's own, with the operating point's control) with the "
+              "linear bound (the model predictor)", "tuning/Hopper-v5.pidlab-room-focus-adaptive.toml",
+              kind=MODEL_KIND),
     ),
     "Walker2d-v5": (
         Coach("robust coach, lookup grid over pitch", runs=("Walker2d-v5-evidence", "rescue-terminal")),

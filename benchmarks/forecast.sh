@@ -45,4 +45,8 @@ done
 .venv/bin/pidlab forecast tuning/Hopper-v5.pidlab-room-focus.toml --model learned --fit 100000 --width 128 \
     --epochs 100 --transitions 15000 --held-out 15000 --seed 0 --bound linear --scope domain \
     -o tuning/Hopper-v5.pidlab-room-focus-learned.toml --force
+# the same with margins that follow the state and the action: a scale network fitted on 30,000 more actions
+.venv/bin/pidlab forecast tuning/Hopper-v5.pidlab-room-focus.toml --model learned --fit 100000 --width 128 \
+    --epochs 100 --adaptive 30000 --transitions 15000 --held-out 15000 --seed 0 --bound linear --scope domain \
+    -o tuning/Hopper-v5.pidlab-room-focus-adaptive.toml --force
 .venv/bin/python benchmarks/forecast_table.py

@@ -25,7 +25,7 @@ from pidlab.controller.spec import load_spec
 from pidlab.errors import CoachingError
 from pidlab.files import atomic_write_text
 from pidlab.plant.model import load_model
-from pidlab.region.forecast import kept_share, spec_forecast
+from pidlab.region.forecast import kept_inputs, kept_share, spec_forecast
 from pidlab.region.takeover import ClassifierRegion, region_from_bounds
 from pidlab.rl.coaching import model_region
 
@@ -43,6 +43,8 @@ SPECS = (
     ("Hopper-v5", "pidlab-rescue-model", "lookup grid over pitch"),
     ("Hopper-v5", "pidlab-room-full-learned", "room coach's classifier over pitch, legs and rates", 2000),
     ("Hopper-v5", "pidlab-room-focus-learned",
+     "room coach's classifier over pitch, legs and rates, focused fit", 2000),
+    ("Hopper-v5", "pidlab-room-focus-adaptive",
      "room coach's classifier over pitch, legs and rates, focused fit", 2000),
     ("Walker2d-v5", "pidlab-rescue-model", "lookup grid over pitch"),
 )  # fmt: skip
@@ -72,6 +74,8 @@ def _model_cell(f, region) -> str:
         cell += f", at most {f.pieces} boxes per halving"
     if f.scope == "domain":
         cell += f"; margins from the {f.in_scope:,} of {f.transitions:,} forecasts in the region's domain"
+    if f.adaptive is not None:
+        cell += f"; adaptive margins (scale fitted on {f.adaptive.transitions:,} more)"
     return cell
 
 
@@ -108,7 +112,8 @@ def row(env: str, name: str, shape: str, samples: int = KEPT_SAMPLES) -> str:
         usable = "no"
     a = f.agreement
     units = {v.name: v.unit for v in card.observation}
-    kept = kept_share(region, f.margin, samples=samples, bound=f.bound, pieces=f.pieces)
+    kept = kept_share(region, f.margin, samples=samples, bound=f.bound, pieces=f.pieces, adaptive=f.adaptive,
+                      inputs_of=kept_inputs(region, loaded) if f.adaptive is not None else None)  # fmt: skip
     return (
         f"| {env} | {shape} | {_model_cell(f, region)} | {_error_cell(f, units)} | "
         f"{_escapes_cell(f)} | "

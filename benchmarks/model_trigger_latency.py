@@ -14,8 +14,9 @@ the spec's own settings (no cap on a query's boxes) and once per cap in ``--piec
 forecasts: at most that many boxes bounded at one halving, a box that needs more counts as
 unproven, so a query bounds fewer than twice that many). The table gives the share proven (the
 margin box inside), and the wall time per query: median, 99th percentile and largest (ms), and the
-env's control period (ms). The section "What the model predictor's veto costs" of docs/rescue.md is
-written between its markers.
+env's control period (ms). A spec with adaptive margins asks each forecast with the margins of one
+made from that point with the operating point's control (the scale network's time is counted). The
+section "What the model predictor's veto costs" of docs/rescue.md is written between its markers.
 
 Run: .venv/bin/python benchmarks/model_trigger_latency.py [--queries 400] [--warm 20] [--pieces 64,16]
 """
@@ -37,7 +38,7 @@ from pidlab.controller.spec import load_spec
 from pidlab.files import atomic_write_text
 from pidlab.plant.model import load_model
 from pidlab.provenance import git_state
-from pidlab.region.forecast import ClassifierMarginRegion, classifier_points
+from pidlab.region.forecast import ClassifierMarginRegion, classifier_points, kept_inputs, spec_forecast
 from pidlab.region.takeover import region_from_bounds
 from pidlab.rl.coaching import model_region
 
@@ -51,6 +52,7 @@ SPECS = (
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-scoped"),
     ("Hopper-v5", "pidlab-room-full-learned"),
     ("Hopper-v5", "pidlab-room-focus-learned"),
+    ("Hopper-v5", "pidlab-room-focus-adaptive"),
 )
 """(env, spec in tuning/) per row: the classifier regions with a forecast measurement."""
 
@@ -67,12 +69,15 @@ def measure(env: str, name: str, queries: int, warm: int, pieces: int | None) ->
     if not isinstance(shrunk, ClassifierMarginRegion):
         raise TypeError(f"{name}: not a classifier region")
     if pieces is not None:
-        shrunk = ClassifierMarginRegion(shrunk.region, shrunk.margins, shrunk.bound, pieces)
+        full = spec_forecast(spec.bounds, spec.name).margin  # adaptive margins index the forecast's order
+        shrunk = ClassifierMarginRegion(shrunk.region, full, shrunk.bound, pieces, shrunk.adaptive)
     points = classifier_points(shrunk.classifier, shrunk.threshold, queries + warm, np.random.default_rng(0))
+    inputs_of = kept_inputs(region, loaded) if shrunk.adaptive is not None else None
+    z = inputs_of(points) if inputs_of is not None else [None] * len(points)  # a forecast made there
     times, proven = [], []
-    for i, y in enumerate(points):
+    for i, (y, zi) in enumerate(zip(points, z, strict=True)):
         start = time.perf_counter()
-        inside = shrunk.holds(y)
+        inside = bool(shrunk.hold(y, None if zi is None else zi[None, :])[0])
         if i >= warm:
             times.append(1e3 * (time.perf_counter() - start))
             proven.append(inside)
