@@ -13,10 +13,11 @@ Usage: .venv/bin/python benchmarks/blind_inputs.py [--transitions 5000] [--seed 
 
 from __future__ import annotations
 
-import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
+from bench_cli import Parser, count, fail, run
 
 from pidlab.controller.spec import load_spec
 from pidlab.lookup import parse_forecast
@@ -28,17 +29,17 @@ RUN = ROOT / "docs/results/Hopper-v5-roommodel/runs/Hopper-v5/rescue-terminal-ro
 SHIFTS = (0.5, 2.0, 5.0, 20.0)
 
 
-def main() -> None:
+def main(argv: list[str]) -> int:
     """Print the table (see the module docstring)."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--transitions", type=int, default=5000)
-    ap.add_argument("--seed", type=int, default=11)
-    args = ap.parse_args()
+    ap = Parser(description=__doc__.splitlines()[0])
+    ap.add_argument("--transitions", type=count, default=5000, help="transitions recorded")
+    ap.add_argument("--seed", type=count, default=11, help="the recording's seed (at least 1)")
+    args = ap.parse_args(argv)
     spec = load_spec(RUN / "coach.toml")
     found = parse_forecast(spec.bounds["forecast"])
     net = found.network
     if net is None:
-        raise SystemExit(f"{RUN}: its forecast has no network")
+        fail(f"{RUN}: its forecast has no network")
     loaded = load_model(spec.env_id)
     _, _, inputs = _record(spec, loaded, args.transitions, args.seed, lambda: None)
     print(f"{spec.name} (the run's own coach.toml), {args.transitions:,} transitions, seed {args.seed}; "
@@ -54,7 +55,8 @@ def main() -> None:
         changes.append(np.abs(net.correction(moved) - base).max(axis=0))
     for k, (v, m) in enumerate(zip(found.variables, found.margins, strict=True)):
         print(f"| {v} | {m:.3g} | " + " | ".join(f"{c[k]:.3g}" for c in changes) + " |")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    run(lambda: main(sys.argv[1:]))

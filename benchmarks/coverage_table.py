@@ -123,7 +123,7 @@ COACHES = {
               "forward position)", runs=("Hopper-v5-roommodel", "rescue-terminal-room-focus-learned"),
               kind=MODEL_KIND),
         Coach("the same measured again with the forward position left out of the network's inputs",
-              "tuning/Hopper-v5.pidlab-room-focus-learned.toml", kind=MODEL_KIND),
+              "tuning/Hopper-v5.pidlab-room-focus-learned-blind.toml", kind=MODEL_KIND),
         Coach("room coach, classifier over pitch, legs and rates, focused fit, asked through the learned "
               "forecast's adaptive margins (each state's own, with the operating point's control) with the "
               "linear bound (the model predictor)", "tuning/Hopper-v5.pidlab-room-focus-adaptive.toml",

@@ -41,11 +41,15 @@ SPECS = (
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-linear", "classifier over the full state"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-scoped", "classifier over the full state"),
     ("Hopper-v5", "pidlab-rescue-model", "lookup grid over pitch"),
-    ("Hopper-v5", "pidlab-room-full-learned", "room coach's classifier over pitch, legs and rates", 2000),
+    ("Hopper-v5", "pidlab-room-full-learned",
+     "room coach's classifier over pitch, legs and rates (its network reads the forward position)", 2000),
     ("Hopper-v5", "pidlab-room-focus-learned",
-     "room coach's classifier over pitch, legs and rates, focused fit", 2000),
+     "room coach's classifier over pitch, legs and rates, focused fit (the published runs' network, which "
+     "reads the forward position)", 2000),
+    ("Hopper-v5", "pidlab-room-focus-learned-blind",
+     "room coach's classifier over pitch, legs and rates, focused fit (the forward position blind)", 2000),
     ("Hopper-v5", "pidlab-room-focus-adaptive",
-     "room coach's classifier over pitch, legs and rates, focused fit", 2000),
+     "room coach's classifier over pitch, legs and rates, focused fit (the forward position blind)", 2000),
     ("Walker2d-v5", "pidlab-rescue-model", "lookup grid over pitch"),
 )  # fmt: skip
 """(env, the spec with its measurement in tuning/, its rescue region[, states sampled for the share of

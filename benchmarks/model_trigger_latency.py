@@ -50,8 +50,7 @@ SPECS = (
     ("InvertedPendulum-v5", "pidlab-rescue-edge-scoped"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-learned"),
     ("InvertedDoublePendulum-v5", "pidlab-rescue-full-scoped"),
-    ("Hopper-v5", "pidlab-room-full-learned"),
-    ("Hopper-v5", "pidlab-room-focus-learned"),
+    ("Hopper-v5", "pidlab-room-focus-learned-blind"),
     ("Hopper-v5", "pidlab-room-focus-adaptive"),
 )
 """(env, spec in tuning/) per row: the classifier regions with a forecast measurement."""

@@ -310,3 +310,25 @@ def test_coverage_asks_each_state_with_the_margins_of_a_forecast_made_there(adap
     assert list(_through_margins(spec, loaded, names, obs)) == expected
     constant = _with(spec, dataclasses.replace(found, adaptive=None))
     assert list(_through_margins(constant, loaded, names, obs)) == [shrunk.contains(o) for o in obs]
+
+
+def test_a_grid_with_adaptive_margins_is_refused_not_scored_as_empty(ip_grid_found) -> None:
+    """A hand-made spec with adaptive margins on a lookup grid: one line, not a silent 0 % coverage."""
+    from pidlab.region.coverage import _through_margins
+
+    spec, found = ip_grid_found
+    loaded = load_model(IP)
+    names = loaded.require_card().observation_names
+    net = _linear_net(np.zeros((5, 3)), np.zeros(3), found.variables)
+    net = dataclasses.replace(net, layers=(*net.layers, (np.zeros((3, 4)), np.zeros(4))), output_scale=(1.0,) * 4)
+    scale = MarginScale(net, (1.0,) * 4, 10)  # two layers, as a spec's network must have
+    bad = _with(spec, dataclasses.replace(found, adaptive=scale))
+    with pytest.raises(CoachingError, match="adaptive margins need a classifier rescue region"):
+        _through_margins(bad, loaded, names, np.zeros((3, len(names))))
+    region = region_from_bounds(spec.bounds, names, "rescue", spec.name)
+    with pytest.raises(CoachingError, match="adaptive margins need a classifier rescue region"):
+        kept_share(region, found.margin, samples=10, adaptive=scale)
+    other = {**spec.bounds["rescue"], "action_fraction": 0.25}  # another region than the one measured on
+    stale = dataclasses.replace(spec, bounds={**_with(spec, found).bounds, "rescue": other})
+    with pytest.raises(CoachingError, match="measured on another rescue region"):
+        _through_margins(stale, loaded, names, np.zeros((3, len(names))))

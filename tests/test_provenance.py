@@ -97,6 +97,18 @@ def published_copy(path: Path, out: Path) -> Path:
     return out
 
 
+RETIRED = {
+    "Hopper-v5-roommodel": (
+        r"pidlab-room-focus-learned: the learned forecast reads inputs \[\] as blind, and this env's are \[0\]",
+        "its learned forecast reads Hopper's forward position (docs/rescue.md, what a learned forecast may read); "
+        "git a8f382f runs it as published",
+    ),
+}
+"""Published experiments that current pidlab refuses to plan, and the one-line refusal it gives: a
+spec of theirs was found unsound after they ran. Their results stand as measured (recompute.py reads
+them); the commit named re-runs them."""
+
+
 @pytest.mark.parametrize("path", PUBLISHED, ids=lambda p: p.parent.name)
 def test_published_experiments_plan_to_their_recorded_identity(tmp_path, path):
     """`pidlab experiment` with a published experiment's own command and recipes still accepts its folder.
@@ -118,6 +130,10 @@ def test_published_experiments_plan_to_their_recorded_identity(tmp_path, path):
     kw = {"steps": steps, "algo": option("--algo"), "conditions_file": cond}
     out = published_copy(path, tmp_path / "exp")
     args = (ident["envs"], ident["conditions"], ident["seeds"], out)
+    if path.parent.name in RETIRED:  # refused in one line, before any run, for the reason recorded
+        with pytest.raises(PidlabError, match=RETIRED[path.parent.name][0]):
+            plan(*args, **kw)
+        return
     shipped = plan(*args, **kw)
     candidates = [shipped] + [plan(*args, recipe_files=recipes_then(ident["envs"], f), **kw)
                               for f in (RECIPES_BEFORE_PLAN, RECIPES_THEN)]  # fmt: skip

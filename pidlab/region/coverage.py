@@ -43,7 +43,13 @@ from pidlab.controller.spec import CoachSpec
 from pidlab.errors import CoachingError, RegionError
 from pidlab.linear.linearize import linearize
 from pidlab.plant.model import LoadedModel
-from pidlab.region.forecast import ClassifierMarginRegion, linear_forecast, margin_region, spec_forecast
+from pidlab.region.forecast import (
+    ClassifierMarginRegion,
+    check_adaptive,
+    linear_forecast,
+    margin_region,
+    spec_forecast,
+)
 from pidlab.region.rescue import _Estimate, check_into, simulations, state_domain
 from pidlab.region.takeover import region_from_bounds
 
@@ -261,8 +267,9 @@ def _through_margins(
     control (:meth:`pidlab.region.forecast.LinearForecast.observed_inputs`).
     """
     region = region_from_bounds(spec.bounds, names, "rescue", spec.name)
+    forecast = spec_forecast(spec.bounds, spec.name)  # a stale or incomplete measurement: one line
+    check_adaptive(forecast.adaptive, region)
     try:
-        forecast = spec_forecast(spec.bounds, spec.name)
         shrunk = margin_region(region, forecast.margin, forecast.bound, forecast.pieces, forecast.adaptive)
     except CoachingError:  # the margins leave nothing of the region
         return np.zeros(len(obs), dtype=bool)

@@ -732,6 +732,7 @@ def kept_share(
     """
     check_bound(bound)
     check_pieces(pieces, region)
+    check_adaptive(adaptive, region)
     try:
         shrunk = margin_region(region, margins, bound, pieces, adaptive)
     except CoachingError:  # no box fits
