@@ -195,7 +195,7 @@ def test_the_classifier_region_asks_each_query_with_its_own_margins(adaptive_mea
     z = rng.normal(scale=0.3, size=(150, 5))
     per_row = found.margins_at(z)[:, [found.variables.index(v) for v in clf.variables]]
     expected = np.zeros(150, dtype=bool)
-    fits = np.all((ys - per_row >= lo) & (ys + per_row <= hi), axis=1)
+    fits = np.all((ys >= lo + per_row) & (ys <= hi - per_row), axis=1)
     expected[fits] = boxes_in_classifier(clf, ys[fits], per_row[fits], region.threshold, bound=found.bound)
     assert np.array_equal(shrunk.hold(ys, z), expected)
     assert np.array_equal(shrunk.hold(ys), shrunk.hold(ys, None))  # no inputs: the largest margins

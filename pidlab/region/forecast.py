@@ -603,7 +603,7 @@ class ClassifierMarginRegion:
         """:meth:`holds` of each row of ``ys``, all at once (``inputs``: one row per row of ``ys``)."""
         ys = np.atleast_2d(np.asarray(ys, dtype=float))
         m = self.margins_of(len(ys), inputs)
-        inside = np.all((ys - m >= self._lower) & (ys + m <= self._upper), axis=1)  # also False for NaN
+        inside = np.all((ys >= self._lower + m) & (ys <= self._upper - m), axis=1)  # also False for NaN
         out = np.zeros(len(ys), dtype=bool)
         if inside.any():
             out[inside] = boxes_in_classifier(
