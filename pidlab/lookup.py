@@ -403,9 +403,7 @@ def parse_adaptive(t: Any, names: tuple[str, ...], where: str = "bounds.forecast
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise SpecError(f"{where}.transitions: {n!r}; expected an integer >= 1")
     factors = _per_variable(t.get("factors"), f"{where}.factors", names)
-    network = parse_residual(t.get("network"), f"{where}.network")
-    if network.variables != names:
-        raise SpecError(f"{where}.network.variables: expected the margins' variables {', '.join(names)}")
+    network = parse_residual(t.get("network"), f"{where}.network", names)
     return MarginScale(network, tuple(factors[v] for v in names), n)
 
 
@@ -457,9 +455,7 @@ def parse_forecast(t: Any, where: str = "bounds.forecast") -> ForecastError:
     if sum(agreement.values()) != counts["held_out"]:
         raise SpecError(f"{where}.agreement: the counts add up to {sum(agreement.values())}, "
                         f"not to the {counts['held_out']} held-out transitions")  # fmt: skip
-    network = _network_of(t, where)
-    if network is not None and network.variables != names:
-        raise SpecError(f"{where}.network.variables: expected the margins' variables {', '.join(names)}")
+    network = _network_of(t, where, names)
     bound = t.get("bound", "interval")
     if bound not in BOUNDS:
         raise SpecError(f"{where}.bound: {bound!r}; expected one of {', '.join(BOUNDS)}")
@@ -501,13 +497,13 @@ def _scope_of(t: dict[str, Any], where: str, counts: dict[str, int]) -> tuple[st
     return scope, found[0], found[1]
 
 
-def _network_of(t: dict[str, Any], where: str) -> ResidualNet | None:
-    """The ``network`` of a forecast table: required for ``model = "learned"``, refused otherwise."""
+def _network_of(t: dict[str, Any], where: str, names: tuple[str, ...]) -> ResidualNet | None:
+    """The ``network`` of a forecast table, over ``names``: needed for ``model = "learned"``, else refused."""
     learned = t["model"] == "learned"
     if ("network" in t) != learned:
         need = "a learned model needs its network" if learned else "only model = 'learned' has a network"
         raise SpecError(f"{where}.network: {need}")
-    return parse_residual(t["network"], f"{where}.network") if learned else None
+    return parse_residual(t["network"], f"{where}.network", names) if learned else None
 
 
 @dataclass(frozen=True)
@@ -574,8 +570,10 @@ MAX_RESIDUAL_INPUTS = 1000
 """The most inputs a learned forecast may take (``2 nv + na + nu``)."""
 
 
-def parse_residual(t: Any, where: str = "bounds.forecast.network") -> ResidualNet:
-    """Read and check a ``[bounds.forecast.network]`` table.
+def parse_residual(
+    t: Any, where: str = "bounds.forecast.network", variables: tuple[str, ...] | None = None
+) -> ResidualNet:
+    """Read and check a ``[bounds.forecast.network]`` table (over exactly ``variables``, when given).
 
     Raises
     ------
@@ -603,6 +601,8 @@ def parse_residual(t: Any, where: str = "bounds.forecast.network") -> ResidualNe
         isinstance(k, int) and not isinstance(k, bool) and 0 <= k < len(mean) for k in blind
     ) or blind != sorted(set(blind)):  # fmt: skip
         raise SpecError(f"{where}.blind: expected ascending distinct input indices in [0, {len(mean) - 1}]")
+    if variables is not None and tuple(names) != variables:
+        raise SpecError(f"{where}.variables: expected the margins' variables {', '.join(variables)}")
     return ResidualNet(tuple(names), tuple(mean), tuple(scale), tuple(out), layers, fitted, tuple(blind))
 
 

@@ -13,6 +13,7 @@ network never saw, as the linear model's is, and the margins guard the region as
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -127,5 +128,4 @@ def fit_error_scale(
     net = fit_residual(inputs, target - mean, variables, width, epochs, seed, blind)
     *hidden, (w, b) = net.layers
     shifted = (*hidden, (w, b + mean / np.array(net.output_scale)))
-    return ResidualNet(net.variables, net.input_mean, net.input_scale, net.output_scale, shifted,
-                       fitted=net.fitted, blind=net.blind)  # fmt: skip
+    return dataclasses.replace(net, layers=shifted)
