@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -120,3 +122,79 @@ def test_the_command_keeps_its_journal_beside_the_spec_and_removes_it_once_writt
     )  # fmt: skip
     assert code == 0, err
     assert out.exists() and not (tmp_path / f".{out.name}.labels").exists()
+
+
+GRID = rescue.RescueSettings(
+    ("hinge_pos", "hinge_vel"), (0.2, 2.5), (8, 10), {"slider_pos": 0.05}, "predictive", None,
+    probes=1, horizon_s=3.0, validation=150, coverage=150, seed=4,
+)  # fmt: skip
+"""A small grid estimate of the room coach (its fixture twin is tests/test_rescue.py's ``_small``)."""
+
+
+def _stopped_at(stage: str, share: float):
+    def stop(label: str, fraction: float | None) -> None:
+        if label.startswith(stage) and fraction is not None and fraction > share:
+            raise _Stop
+
+    return stop
+
+
+def test_a_stopped_grid_estimate_resumes_from_its_journal_to_the_same_region(tmp_path, monkeypatch) -> None:
+    spec, loaded = load_spec(SPEC), load_model(IP)
+    plain = rescue.estimate_rescue(spec, loaded, GRID, workers=1)
+    monkeypatch.setattr(rescue, "CHUNK", 100)
+    journal = tmp_path / "labels"
+    with pytest.raises(_Stop):
+        rescue.estimate_rescue(spec, loaded, GRID, workers=1, progress=_stopped_at("validation", 0.5),
+                               journal=journal)  # fmt: skip
+    kept = len(LabelJournal(next(journal.iterdir())))
+    assert kept >= 100
+    resumed = rescue.estimate_rescue(spec, loaded, GRID, workers=2, journal=journal)
+    assert resumed.reused == kept and plain.reused == 0
+    assert np.array_equal(resumed.grid.table, plain.grid.table)
+    assert resumed.coverage == plain.coverage and resumed.validation == plain.validation
+    assert resumed.provenance["simulations"] == plain.provenance["simulations"]
+
+
+def test_a_stopped_coverage_resumes_from_its_journal_to_the_same_figures(tmp_path, monkeypatch) -> None:
+    from pidlab.region.coverage import DomainSettings, measure_domain_coverage
+
+    spec, loaded = load_spec(SPEC), load_model(IP)
+    domain = DomainSettings(("hinge_pos", "slider_pos", "hinge_vel", "slider_vel"), (0.2, 1.0, 4.0, 1.5),
+                            states=300)  # fmt: skip
+    plain = measure_domain_coverage(spec, loaded, domain, workers=1)
+    monkeypatch.setattr(rescue, "CHUNK", 100)
+    journal = tmp_path / "labels"
+    with pytest.raises(_Stop):
+        measure_domain_coverage(spec, loaded, domain, workers=1, progress=_stopped_at("labelling", 0.5),
+                                journal=journal)  # fmt: skip
+    kept = len(LabelJournal(next(journal.iterdir())))
+    assert 100 <= kept < 300
+    resumed = measure_domain_coverage(spec, loaded, domain, workers=1, journal=journal)
+    assert resumed.reused == kept
+    figures, again = plain.to_dict(), resumed.to_dict()
+    figures.pop("elapsed_s"), again.pop("elapsed_s")
+    assert json.dumps(again) == json.dumps(figures) and "reused" not in again  # nan where a region holds none
+
+
+@pytest.mark.parametrize("command", ["rescue", "rescue-coverage"])
+def test_the_rescue_commands_keep_their_own_journal_beside_the_spec_and_remove_it(tmp_path, command) -> None:
+    spec = tmp_path / f"{IP}.mine.toml"
+    spec.write_text(SPEC.read_text())
+    other = tmp_path / f".{spec.name}.labels" / "abc"  # an unfinished rescue-classifier's journal
+    other.mkdir(parents=True)
+    (other / "chunk-000001.npz").write_bytes(b"kept")
+    kind = {"rescue": "rescue-labels", "rescue-coverage": "coverage-labels"}[command]
+    (tmp_path / f".{spec.name}.{kind}").write_text("a file in the journal's place")
+    args = {
+        "rescue": ["--validation", "100", "--coverage", "100", "--probes", "1"],
+        "rescue-coverage": ["--domain", "hinge_pos=0.2,hinge_vel=2", "--states", "100"],
+    }[command]
+    code, err = cli_in_process(command, str(spec), *args, "--workers", "1")
+    assert code == 2 and "the labels' journal must be a folder; move that file away" in err
+    assert len(err.strip().splitlines()) == 1
+    (tmp_path / f".{spec.name}.{kind}").unlink()
+    code, err = cli_in_process(command, str(spec), *args, "--workers", "1")
+    assert code == 0, err
+    assert not (tmp_path / f".{spec.name}.{kind}").exists()
+    assert (other / "chunk-000001.npz").read_bytes() == b"kept"  # another command's journal is left alone

@@ -982,10 +982,12 @@ def rescue(
             default_settings(spec, loaded, trigger), action_fraction=fraction, validation=validation,
             coverage=coverage, probes=probes, horizon_s=horizon, seed=seed,
         )  # fmt: skip
-        region = _with_bar("rescue region", lambda progress: estimate_rescue(
-            spec, loaded, settings, workers=workers, progress=progress))  # fmt: skip
-        units = {v.name: v.unit for v in loaded.require_card().observation}
         con = wide_console()
+        journal = _journal_beside(con, spec_file, "rescue-labels")
+        region = _with_bar("rescue region", lambda progress: estimate_rescue(
+            spec, loaded, settings, workers=workers, progress=progress, journal=journal))  # fmt: skip
+        _said_resumed(con, region.reused, journal)
+        units = {v.name: v.unit for v in loaded.require_card().observation}
         con.print(rescue_view(region, units))
         if plots:
             folder = _write_rescue_plot(spec, region, units, plots, write)
@@ -993,6 +995,7 @@ def rescue(
         if write:
             path = save_spec(with_rescue(spec, region), spec_file)
             con.print(f"wrote the rescue region into {path} as its takeover region")
+    _drop_journal(journal)
 
 
 IntoOption = Annotated[
@@ -1104,6 +1107,37 @@ def _resumable_classifier(
     return found
 
 
+def _journal_beside(con: Any, spec_file: str, kind: str) -> Any:
+    """Where a rescue command keeps its outcomes: ``.NAME.KIND`` beside the spec (None: not writable).
+
+    Each command has its own ``kind`` of folder, so that one never removes another's unfinished
+    journal; inside it, a subfolder per coach and setting (:func:`pidlab.region.journal.journal_key`).
+    """
+    import os
+    from pathlib import Path
+
+    path = Path(spec_file)
+    folder = path.parent / f".{path.name}.{kind}"
+    if not os.access(path.parent, os.W_OK):
+        con.print(f"{path.parent} is not writable: no journal is kept, a stopped run starts again")
+        return None
+    con.print(f"each simulation's outcome is kept in {folder} as it is found: if stopped, the same "
+              "command resumes from them")  # fmt: skip
+    return folder
+
+
+def _said_resumed(con: Any, reused: int, journal: Any) -> None:
+    """Say how many outcomes a resumed run read from its journal."""
+    if reused:
+        con.print(f"resumed: {reused:,} of the simulations were read from {journal}")
+
+
+def _drop_journal(journal: Any) -> None:
+    """Remove a journal whose outcomes are now in the figures the command printed or wrote."""
+    if journal is not None:
+        shutil.rmtree(journal, ignore_errors=True)
+
+
 def _labels_journal(target: str) -> Any:
     """Where ``pidlab rescue-classifier`` keeps its outcomes: ``.NAME.labels`` beside the spec it writes."""
     from pathlib import Path
@@ -1175,15 +1209,20 @@ def rescue_coverage(
     if json_file is not None:
         check_output_file(json_file, "json")
     specs, loaded = _specs_of_one_env(spec_files)
+    con = wide_console()
+    journals = [_journal_beside(con, f, "coverage-labels") for f in spec_files]
     found = []
-    for spec in specs:
-        work = functools.partial(measure_domain_coverage, spec, loaded, settings, workers)
+    for spec, journal in zip(specs, journals, strict=True):
+        work = functools.partial(measure_domain_coverage, spec, loaded, settings, workers, journal=journal)
         found.append(_with_bar(f"coverage: {spec.name}", work))
+        _said_resumed(con, found[-1].reused, journal)
     units = {v.name: v.unit for v in loaded.require_card().observation}
-    wide_console().print(coverage_view(found, units))
+    con.print(coverage_view(found, units))
     if json_file is not None:
         write_json(json_file, [c.to_dict() for c in found])
-        wide_console().print(f"wrote {json_file}")
+        con.print(f"wrote {json_file}")
+    for journal in journals:
+        _drop_journal(journal)
 
 
 @app.command()

@@ -31,7 +31,8 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -171,6 +172,9 @@ class DomainCoverage:
         from the operating point (nan when none is rescued): the box a classifier region's domain
         needs to hold every rescued state, or 95 % of them along each variable
         (:meth:`classifier_domain`). Empty for a measurement made before they were recorded.
+    reused : int
+        Of :attr:`simulations`, the outcomes read from a journal instead of simulated (a resumed
+        run); not part of the figures (:meth:`to_dict` leaves it out).
     """
 
     env_id: str
@@ -183,6 +187,7 @@ class DomainCoverage:
     elapsed_s: float
     reach: tuple[float, ...] = ()
     reach95: tuple[float, ...] = ()
+    reused: int = field(default=0, compare=False)
 
     def classifier_domain(self, share: str = "all") -> str:
         """``pidlab rescue-classifier --domain`` for a box about the rescued states (``all`` or ``95``).
@@ -208,6 +213,7 @@ class DomainCoverage:
     def to_dict(self) -> dict[str, Any]:
         """Plain data (JSON)."""
         out = asdict(self)
+        del out["reused"]
         out["settings"]["domain"] = dict(zip(self.settings.variables, self.settings.half_range, strict=True))
         out["rescuable_share"] = self.rescuable_share
         return out
@@ -286,6 +292,7 @@ def measure_domain_coverage(
     settings: DomainSettings,
     workers: int | None = None,
     progress: Progress | None = None,
+    journal: str | Path | None = None,
 ) -> DomainCoverage:
     """Score ``spec``'s regions over the domain of ``settings`` (see the module docstring).
 
@@ -300,6 +307,9 @@ def measure_domain_coverage(
         Worker processes for the simulations (default: the machine's cores).
     progress : callable, optional
         ``progress(stage, fraction)``.
+    journal : path, optional
+        A folder that keeps every simulation's outcome as it is found, so that the same measurement
+        run again after a stop simulates only what it lacks (:mod:`pidlab.region.journal`).
 
     Raises
     ------
@@ -313,7 +323,7 @@ def measure_domain_coverage(
     def domain_of(card: Any, model: LoadedModel, y_op: np.ndarray) -> Any:
         return state_domain(s.variables, s.half_range, card, model, y_op)
 
-    with simulations(spec, loaded, s, domain_of, workers, progress, into=s.into) as (est, _, _):
+    with simulations(spec, loaded, s, domain_of, workers, progress, journal, s.into) as (est, _, _):
         states = draw_states(est, s.states)
         rescued, obs = est.rescued(states, "labelling")
         names = est.pool.sim.card.observation_names
@@ -331,7 +341,7 @@ def measure_domain_coverage(
         scores.append(_score(MODEL_KIND, _through_margins(spec, loaded, names, obs), rescued))
     return DomainCoverage(
         str(spec.env_id), spec.name, s, grounded, int(rescued.sum()), tuple(scores), sims,
-        round(time.perf_counter() - t0, 1), reach, reach95,
+        round(time.perf_counter() - t0, 1), reach, reach95, est.reused,
     )  # fmt: skip
 
 

@@ -169,6 +169,8 @@ class RescueRegion:
     coverage : Coverage
     elapsed_s : float
     provenance : dict
+    reused : int
+        Of the simulations, the outcomes read from a journal instead of simulated (a resumed run).
     """
 
     env_id: str
@@ -181,6 +183,7 @@ class RescueRegion:
     coverage: Coverage
     elapsed_s: float
     provenance: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
+    reused: int = field(default=0, compare=False)
 
     @property
     def failure_bound_95(self) -> float:
@@ -671,11 +674,12 @@ def _estimating(
     settings: RescueSettings,
     workers: int | None,
     progress: Progress | None = None,
+    journal: str | Path | None = None,
 ) -> Iterator[tuple[_Estimate, Coach, Linearization]]:
     """:func:`simulations` over the grid and guard domain of ``settings`` (checked first)."""
     _check_settings(settings)
     domain_of = functools.partial(_domain, settings)
-    with simulations(spec, loaded, settings, domain_of, workers, progress) as found:
+    with simulations(spec, loaded, settings, domain_of, workers, progress, journal) as found:
         yield found
 
 
@@ -685,6 +689,7 @@ def estimate_rescue(
     settings: RescueSettings | None = None,
     workers: int | None = None,
     progress: Progress | None = None,
+    journal: str | Path | None = None,
 ) -> RescueRegion:
     """Estimate, validate and score the coach's rescue region (see the module docstring).
 
@@ -701,12 +706,16 @@ def estimate_rescue(
         Worker processes for the simulations; the result is the same for any number.
     progress : callable, optional
         ``progress(stage, fraction)``.
+    journal : path, optional
+        A folder that keeps every simulation's outcome as it is found, so that the same estimate run
+        again after a stop simulates only what it lacks and gives the same region
+        (:mod:`pidlab.region.journal`). None keeps nothing.
 
     Raises
     ------
     RegionError
-        Settings out of range, a variable that cannot be set, a spec without a certified core, or a
-        coach that rescues nothing.
+        Settings out of range, a variable that cannot be set, a spec without a certified core, a
+        coach that rescues nothing, or a journal path that is a file.
     """
     instance(spec, CoachSpec, "spec")
     instance(loaded, LoadedModel, "loaded")
@@ -714,7 +723,7 @@ def estimate_rescue(
         instance(settings, RescueSettings, "settings")
     t0 = time.perf_counter()
     s = settings if settings is not None else default_settings(spec, loaded)
-    with _estimating(spec, loaded, s, workers, progress) as (est, coach, lin):
+    with _estimating(spec, loaded, s, workers, progress, journal) as (est, coach, lin):
         vertices = _action_vertices(coach, lin)
         if len(vertices) > MAX_VERTICES:
             vertices = vertices[est.rng.choice(len(vertices), MAX_VERTICES, replace=False)]
@@ -742,7 +751,8 @@ def estimate_rescue(
     if est.grounded:
         prov["starts"] = STARTS_ON_FLOOR
     return RescueRegion(
-        spec.env_id, spec.name, grid, used, (s.validation, 0), rounds, unmarked, coverage, elapsed, prov
+        spec.env_id, spec.name, grid, used, (s.validation, 0), rounds, unmarked, coverage, elapsed, prov,
+        reused=est.reused,
     )
 
 
