@@ -267,3 +267,34 @@ def test_a_model_that_loads_passes_mujocos_warnings_on_and_one_that_fails_does_n
     with pytest.raises(ModelCompileError, match="is a folder"):
         load_model(tmp_path)
     assert "2GB" not in capfd.readouterr().err  # MuJoCo's own warning about a folder is not printed
+
+
+def _help_texts() -> list[tuple[str, str]]:
+    """Every command's name and help texts (its own, its parameters'), as the source writes them."""
+    import typer
+
+    from pidlab.cli import app
+
+    group = typer.main.get_command(app)
+    out = []
+    for name, command in group.commands.items():
+        texts = [command.help or ""] + [getattr(p, "help", None) or "" for p in command.params]
+        out.append((name, [t.split("\f")[0] for t in texts if t]))
+    return out
+
+
+@pytest.mark.parametrize("name,texts", _help_texts(), ids=[n for n, _ in _help_texts()])
+def test_help_shows_every_text_whole(name: str, texts: list[str]) -> None:
+    """A TOML table in a help text ("Kept in [bounds.forecast]") is shown, not dropped as rich markup."""
+    import re
+
+    from typer.testing import CliRunner
+
+    from pidlab.cli import app
+
+    result = CliRunner().invoke(app, [name, "--help"], terminal_width=200, env={"COLUMNS": "200"})
+    assert result.exit_code == 0
+    shown = re.sub(r"[\s│]", "", result.stdout)
+    for text in texts:
+        for token in re.findall(r"\[[^\]\n]*\]|<[^>\n]*>", text):
+            assert re.sub(r"\s", "", token) in shown, f"{name}: {token} missing from its --help"

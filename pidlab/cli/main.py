@@ -109,6 +109,27 @@ def _sigterm_interrupts() -> Iterator[None]:
         signal.signal(signal.SIGTERM, old)
 
 
+def _plain_help(command: Any) -> None:
+    """Show every help text of ``command``'s tree as written.
+
+    The help is drawn with rich, which reads ``[...]`` as markup and drops it: "Kept in
+    [bounds.forecast]" would read "Kept in ." Each text is escaped once, in the tree the command line
+    runs (built afresh for each run; the CLI reference page reads the texts unescaped).
+    """
+    from rich.markup import escape
+
+    if getattr(command, "_pidlab_plain", False):
+        return
+    command._pidlab_plain = True
+    for owner in (command, *command.params):
+        for field in ("help", "short_help"):
+            text = getattr(owner, field, None)
+            if isinstance(text, str):
+                setattr(owner, field, escape(text))
+    for sub in getattr(command, "commands", {}).values():
+        _plain_help(sub)
+
+
 class PidlabGroup(TyperGroup):
     """The ``pidlab`` group: every usage error in one line, every interrupt exits 130.
 
@@ -126,6 +147,7 @@ class PidlabGroup(TyperGroup):
         **extra: Any,
     ) -> Any:
         """Run the command line; in standalone mode, exit with the command's code."""
+        _plain_help(self)
         if not standalone_mode:
             return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         try:
