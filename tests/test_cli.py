@@ -298,3 +298,35 @@ def test_help_shows_every_text_whole(name: str, texts: list[str]) -> None:
     for text in texts:
         for token in re.findall(r"\[[^\]\n]*\]|<[^>\n]*>", text):
             assert re.sub(r"\s", "", token) in shown, f"{name}: {token} missing from its --help"
+
+
+def test_a_path_that_reads_as_rich_markup_is_printed_as_written(tmp_path) -> None:
+    """A folder named ``x[/y]`` is a path, not a closing tag: printed whole, no traceback."""
+    from typer.testing import CliRunner
+
+    from pidlab.cli import app
+    from tests.helpers import TUNING
+
+    folder = tmp_path / "x[" / "y]"
+    folder.mkdir(parents=True)
+    spec = folder / "InvertedPendulum-v5.mine.toml"
+    spec.write_text((TUNING / "InvertedPendulum-v5.pidlab-rescue.toml").read_text())
+    result = CliRunner().invoke(
+        app, ["rescue-coverage", str(spec), "--domain", "hinge_pos=0.1", "--states", "20", "--workers", "1"],
+        terminal_width=400, env={"COLUMNS": "400"},
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert f"{folder}/.{spec.name}.coverage-labels" in result.stdout
+
+
+def test_a_progress_description_is_shown_as_written() -> None:
+    import io
+
+    from rich.console import Console
+
+    from pidlab.report.console import progress_bar
+
+    out = io.StringIO()
+    with progress_bar(Console(file=out, force_terminal=True, width=120)) as bar:
+        bar.add_task("coverage of x[/y] and [bold]", total=1.0)
+    assert "coverage of x[/y] and [bold]" in out.getvalue()

@@ -513,9 +513,10 @@ def _progress_bars(progress: bool) -> Iterator[Callable[[str], Callable[[int, in
         yield lambda _description: None
         return
     from rich.console import Console
-    from rich.progress import Progress
 
-    with Progress(console=Console(stderr=True, force_terminal=progress or None), transient=True) as bars:
+    from pidlab.report.console import progress_bar
+
+    with progress_bar(Console(stderr=True, force_terminal=progress or None), transient=True) as bars:
 
         def bar(description: str) -> Callable[[int, int], None]:
             task = bars.add_task(description, total=None)
@@ -627,11 +628,10 @@ def _auto_tune(
     loaded: Any, preset: str, bandwidth: float | None, phase_margin: float | None, workers: int | None
 ) -> Any:
     """``tune --auto``: the tuning itself, with a progress line."""
-    from rich.progress import Progress
-
     from pidlab.controller.autotune import tune as run_tune
+    from pidlab.report.console import progress_bar
 
-    with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
+    with progress_bar(transient=True, disable=not sys.stdout.isatty()) as bar:
         task = bar.add_task(f"tuning {loaded.name} ({preset})", total=None)
         tick = lambda n: bar.update(task, completed=n)  # noqa: E731
         if preset == "room":
@@ -663,10 +663,12 @@ def _check_tune_mode(ctx: typer.Context, auto: bool, ui: bool, preset: str) -> N
 
 def _print_tuned(env: str, preset: str, result: Any) -> None:
     """``tune --auto``: what was asked and achieved (rad/s, degrees)."""
+    from rich.text import Text
+
     from pidlab.report.console import wide_console
 
     con = wide_console()
-    con.print(f"[bold]{env}[/bold] {preset} coach: {result.evaluations} evaluations")
+    con.print(Text.assemble((str(env), "bold"), f" {preset} coach: {result.evaluations} evaluations"))
     con.print(
         f"  gain crossover (rad/s): asked {_asked(result.asked_bandwidth, '.4g')}, "
         f"achieved {result.achieved_bandwidth:.4g}"
@@ -1170,9 +1172,9 @@ def _labels_journal(target: str) -> Any:
 
 def _with_bar(label: str, work: Callable[[Callable[[str, float | None], None]], Any]) -> Any:
     """``work(progress)`` under a transient progress bar (on a terminal) that shows its stages."""
-    from rich.progress import Progress
+    from pidlab.report.console import progress_bar
 
-    with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
+    with progress_bar(transient=True, disable=not sys.stdout.isatty()) as bar:
         task = bar.add_task(label, total=1.0)
         return work(lambda stage, f: bar.update(task, description=stage, completed=f or 0.0))
 
@@ -1301,9 +1303,9 @@ def _specs_of_one_env(spec_files: list[str]) -> tuple[list[Any], Any]:
 @contextlib.contextmanager
 def _counted_bar(label: str, total: int) -> Iterator[Callable[[int], None]]:
     """A transient progress bar (on a terminal) over ``total`` items; yields ``update(done)``."""
-    from rich.progress import Progress
+    from pidlab.report.console import progress_bar
 
-    with Progress(transient=True, disable=not sys.stdout.isatty()) as bar:
+    with progress_bar(transient=True, disable=not sys.stdout.isatty()) as bar:
         task = bar.add_task(label, total=total)
         yield lambda done: bar.update(task, completed=done)
 

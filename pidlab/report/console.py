@@ -193,8 +193,29 @@ def linearization_view(lin: Linearization, report: LtiReport, discrete: bool) ->
 
 
 def wide_console(stderr: bool = False) -> Console:
-    """A console that does not squeeze wide matrices into the terminal width."""
-    return Console(width=max(Console().width, 240), stderr=stderr)
+    """A console that does not squeeze wide matrices into the terminal width.
+
+    Text is printed as written (``markup=False``): a path or a TOML table name such as
+    ``runs/[old]/spec.toml`` is not read as rich markup (which would drop it, or stop the command
+    on an unmatched ``[/...]``). Styles are given as :class:`~rich.text.Text` styles instead.
+    """
+    return Console(width=max(Console().width, 240), stderr=stderr, markup=False)
+
+
+def progress_bar(console: Console | None = None, **options: Any) -> Any:
+    """A :class:`rich.progress.Progress` whose task descriptions are shown as written (no markup).
+
+    ``options`` go to ``Progress`` (``transient``, ``disable``).
+    """
+    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
+
+    columns = (
+        TextColumn("{task.description}", markup=False, style="progress.description"),
+        BarColumn(),
+        TaskProgressColumn(),
+        TimeRemainingColumn(),
+    )
+    return Progress(*columns, console=console, **options)
 
 
 def _db(x: float) -> str:
