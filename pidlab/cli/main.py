@@ -1320,6 +1320,7 @@ ADAPTIVE_HELP = (
 @app.command()
 @friendly_errors
 def forecast(
+    ctx: typer.Context,
     spec_file: Annotated[
         str, typer.Argument(metavar="SPEC", help="A coach spec (TOML) with a rescue region.")
     ],
@@ -1379,6 +1380,12 @@ def forecast(
 
     if write and output:
         _fail("--write and --output: choose one (into SPEC, or into a copy)")
+    if model != "learned":
+        _refuse_unused(ctx, ("fit",), "the actions a learned correction is fitted on; expected it with "
+                       "--model learned")  # fmt: skip
+        if not adaptive:
+            _refuse_unused(ctx, ("width", "epochs"), "sets a network (--model learned or --adaptive N); "
+                           "expected it with one of them")  # fmt: skip
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
