@@ -54,6 +54,8 @@ def test_tune_writes_a_spec_that_analyzes_stable(tmp_path):
         (["tune", "InvertedPendulum-v5", "--auto", "--preset", "strong"], "expected robust, weak or room"),
         (["tune", "Ant-v5", "--auto"], "no tuning template for Ant-v5"),
         (["tune", "InvertedPendulum-v5", "--auto", "--bandwidth", "-3"], "positive frequency"),
+        (["tune", "InvertedPendulum-v5", "--auto", "--bandwidth", "1e20"],
+         "at or above the Nyquist frequency of the coach's control period (pi / 0.04 s = 78.54 rad/s)"),
         # -o into read-only /proc: were the option not refused, nothing would be tuned or written
         (["tune", "InvertedPendulum-v5", "--auto", "--port", "7000", "-o", "/proc/no/ip.toml"],
          "--port: a setting of the tuner in the browser"),

@@ -250,6 +250,8 @@ def test_runs_start_seed_by_seed_so_a_stopped_sweep_compares_like_with_like(tmp_
         (["--seeds", ""], "--seeds '': empty"),
         (["--recipe", "missing.toml"], "no such file"),
         (["--backend", "slurm"], "--backend"),
+        (["--workers", "9" * 20], "--workers 99999999999999999999: expected an integer in [1, 256]"),
+        (["--workers", "257"], "--workers 257: expected an integer in [1, 256]"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):

@@ -275,6 +275,13 @@ def check_request(
         raise PidlabError(
             f"bandwidth={bandwidth!r}: expected a positive frequency in rad/s (finite)", param="bandwidth"
         )
+    nyquist = math.pi / loaded.control_dt
+    if bandwidth is not None and bandwidth >= nyquist:
+        raise PidlabError(
+            f"bandwidth={bandwidth!r}: at or above the Nyquist frequency of the coach's control period "
+            f"(pi / {loaded.control_dt:g} s = {nyquist:.4g} rad/s); expected a crossover below it",
+            param="bandwidth",
+        )  # fmt: skip
     if phase_margin is not None and not 0 < phase_margin < 90:
         raise PidlabError(
             f"phase_margin={phase_margin!r}: expected degrees between 0 and 90", param="phase_margin"
