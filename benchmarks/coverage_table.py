@@ -134,6 +134,10 @@ COACHES = {
         Coach("room coach (gains searched on the env), no region", "tuning/Walker2d-v5.pidlab-room.toml"),
         Coach("room coach, no region; rescued only when it holds 3 s and ends in its recoverable box "
               "(pitch and its rate near upright)", "tuning/Walker2d-v5.pidlab-room.toml", into="box"),
+        Coach("balance coach (full-state LQR about a bent-knee posture), no region",
+              "tuning/Walker2d-v5.pidlab-balance.toml"),
+        Coach("balance coach, no region; rescued only when it holds 3 s and ends in its recoverable box",
+              "tuning/Walker2d-v5.pidlab-balance.toml", into="box"),
     ),
 }  # fmt: skip
 

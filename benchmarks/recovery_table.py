@@ -22,7 +22,7 @@ from pidlab.region.recovery import Recovery, measure_recovery
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "docs" / "coach.md"
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Hopper-v5", "Walker2d-v5")
-COACHES = ("paper", "pidlab-weak", "pidlab-robust", "pidlab-rescue", "pidlab-room")
+COACHES = ("paper", "pidlab-weak", "pidlab-robust", "pidlab-rescue", "pidlab-room", "pidlab-balance")
 START, END = "<!-- recovery-table -->", "<!-- /recovery-table -->"
 
 

@@ -51,7 +51,7 @@ def test_tune_writes_a_spec_that_analyzes_stable(tmp_path):
     ("args", "message"),
     [
         (["tune", "InvertedPendulum-v5"], "exactly one of --auto"),
-        (["tune", "InvertedPendulum-v5", "--auto", "--preset", "strong"], "expected robust, weak or room"),
+        (["tune", "InvertedPendulum-v5", "--auto", "--preset", "strong"], "expected robust, weak, room or balance"),
         (["tune", "Ant-v5", "--auto"], "no tuning template for Ant-v5"),
         (["tune", "InvertedPendulum-v5", "--auto", "--bandwidth", "-3"], "positive frequency"),
         (["tune", "InvertedPendulum-v5", "--auto", "--bandwidth", "1e20"],

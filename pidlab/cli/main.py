@@ -585,8 +585,9 @@ def tune(
     preset: Annotated[
         str,
         typer.Option(
-            help="robust, weak, or room (pendulums: the largest rescue region; Hopper, Walker2d: the gains "
-            "that hold the most perturbed starts of the model card)."
+            help="robust, weak, room (pendulums: the largest rescue region; Hopper, Walker2d: the gains "
+            "that hold the most perturbed starts of the model card), or balance (a robot on its feet: "
+            "full-state LQR about the card's [balance] posture)."
         ),
     ] = "robust",
     output: Annotated[str | None, typer.Option("-o", "--output", help="Spec file to write (TOML).")] = None,
@@ -615,7 +616,7 @@ def tune(
     loaded = load_model(env)
     env = loaded.env_id or env  # an MJCF file that a card names: the card's env id
     out = output or f"tuning/{env}.{spec_name}.toml"
-    if preset != "room":
+    if preset not in ("room", "balance"):
         check_request(loaded, bandwidth, phase_margin, preset)  # bad targets first, then the file
     with writing_spec(out, force=force, param="output") as write:  # refused before the tuning, not after
         result = _auto_tune(loaded, preset, bandwidth, phase_margin, workers)
@@ -638,6 +639,10 @@ def _auto_tune(
             from pidlab.region.room import tune_for_room
 
             return tune_for_room(loaded, workers=workers, progress=tick)
+        if preset == "balance":
+            from pidlab.controller.balance import tune_balance
+
+            return tune_balance(loaded)
         return run_tune(
             loaded, bandwidth=bandwidth, phase_margin=phase_margin, preset=preset, progress=tick,
             workers=workers,
@@ -654,11 +659,16 @@ def _check_tune_mode(ctx: typer.Context, auto: bool, ui: bool, preset: str) -> N
         _refuse_unused(ctx, AUTO_ONLY, "a setting of --auto; the tuner in the browser (--ui) does not use it")
         return
     _refuse_unused(ctx, UI_ONLY, "a setting of the tuner in the browser (--ui); --auto does not use it")
-    if preset not in (*PRESETS, "room"):
-        _fail(f"--preset {preset!r}: expected {', '.join(PRESETS)} or room")
+    if preset not in (*PRESETS, "room", "balance"):
+        _fail(f"--preset {preset!r}: expected {', '.join(PRESETS)}, room or balance")
     if preset == "room":
         why = "--preset room chooses the gains by the states its coach rescues, not by a crossover or margin"
         _refuse_unused(ctx, ("bandwidth", "phase_margin"), why + " target; expected no target with it")
+    if preset == "balance":
+        why = "--preset balance is a full-state LQR design about a posture, with no crossover or margin"
+        _refuse_unused(ctx, ("bandwidth", "phase_margin"), why + " target; expected no target with it")
+        _refuse_unused(ctx, ("workers",), "--preset balance runs no simulations in parallel; expected it "
+                       "without --workers")  # fmt: skip
 
 
 def _print_tuned(env: str, preset: str, result: Any) -> None:
@@ -687,6 +697,12 @@ def _print_tuned(env: str, preset: str, result: Any) -> None:
         con.print(
             f"  searched on the real env: holds {prov['room_held_share']:.0%} of {prov['room_starts']} "
             f"perturbed starts for {prov['room_horizon_s']:g} s (`pidlab recovery` measures it on others)"
+        )
+    if prov.get("balance_posture_qpos") is not None:
+        con.print(
+            f"  posture: qpos {', '.join(f'{v:.4g}' for v in prov['balance_posture_qpos'])} (centre of mass "
+            f"{prov['balance_com_offset_m'] * 1000:.2g} mm off the feet's middle); LQR closed-loop spectral "
+            f"radius {prov['balance_lqr_spectral_radius']:.5f} (`pidlab recovery` measures it in MuJoCo)"
         )
 
 

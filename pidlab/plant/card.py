@@ -62,6 +62,14 @@ Schema ``pidlab.model-card/1``::
     unit = "rad"
     description = "pole tilted from upright"
 
+    [balance]                  # optional, a robot that stands on its feet: the balance preset's posture
+    feet = ["foot_geom"]       # the geoms it stands on
+    bend = { leg_joint = -0.15 }  # joints held at these angles (knees off their range limits)
+    hips = ["thigh_joint"]     # joints that take the solved hip angle
+    ankles = ["foot_joint"]    # joints that take the solved ankle angle (feet flat)
+    height = "rootz"           # the base's vertical slide and pitch hinge, free while it settles
+    pitch = "rooty"
+
     [reward]                   # optional: what the env pays, for the coaching views
     alive = 1.0                # its reward per surviving step (the penalty view prices a takeover in it)
     failure = []               # the info terms whose sum is its reward on a failing step ([] = 0);
@@ -81,6 +89,7 @@ Schema ``pidlab.model-card/1``::
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -321,6 +330,41 @@ class Perturbation:
 
 
 @dataclass(frozen=True)
+class Balance:
+    """How a robot that stands on its feet is posed for the ``balance`` preset (the ``[balance]`` table).
+
+    The posture keeps the ``bend`` joints at their angles (knees off their range limits), the torso
+    at its operating-point pitch, and solves one hip angle (every ``hips`` joint) and one ankle
+    angle (every ``ankles`` joint) so that the feet lie flat and the centre of mass is over the
+    middle of the feet (:mod:`pidlab.controller.balance`).
+
+    Attributes
+    ----------
+    feet : tuple of str
+        The geoms the robot stands on (capsules or boxes, lying along the walking direction).
+    bend : tuple of (str, float)
+        Joint -> fixed angle (rad).
+    hips, ankles : tuple of str
+        Joints that take the solved hip angle and the solved ankle angle.
+    height, pitch : str
+        The base's vertical slide and pitch hinge, free while the posture settles on the floor.
+    description : str
+    """
+
+    feet: tuple[str, ...]
+    bend: tuple[tuple[str, float], ...]
+    hips: tuple[str, ...]
+    ankles: tuple[str, ...]
+    height: str
+    pitch: str
+    description: str = ""
+
+    def joints(self) -> tuple[str, ...]:
+        """Every joint the table names."""
+        return (*(j for j, _ in self.bend), *self.hips, *self.ankles, self.height, self.pitch)
+
+
+@dataclass(frozen=True)
 class CardModel:
     """The MJCF file a card describes, with how an env of it would step (the ``[model]`` table).
 
@@ -391,6 +435,8 @@ class ModelCard:
         robot with no Gymnasium env; None: the env's own model.
     perturbation : tuple of Perturbation
         The perturbed starts ``pidlab recovery`` probes a coach with (empty: none).
+    balance : Balance or None
+        How the ``balance`` preset poses a robot that stands on its feet (None: no such preset).
     """
 
     env_id: str
@@ -409,6 +455,7 @@ class ModelCard:
     reward: RewardFacts = RewardFacts()
     model: CardModel | None = None
     perturbation: tuple[Perturbation, ...] = ()
+    balance: Balance | None = None
 
     @property
     def observation_names(self) -> tuple[str, ...]:
@@ -457,6 +504,13 @@ class ModelCard:
         for pt in self.perturbation:
             for joint, _ in pt.direction:
                 _joint_id(model, joint, f"{self.path}: perturbation {pt.name!r}")
+        if self.balance is not None:
+            for joint in self.balance.joints():
+                _joint_id(model, joint, f"{self.path}: balance")
+            for geom in self.balance.feet:
+                if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, geom) < 0:
+                    raise ModelCardError(f"{self.path}: balance.feet: no geom {clip(geom, 40)!r} in the "
+                                         "model")  # fmt: skip
         op = self.operating_point
         for field, values, n in (
             ("qpos", op.qpos, model.nq),
@@ -505,7 +559,8 @@ def _require(table: dict[str, Any], key: str, typ: type | tuple[type, ...], wher
 
 _FIELDS = {
     "": {"schema", "env_id", "description", "operating_point", "observation", "termination",
-         "terminate_on_nonfinite", "tuning", "region", "rescue", "paper", "reward", "model", "perturbation"},
+         "terminate_on_nonfinite", "tuning", "region", "rescue", "paper", "reward", "model", "perturbation",
+         "balance"},
     "reward": {"alive", "failure"},
     "model": {"mjcf", "frame_skip", "max_episode_steps"},
     "operating_point": {"name", "qpos", "qvel", "ctrl", "note"},
@@ -513,6 +568,7 @@ _FIELDS = {
     "termination": {"signal", "low", "high", "interval", "description"},
     "tuning.loop": {"name", "signal", "rate_signal", "actuators", "core"},
     "perturbation": {"name", "kind", "direction", "limit", "unit", "description"},
+    "balance": {"feet", "bend", "hips", "ankles", "height", "pitch", "description"},
     "paper": {"win_target", "episodes_to_5_wins", "episodes_to_average", "savings_percent"},
 }  # fmt: skip
 """The fields each table of a model card may hold (``""``: the top level); anything else is refused."""
@@ -691,6 +747,33 @@ def _parse_perturbations(data: dict[str, Any], path: str) -> tuple[Perturbation,
     return tuple(out)
 
 
+def _names_list(value: Any, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or not value or not all(isinstance(v, str) and v for v in value):
+        raise ModelCardError(f"{where}: expected a non-empty list of names, got {shown(value)}")
+    return tuple(value)
+
+
+def _parse_balance(data: dict[str, Any], path: str) -> Balance | None:
+    if "balance" not in data:
+        return None
+    where = f"{path}: balance"
+    t = _known(_require(data, "balance", dict, path), "balance", where)
+    bend = as_table(t.get("bend", {}), f"{where}.bend", ModelCardError)
+    return Balance(
+        feet=_names_list(t.get("feet"), f"{where}.feet"),
+        bend=tuple(
+            (str(j), number(v, f"{where}.bend.{clip(str(j), 40)}", ModelCardError, low=-math.pi,
+                            high=math.pi))
+            for j, v in bend.items()
+        ),
+        hips=_names_list(t.get("hips"), f"{where}.hips"),
+        ankles=_names_list(t.get("ankles"), f"{where}.ankles"),
+        height=text(_require(t, "height", str, where), f"{where}.height", ModelCardError, empty=False),
+        pitch=text(_require(t, "pitch", str, where), f"{where}.pitch", ModelCardError, empty=False),
+        description=text(t.get("description", ""), f"{where}.description", ModelCardError),
+    )
+
+
 def _parse_reward(data: dict[str, Any], path: str) -> RewardFacts:
     if "reward" not in data:
         return RewardFacts()
@@ -828,6 +911,7 @@ def parse_card(data: dict[str, Any], path: str) -> ModelCard:
         reward=_parse_reward(data, path),
         model=_parse_model(data, path),
         perturbation=_parse_perturbations(data, path),
+        balance=_parse_balance(data, path),
     )
 
 
