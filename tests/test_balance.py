@@ -143,3 +143,25 @@ def test_a_card_without_a_balance_table_is_refused(models) -> None:
 def test_balance_options_it_would_ignore_are_refused(args, message) -> None:
     code, err = cli_in_process("tune", "Walker2d-v5", "--auto", "--preset", "balance", *args, "-o", "/proc/no/w.toml")
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_bend_outside_the_joint_s_range_is_refused_with_the_card(models) -> None:
+    import dataclasses
+
+    loaded = models["Walker2d-v5"]
+    card = loaded.require_card()
+    bent = dataclasses.replace(card.balance, bend=(("leg_joint", 0.5), ("leg_left_joint", -0.15)))
+    with pytest.raises(ModelCardError, match=r"balance.bend.leg_joint = 0.5: outside the joint's range \[-2.618, 0\]"):
+        dataclasses.replace(card, balance=bent).check_against(loaded.model, loaded.frame_skip)
+
+
+def test_a_posture_that_needs_a_joint_outside_its_range_is_refused(models) -> None:
+    import dataclasses
+
+    loaded = models["Walker2d-v5"]
+    card = loaded.require_card()
+    # knees bent 1.5 rad: flat feet under the centre of mass would need the ankles past 0.785 rad
+    deep = dataclasses.replace(card.balance, bend=(("leg_joint", -1.5), ("leg_left_joint", -1.5)))
+    other = dataclasses.replace(loaded, card=dataclasses.replace(card, balance=deep))
+    with pytest.raises(PidlabError, match="preset balance: the posture of .* needs .* outside its range"):
+        balanced_posture(other)

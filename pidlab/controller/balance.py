@@ -191,10 +191,23 @@ def balanced_posture(loaded: LoadedModel, bend: float | None = None) -> Posture:
     if ok != 1 or np.max(np.abs(geometry.residual(pose(z)))) > FLAT_TOLERANCE:
         raise PidlabError(f"preset balance: no posture of {loaded.name} with flat feet and the centre of "
                           "mass over them from the card's [balance] table")  # fmt: skip
+    _check_ranges(m, pose(z), balance.hips + balance.ankles, loaded.name)
     found = settle(loaded, pose(z), free=[balance.height, balance.pitch], span=SETTLE_SPAN)
     offset = float(geometry.residual(found.qpos)[1])
     return Posture(np.asarray(found.qpos, dtype=float), np.asarray(found.equilibrium.ctrl, dtype=float),
                    float(z[0]), float(z[1]), offset)  # fmt: skip
+
+
+def _check_ranges(m: mujoco.MjModel, qpos: np.ndarray, joints: tuple[str, ...], name: str) -> None:
+    """Refuse a solved posture that puts a hip or an ankle outside its joint's range."""
+    for joint in joints:
+        jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, joint)
+        lo, hi = m.jnt_range[jid]
+        value = float(qpos[m.jnt_qposadr[jid]])
+        if m.jnt_limited[jid] and not lo <= value <= hi:
+            raise PidlabError(f"preset balance: the posture of {name} with flat feet and the centre of mass "
+                              f"over them needs {joint} = {value:.4g} rad, outside its range [{lo:.4g}, "
+                              f"{hi:.4g}]; change the card's [balance] bend")  # fmt: skip
 
 
 def _observed_states(card: ModelCard, lin: Linearization) -> list[int]:

@@ -363,6 +363,25 @@ class Balance:
         """Every joint the table names."""
         return (*(j for j, _ in self.bend), *self.hips, *self.ankles, self.height, self.pitch)
 
+    def check_against(self, model: mujoco.MjModel, where: str) -> None:
+        """Every joint and geom named exists in ``model``, and every bend lies in its joint's range.
+
+        Raises
+        ------
+        ModelCardError
+        """
+        for joint in self.joints():
+            _joint_id(model, joint, where)
+        for joint, angle in self.bend:
+            jid = _joint_id(model, joint, where)
+            lo, hi = model.jnt_range[jid]
+            if model.jnt_limited[jid] and not lo <= angle <= hi:
+                raise ModelCardError(f"{where}.bend.{joint} = {angle:g}: outside the joint's range "
+                                     f"[{lo:.4g}, {hi:.4g}]")  # fmt: skip
+        for geom in self.feet:
+            if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, geom) < 0:
+                raise ModelCardError(f"{where}.feet: no geom {clip(geom, 40)!r} in the model")
+
 
 @dataclass(frozen=True)
 class CardModel:
@@ -505,12 +524,7 @@ class ModelCard:
             for joint, _ in pt.direction:
                 _joint_id(model, joint, f"{self.path}: perturbation {pt.name!r}")
         if self.balance is not None:
-            for joint in self.balance.joints():
-                _joint_id(model, joint, f"{self.path}: balance")
-            for geom in self.balance.feet:
-                if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, geom) < 0:
-                    raise ModelCardError(f"{self.path}: balance.feet: no geom {clip(geom, 40)!r} in the "
-                                         "model")  # fmt: skip
+            self.balance.check_against(model, f"{self.path}: balance")
         op = self.operating_point
         for field, values, n in (
             ("qpos", op.qpos, model.nq),
