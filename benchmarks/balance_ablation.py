@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from bench_cli import Parser, names, run
+from recovery_table import _reach
 
 from pidlab.controller.balance import DESIGN, tune_balance
 from pidlab.linear.linearize import linearize
@@ -48,9 +49,7 @@ def rows(env: str) -> list[str]:
         t = time.perf_counter()
         found = measure_recovery(tune_balance(loaded, design).spec, loaded, lin=lin)
         lo, hi = found.falls_ci
-        reach = "; ".join(
-            f"{x.name} {-x.negative or 0.0:.3g} .. {x.positive:+.3g} {x.unit}" for x in found.reach
-        )
+        reach = _reach(found)
         seconds = time.perf_counter() - t
         falls = f"{found.falls_per_100:.0f} [{lo:.0f}, {hi:.0f}]"
         line = f"| {env} | {label} | {reach} | {falls} | {seconds:.0f} |"

@@ -25,6 +25,7 @@ from pidlab.region.recovery import (
     measure_recovery,
     perturbation_start,
     perturbations_of,
+    reachable,
     survived,
 )
 from pidlab.region.simulate import Simulator
@@ -130,7 +131,7 @@ def test_a_perturbation_start_is_its_direction_times_its_magnitude(models) -> No
     x = perturbation_start(tilt, m, 0.1)
     dof = {m.joint(j).name: int(m.jnt_dofadr[j]) for j in range(m.njnt)}
     expected = np.zeros(2 * m.nv)
-    expected[[dof["rooty"], dof["thigh_joint"], dof["thigh_left_joint"]]] = [0.1, -0.1, -0.1]
+    expected[[dof["rooty"], dof["thigh_joint"], dof["thigh_left_joint"]]] = [0.1, 0.1, 0.1]
     assert np.array_equal(x, expected)
     push = next(p for p in models[WALKER].require_card().perturbation if p.name == "push")
     assert np.flatnonzero(perturbation_start(push, m, -1.5)).tolist() == [m.nv + dof["rootx"]]
@@ -242,3 +243,38 @@ def test_scaled_starts_are_the_same_draws_scaled(models) -> None:
     half = episode_starts(perturbations, m, 8, 5, scale=0.5)
     assert all(np.allclose(0.5 * a, b) for a, b in zip(full, half, strict=True))
     assert sum(np.count_nonzero(x) > 0 for x in full) == 8  # every start is pushed
+
+
+@pytest.mark.parametrize("env", ["Hopper-v5", "Walker2d-v5"])
+def test_the_cards_tilt_turns_the_torso_and_leaves_the_legs_as_they_stand(env, models) -> None:
+    """``rooty`` turns about +y and the hips about -y: the tilt's hips move with it, not against it."""
+    loaded = models[env]
+    m, d = loaded.model, mujoco.MjData(loaded.model)
+    (tilt,) = [p for p in perturbations_of(loaded) if p.name == "tilt"]
+    op = np.array(loaded.require_card().operating_point.qpos)
+
+    def frames(dq: np.ndarray) -> dict[str, np.ndarray]:
+        q = op.copy()
+        mujoco.mj_integratePos(m, q, dq, 1.0)
+        d.qpos[:] = q
+        mujoco.mj_kinematics(m, d)
+        return {name: d.xmat[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)].copy()
+                for name in ("torso", "thigh")}  # fmt: skip
+
+    still, tilted = frames(np.zeros(m.nv)), frames(perturbation_start(tilt, m, -0.1)[: m.nv])
+    assert np.allclose(tilted["thigh"], still["thigh"], atol=1e-12)  # the leg as it stands
+    assert not np.allclose(tilted["torso"], still["torso"], atol=1e-3)  # the torso tilted
+
+
+def test_a_start_outside_a_joint_s_range_is_not_probed_nor_drawn(models) -> None:
+    loaded = models["Walker2d-v5"]
+    spec = load_spec(TUNING / "Walker2d-v5.pidlab-balance.toml")
+    found = measure_recovery(spec, loaded, probes=4, episodes=40, seed=3)
+    (tilt,) = [r for r in found.reach if r.name == "tilt"]
+    # a forward tilt of the torso with the legs as they stand needs the hips past their stop at 0
+    assert tilt.positive_range == 0.0 and tilt.positive == 0.0 and tilt.negative_range == tilt.limit
+    sim = Simulator(spec, loaded, linearize(loaded))
+    starts = episode_starts(perturbations_of(loaded), loaded.model, 40, 3, keep=lambda x: reachable(sim, x))
+    assert all(reachable(sim, x) for x in starts)
+    drawn = episode_starts(perturbations_of(loaded), loaded.model, 40, 3)
+    assert not all(reachable(sim, x) for x in drawn)  # without the rule some would lie past a stop

@@ -11,6 +11,11 @@ discrete law in MuJoCo; a start is recovered when the env's termination rule nev
 - **Falls per 100 episodes**: episodes from random starts (a perturbation drawn uniformly, its
   magnitude uniformly in ``+-limit``), with a 95 % Clopper-Pearson interval.
 
+A start that puts a joint outside its range is no state the robot can be in (a hip bent past its
+stop): it is not probed. On that side the reach stops at the last magnitude whose start lies within
+every range (:attr:`Reach.negative_range`, :attr:`Reach.positive_range`), and an episode whose draw
+is such a start is drawn again.
+
 Everything is deterministic from ``seed``.
 """
 
@@ -49,6 +54,9 @@ class Reach:
         The largest magnitude (>= 0) up to which every probe on that side recovered.
     probes : int
         Magnitudes probed per side (``limit * k / probes``, k = 1..probes).
+    negative_range, positive_range : float
+        The largest magnitude probed on that side whose start keeps every joint within its range
+        (``limit`` where all do): beyond it nothing was probed.
     """
 
     name: str
@@ -57,6 +65,8 @@ class Reach:
     negative: float
     positive: float
     probes: int
+    negative_range: float
+    positive_range: float
 
 
 @dataclass(frozen=True)
@@ -122,6 +132,12 @@ def perturbation_start(pt: Perturbation, m: mujoco.MjModel, magnitude: float) ->
     return x
 
 
+def reachable(sim: Simulator, x_plant: np.ndarray) -> bool:
+    """Whether the start ``x_plant`` (on the floor) keeps every limited joint within its range."""
+    sim.start(x_plant, grounded=True)
+    return sim.within_limits()
+
+
 def survived(sim: Simulator, x_plant: np.ndarray, steps: int) -> int:
     """Control steps the coach alone holds the start ``x_plant`` (on the floor), at most ``steps``."""
     m, d, fast, frame_skip = sim.m, sim.d, sim.fast, sim.loaded.frame_skip
@@ -136,23 +152,53 @@ def survived(sim: Simulator, x_plant: np.ndarray, steps: int) -> int:
     return steps
 
 
-def _reach_side(sim: Simulator, pt: Perturbation, sign: float, probes: int, steps: int) -> float:
+def _reach_side(
+    sim: Simulator, pt: Perturbation, sign: float, probes: int, steps: int
+) -> tuple[float, float]:
+    """(reach, the largest magnitude probed within every joint's range) on one side."""
+    reach = None
     for k in range(1, probes + 1):
-        magnitude = pt.limit * k / probes
-        if survived(sim, perturbation_start(pt, sim.m, sign * magnitude), steps) < steps:
-            return round(pt.limit * (k - 1) / probes, 12)
-    return pt.limit
+        x = perturbation_start(pt, sim.m, sign * pt.limit * k / probes)
+        before = round(pt.limit * (k - 1) / probes, 12)
+        if not reachable(sim, x):
+            return (before if reach is None else reach), before
+        if reach is None and survived(sim, x, steps) < steps:
+            reach = before
+    return (pt.limit if reach is None else reach), pt.limit
+
+
+MAX_REDRAWS = 1000
+"""Draws per episode before a perturbation table whose starts all leave a joint's range is refused."""
 
 
 def episode_starts(
-    perturbations: Sequence[Perturbation], m: mujoco.MjModel, episodes: int, seed: int, scale: float = 1.0
+    perturbations: Sequence[Perturbation],
+    m: mujoco.MjModel,
+    episodes: int,
+    seed: int,
+    scale: float = 1.0,
+    keep: Callable[[np.ndarray], bool] | None = None,
 ) -> list[np.ndarray]:
-    """Random starts: a perturbation drawn uniformly, its magnitude uniformly in ``+-scale * limit``."""
+    """Random starts: a perturbation drawn uniformly, its magnitude uniformly in ``+-scale * limit``.
+
+    ``keep``: a start it refuses is drawn again (:func:`reachable`: within every joint's range).
+
+    Raises
+    ------
+    RegionError
+        :data:`MAX_REDRAWS` draws in a row refused.
+    """
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(episodes):
-        pt = perturbations[int(rng.integers(len(perturbations)))]
-        out.append(perturbation_start(pt, m, scale * float(rng.uniform(-pt.limit, pt.limit))))
+        for _ in range(MAX_REDRAWS):
+            pt = perturbations[int(rng.integers(len(perturbations)))]
+            x = perturbation_start(pt, m, scale * float(rng.uniform(-pt.limit, pt.limit)))
+            if keep is None or keep(x):
+                break
+        else:
+            raise RegionError(f"no perturbed start within the joints' ranges in {MAX_REDRAWS} draws")
+        out.append(x)
     return out
 
 
@@ -210,13 +256,13 @@ def measure_recovery(
     done = 0
     reach = []
     for pt in perturbations:
-        sides = [_reach_side(sim, pt, sign, probes, steps) for sign in (-1.0, 1.0)]
-        reach.append(Reach(pt.name, pt.unit, pt.limit, sides[0], sides[1], probes))
+        (neg, neg_range), (pos, pos_range) = (_reach_side(sim, pt, s, probes, steps) for s in (-1.0, 1.0))
+        reach.append(Reach(pt.name, pt.unit, pt.limit, neg, pos, probes, neg_range, pos_range))
         done += 2
         if progress is not None:
             progress(done)
     falls = 0
-    for x in episode_starts(perturbations, sim.m, episodes, seed):
+    for x in episode_starts(perturbations, sim.m, episodes, seed, keep=lambda x: reachable(sim, x)):
         falls += survived(sim, x, steps) < steps
         done += 1
         if progress is not None:

@@ -547,6 +547,13 @@ def classifier_view(r: Any, spec_name: str, env_id: str, units: dict[str, str]) 
     return Group(head, t, cov)
 
 
+def _reach_cell(r: Any) -> str:
+    """A perturbation's reach on each side, and where its starts leave a joint's range (none probed past)."""
+    cell = f"{-r.negative or 0.0:.3g} .. {r.positive:+.3g} of {r.limit:g}"
+    cut = [f"{sign}{m:.3g}" for sign, m in (("-", r.negative_range), ("+", r.positive_range)) if m < r.limit]
+    return cell + (f" (a joint leaves its range past {' and '.join(cut)})" if cut else "")
+
+
 def recovery_view(found: Sequence[Any]) -> Group:
     """What ``pidlab recovery`` prints: each coach's reach per perturbation and its falls."""
     first = found[0]
@@ -554,7 +561,8 @@ def recovery_view(found: Sequence[Any]) -> Group:
     head.append(f"What the coach alone recovers from on {first.env_id}\n", style="bold")
     head.append(
         f"a start is recovered when the env's termination rule does not fire in {first.horizon_s:g} s; "
-        "reach: the largest push on each side up to which every probe recovered\n"
+        "reach: the largest push on each side up to which every probe recovered (a start that puts a joint "
+        "outside its range is not probed)\n"
     )
     t = Table(title_justify="left")
     t.add_column("coach")
@@ -562,7 +570,7 @@ def recovery_view(found: Sequence[Any]) -> Group:
         t.add_column(f"{r.name} ({r.unit}), reach", justify="right")
     t.add_column(f"falls / 100 episodes (95 % interval), seed {first.seed}", justify="right")
     for rec in found:
-        cells = [f"{-r.negative or 0.0:.3g} .. {r.positive:+.3g} of {r.limit:g}" for r in rec.reach]
+        cells = [_reach_cell(r) for r in rec.reach]
         lo, hi = rec.falls_ci
         falls = f"{rec.falls_per_100:.0f} ({lo:.0f}-{hi:.0f}) of {rec.episodes}" if rec.episodes else "-"
         t.add_row(rec.spec_name, *cells, falls)
