@@ -11,7 +11,9 @@ This search keeps the coach's structure (the card's ``[[tuning.loop]]`` template
 joint, the torso-pitch loop spread over every actuator) and picks the gains by what the coach
 alone does in MuJoCo from the model card's perturbed starts (:mod:`pidlab.region.recovery`): a
 tilted torso, a leaned body, a shove, a spin, drawn uniformly within :data:`ROOM_SCALE` of their
-limits, on the floor.
+limits, on the floor, each within every joint's range (a draw past a joint's stop is drawn again).
+The shipped room coaches of Hopper and Walker2d were searched before that rule and before the
+cards' tilt was corrected (docs/coach.md).
 The score of a candidate is the share of starts it holds for the horizon, plus
 :data:`SURVIVAL_WEIGHT` times the mean share of the horizon it holds them (so that candidates
 that all fall still rank). :data:`ROOM_CANDIDATES` random candidates are scored, the best and a
@@ -41,7 +43,7 @@ from pidlab.errors import PidlabError
 from pidlab.linear.linearize import Linearization, linearize
 from pidlab.plant.card import ModelCard, TuningLoop
 from pidlab.plant.model import LoadedModel
-from pidlab.region.recovery import HORIZON_S, episode_starts, perturbations_of, survived
+from pidlab.region.recovery import HORIZON_S, episode_starts, perturbations_of, reachable, survived
 from pidlab.region.simulate import Simulator, horizon_steps
 
 ROOM_CANDIDATES = 100
@@ -192,9 +194,11 @@ class _Scorer:
         self, space: _Space, loaded: LoadedModel, lin: Linearization, episodes: int, seed: int
     ) -> None:
         self.space, self.loaded, self.lin = space, loaded, lin
+        probe = Simulator(space.spec(space.posture()), loaded, lin)  # puts starts on the floor, no coach run
         self.starts = episode_starts(
-            perturbations_of(loaded), loaded.model, episodes, TUNING_SEED + seed, scale=ROOM_SCALE
-        )
+            perturbations_of(loaded), loaded.model, episodes, TUNING_SEED + seed, scale=ROOM_SCALE,
+            keep=lambda x: reachable(probe, x),
+        )  # fmt: skip
         self.steps = horizon_steps(HORIZON_S, loaded.control_dt)
         self.count = 0
 
