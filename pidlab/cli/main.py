@@ -1396,12 +1396,7 @@ def forecast(
 
     if write and output:
         _fail("--write and --output: choose one (into SPEC, or into a copy)")
-    if model != "learned":
-        _refuse_unused(ctx, ("fit",), "the actions a learned correction is fitted on; expected it with "
-                       "--model learned")  # fmt: skip
-        if not adaptive:
-            _refuse_unused(ctx, ("width", "epochs"), "sets a network (--model learned or --adaptive N); "
-                           "expected it with one of them")  # fmt: skip
+    _refuse_unused_network(ctx, model, adaptive)
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
@@ -1420,6 +1415,16 @@ def forecast(
         elif output and write_copy is not None:
             path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
             con.print(f"wrote the spec with its forecast's error to {path}")
+
+
+def _refuse_unused_network(ctx: typer.Context, model: str, adaptive: int) -> None:
+    """``forecast``: ``--fit`` only with a learned model, ``--width``/``--epochs`` only with a network."""
+    if model != "learned":
+        _refuse_unused(ctx, ("fit",), "the actions a learned correction is fitted on; expected it with "
+                       "--model learned")  # fmt: skip
+        if not adaptive:
+            _refuse_unused(ctx, ("width", "epochs"), "sets a network (--model learned or --adaptive N); "
+                           "expected it with one of them")  # fmt: skip
 
 
 def _forecast_view(spec: Any, loaded: Any, found: Any) -> Any:

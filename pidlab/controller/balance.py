@@ -27,9 +27,9 @@ This preset poses the robot first, then designs on the linear model of that pose
    observation ``y*``) and ``u0`` as the offset.
 
 The weights are round numbers chosen on the tuning starts of :mod:`pidlab.region.room_env` (seeds
-1000-1001), never on seed 0, which ``pidlab recovery`` reports on; a search over them (Nelder-Mead,
-about 270 candidates) gained nothing on seed 0 (docs/coach.md). The margins are reported at the
-posture's linear model, as for the other presets.
+1000-1001), never on seed 0, which ``pidlab recovery`` reports on; ``benchmarks/balance_ablation.py``
+measures what each is worth. The margins are reported at the posture's linear model, as for the
+other presets.
 """
 
 from __future__ import annotations
