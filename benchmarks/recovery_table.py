@@ -30,7 +30,7 @@ def _reach(r: Recovery) -> str:
     """Per perturbation its reach, and where its starts leave a joint's range (nothing probed past)."""
     out = []
     for x in r.reach:
-        cut = [f"{s}{m:.3g}" for s, m in (("-", x.negative_range), ("+", x.positive_range)) if m < x.limit]
+        cut = x.past_range()
         note = f" (starts leave a joint's range past {' and '.join(cut)})" if cut else ""
         out.append(f"{x.name} {-x.negative or 0.0:.3g} .. {x.positive:+.3g} {x.unit}{note}")
     return "; ".join(out)

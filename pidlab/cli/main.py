@@ -1116,10 +1116,10 @@ def rescue_classifier(
         focus=focus, into=into,
     )  # fmt: skip
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
-    journal = _labels_journal(output or spec_file)
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
         con = wide_console()
+        journal = _journal_beside(con, output or spec_file, "labels")  # beside the spec it writes
         found = _resumable_classifier(con, spec, loaded, settings, workers, journal)
         units = {v.name: v.unit for v in loaded.require_card().observation}
         con.print(classifier_view(found, spec.name, spec.env_id, units))
@@ -1129,7 +1129,7 @@ def rescue_classifier(
         elif output and write_copy is not None:
             path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
             con.print(f"wrote the spec with its classifier region to {path}")
-    shutil.rmtree(journal, ignore_errors=True)  # its outcomes are in the region written
+    _drop_journal(journal)  # its outcomes are in the region written
 
 
 def _resumable_classifier(
@@ -1138,17 +1138,17 @@ def _resumable_classifier(
     """:func:`~pidlab.region.classifier.estimate_classifier` with its outcomes kept in ``journal``."""
     from pidlab.region.classifier import estimate_classifier
 
-    con.print(f"each simulation's outcome is kept in {journal} as it is found: if stopped, the same "
-              "command resumes from them")  # fmt: skip
     found = _with_bar("classifier region", lambda progress: estimate_classifier(
         spec, loaded, settings, workers=workers, progress=progress, journal=journal))  # fmt: skip
-    if found.reused:
-        con.print(f"resumed: {found.reused:,} of the simulations were read from {journal}")
+    _said_resumed(con, found.reused, journal)
     return found
 
 
 def _journal_beside(con: Any, spec_file: str, kind: str) -> Any:
-    """Where a rescue command keeps its outcomes: ``.NAME.KIND`` beside the spec (None: not writable).
+    """Where a rescue command keeps its outcomes: ``.NAME.KIND`` beside a spec (None: not writable).
+
+    ``pidlab rescue-classifier`` keeps ``.NAME.labels`` beside the spec it writes, ``pidlab rescue``
+    ``.NAME.rescue-labels`` and ``pidlab rescue-coverage`` ``.NAME.coverage-labels`` beside the spec read.
 
     Each command has its own ``kind`` of folder, so that one never removes another's unfinished
     journal; inside it, a subfolder per coach and setting (:func:`pidlab.region.journal.journal_key`).
@@ -1176,14 +1176,6 @@ def _drop_journal(journal: Any) -> None:
     """Remove a journal whose outcomes are now in the figures the command printed or wrote."""
     if journal is not None:
         shutil.rmtree(journal, ignore_errors=True)
-
-
-def _labels_journal(target: str) -> Any:
-    """Where ``pidlab rescue-classifier`` keeps its outcomes: ``.NAME.labels`` beside the spec it writes."""
-    from pathlib import Path
-
-    path = Path(target)
-    return path.parent / f".{path.name}.labels"
 
 
 def _with_bar(label: str, work: Callable[[Callable[[str, float | None], None]], Any]) -> Any:

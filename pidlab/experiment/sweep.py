@@ -47,7 +47,6 @@ from pidlab.checks import (
     check_ascii_digits,
     check_name,
     clip,
-    integer,
     is_file,
     path_under,
     shown,
@@ -67,7 +66,7 @@ from pidlab.experiment.conditions import (
 )
 from pidlab.experiment.reuse import Reuse, copy_run, find_reuses, record_reuses
 from pidlab.orphans import orphaned, stop_with_parent
-from pidlab.parallel import MAX_WORKERS_ASKED
+from pidlab.parallel import resolve_workers
 from pidlab.provenance import (
     LOCK_NAME,
     Record,
@@ -747,7 +746,7 @@ def _check_backend(backend: str, workers: int | None, address: str | None) -> No
     if address and backend != "ray":
         raise ExperimentError(f"address={address!r}: only with the ray backend", param="address")
     if workers is not None:  # a sweep cannot use more workers than any other command (nor Ray more CPUs)
-        integer(workers, "workers", ExperimentError, low=1, high=MAX_WORKERS_ASKED, param="workers")
+        resolve_workers(workers, ExperimentError)
 
 
 def _copy(reuses: Sequence[Reuse], out: Path, tally: _Tally) -> None:

@@ -68,6 +68,11 @@ class Reach:
     negative_range: float
     positive_range: float
 
+    def past_range(self) -> tuple[str, ...]:
+        """The sides whose starts leave a joint's range, and from where (``"+0"``, ``"-0.2"``)."""
+        sides = (("-", self.negative_range), ("+", self.positive_range))
+        return tuple(f"{sign}{m:.3g}" for sign, m in sides if m < self.limit)
+
 
 @dataclass(frozen=True)
 class Recovery:

@@ -550,7 +550,7 @@ def classifier_view(r: Any, spec_name: str, env_id: str, units: dict[str, str]) 
 def _reach_cell(r: Any) -> str:
     """A perturbation's reach on each side, and where its starts leave a joint's range (none probed past)."""
     cell = f"{-r.negative or 0.0:.3g} .. {r.positive:+.3g} of {r.limit:g}"
-    cut = [f"{sign}{m:.3g}" for sign, m in (("-", r.negative_range), ("+", r.positive_range)) if m < r.limit]
+    cut = r.past_range()
     return cell + (f" (a joint leaves its range past {' and '.join(cut)})" if cut else "")
 
 
