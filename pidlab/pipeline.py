@@ -163,6 +163,8 @@ def _preset_problem(env_id: str, preset: Any) -> str | None:
     card = find_card(env_id)
     if preset == "room" and card is not None and not has_room_design(card):
         return f"{env_id} has no linear design that measures its state (its coach is refined on the env)"
+    if preset == "balance" and (card is None or card.balance is None):
+        return f"{env_id}'s model card has no [balance] table (the balance preset poses a robot on its feet)"
     if preset == "room" and card is not None and card.refine_on_env:
         # the search on the env takes about 20 min, and the rescue stage's grid starts its probes
         # off the floor on a standing robot: the pipeline keeps the robust coach there
@@ -483,6 +485,10 @@ def _tune(s: _Session, lin: Linearization) -> tuple[CoachSpec, dict[str, Any], P
                     from pidlab.region.room import tune_for_room
 
                     result = tune_for_room(s.loaded, lin=lin, workers=s.workers, progress=tick)
+                elif s.settings.preset == "balance":
+                    from pidlab.controller.balance import tune_balance
+
+                    result = tune_balance(s.loaded)
                 else:
                     result = tune(s.loaded, preset=s.settings.preset, lin=lin, progress=tick)
             write_json(tune_json, tune_summary(result))

@@ -157,7 +157,7 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
         (["InvertedPendulum-v5", "--steps", "-5"], "--steps -5"),
         (
             ["InvertedPendulum-v5", "--preset", "strong"],
-            "--preset 'strong': expected one of robust, weak, room",
+            "--preset 'strong': expected one of robust, weak, room, balance",
         ),
         (["InvertedPendulum-v5", "--condition", "nope"], "--condition 'nope': not a condition of"),
         (["InvertedPendulum-v5", "--condition", "none"], "--condition 'none': trains no coach"),
@@ -177,7 +177,12 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
             ["Hopper-v5", "--preset", "room"],
             "--preset 'room': on Hopper-v5 the room preset searches the gains on the env; run it alone with "
             "`pidlab tune Hopper-v5 --auto --preset room` (the pipeline uses it on the pendulums only); "
-            "expected one of robust, weak",
+            "expected one of robust, weak, balance",
+        ),
+        (
+            ["InvertedPendulum-v5", "--preset", "balance"],
+            "--preset 'balance': InvertedPendulum-v5's model card has no [balance] table (the balance preset "
+            "poses a robot on its feet); expected one of robust, weak, room",
         ),
     ],
 )
@@ -394,3 +399,43 @@ def test_no_coupling_measured_on_walker2d_passes_the_main_jobs_rule():
             seen.add(condition)
             assert v["falls"] != "better" or "worse" in v.values(), (folder, condition, v)
     assert {"paper", "rescue-terminal", "warm-start-keep-shield-short"} <= seen
+
+
+def test_the_pipeline_tunes_the_balance_preset_as_tune_does(tmp_path):
+    """``pidlab run ENV --preset balance`` writes the coach ``pidlab tune ENV --auto --preset balance`` does."""
+    from pidlab.controller.balance import tune_balance
+    from pidlab.pipeline import _Session, _tune, settings_for
+    from pidlab.plant.model import load_model
+
+    loaded = load_model("Hopper-v5")
+    settings = settings_for("Hopper-v5", preset="balance")
+    session = _Session("Hopper-v5", tmp_path, settings, loaded, False, lambda _: None, [])
+    spec, summary, path = _tune(session, None)  # the balance preset linearizes at its own posture
+    assert path == tmp_path / "tuned.toml" and summary["preset"] == "balance"
+    expected = tune_balance(loaded).spec
+    assert [lp.actuators for lp in spec.loops] == [lp.actuators for lp in expected.loops]
+    assert [lp.signal for lp in spec.loops] == [lp.signal for lp in expected.loops]
+    assert spec.provenance["balance_posture_qpos"] == expected.provenance["balance_posture_qpos"]
+
+
+@pytest.mark.parametrize("with_core", [True, False])
+def test_the_rescue_paragraph_says_what_a_rescue_is_and_no_nan(with_core):
+    """A coach certified by simulation (legged envs) has no core: the paragraph says held, not nan %."""
+    from types import SimpleNamespace
+
+    from pidlab.report.pipeline import _rescue
+
+    coverage = {"rescuable": 1950, "samples": 2000, "rescue": 0.967, "takeover box": 0.533}
+    if with_core:
+        coverage["core"] = 0.25
+    r = {"coverage": coverage, "validation": {"samples": 2000, "failures": 0, "rounds": 1, "failure_bound_95": 0.0015},
+         "cells": [24, 24], "variables": ["rooty_pos", "rooty_vel"], "lower": [-0.2, -2.0], "upper": [0.2, 2.0],
+         "guard": {}, "trigger": "predictive", "fraction_marked": 0.936, "horizon_s": 3.0}  # fmt: skip
+    facts = SimpleNamespace(units={"rooty_pos": "rad", "rooty_vel": "rad/s"})
+    text = "\n".join(_rescue(facts, r))
+    assert "nan" not in text
+    assert "the rescue region holds 96.7 % of them" in text and "the critical box 53.3 %" in text
+    if with_core:
+        assert "into its certified core" in text and "the certified core 25.0 %" in text
+    else:
+        assert "holds the system 3 s without a termination" in text and "certified core" not in text.split("(")[-1]

@@ -147,7 +147,7 @@ def test_overrides_name_the_python_parameter(kwargs, param, message):
 
 
 def test_one_list_of_presets():
-    assert PRESETS == (*TUNING_PRESETS, "room") == ("robust", "weak", "room")
+    assert PRESETS == (*TUNING_PRESETS, "room", "balance") == ("robust", "weak", "room", "balance")
 
 
 # ---------------------------------------------------------------- SB3 arguments (issue 17, item 9)

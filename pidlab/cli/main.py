@@ -1718,7 +1718,7 @@ def run(
         int | None, typer.Option(help="Env steps per training run (default: the recipe's pipeline table).")
     ] = None,
     preset: Annotated[
-        str | None, typer.Option(help="Auto-tuning preset, robust, weak or room (default: the recipe's).")
+        str | None, typer.Option(help="Auto-tuning preset, robust, weak, room or balance (default: the recipe's).")
     ] = None,
     condition: Annotated[
         str | None,

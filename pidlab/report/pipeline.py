@@ -141,7 +141,29 @@ def rescue_summary(region: Any) -> dict[str, Any]:
         "coverage": {"rescuable": cov.rescuable, "samples": cov.samples,
                      **{k: cov.fraction(k) for k in cov.contained}},
         "elapsed_s": region.elapsed_s,
+        "horizon_s": region.settings.horizon_s,
     }  # fmt: skip
+
+
+def _rescued_meaning(r: dict[str, Any]) -> str:
+    """What a rescue is for this coach: into its certified core, or (certified by simulation) held."""
+    if "core" in r["coverage"]:
+        return "the states from which the coach brings the system into its certified core without a termination"
+    horizon = f" {_num(r['horizon_s'], 'g')} s" if r.get("horizon_s") is not None else ""
+    return (
+        f"the states from which the coach holds the system{horizon} without a termination (a coach certified by "
+        "simulation has no Lyapunov core to enter)"
+    )
+
+
+def _held_shares(cov: dict[str, Any]) -> str:
+    """``the rescue region holds 96.7 % of them, the critical box 53.3 %``: the regions measured."""
+    names = {"rescue": "the rescue region", "core": "the certified core", "takeover box": "the critical box"}
+    shares = [(label, f"{100 * cov[key]:.1f} %") for key, label in names.items() if key in cov]
+    if not shares:
+        return "no region is measured against them"
+    (label, share), rest = shares[0], shares[1:]
+    return ", ".join([f"{label} holds {share} of them", *(f"{lab} {sh}" for lab, sh in rest)])
 
 
 def _num(x: float | None, fmt: str = ".4g") -> str:
@@ -353,16 +375,14 @@ def _rescue(f: PipelineFacts, r: dict[str, Any]) -> list[str]:
         "### Rescue region: the takeover region",
         "",
         "This run's coach takes over outside its **rescue region** "
-        f"(`pidlab rescue`, {r['trigger']} trigger): the states from which the coach brings the system "
-        "into its certified core without a termination, "
+        f"(`pidlab rescue`, {r['trigger']} trigger): {_rescued_meaning(r)}, "
         f"found by simulation in MuJoCo on a lookup grid ({grid}{guard if r['guard'] else ''}); "
         f"{100 * r['fraction_marked']:.1f} % of the cells are marked. Validation: {val['samples']:,} fresh "
         f"states drawn inside it, {val['failures']} failed (after {_count(val['rounds'], 'draw')}; failure "
         f"rate below {100 * val['failure_bound_95']:.2g} % at 95 % confidence). Coverage: of "
-        f"{cov['samples']:,} fresh states over the grid's domain, {cov['rescuable']:,} are rescuable; the "
-        f"rescue region holds {100 * cov['rescue']:.1f} % of them, the certified core "
-        f"{100 * cov.get('core', float('nan')):.1f} %, the critical box "
-        f"{100 * cov.get('takeover box', float('nan')):.1f} %.",
+        f"{cov['samples']:,} fresh states over the grid's domain, {cov['rescuable']:,} are rescuable; "
+        + _held_shares(cov)
+        + ".",
         "",
         "![The rescue region, the certified core and the box](figures/rescue.png)",
         "",

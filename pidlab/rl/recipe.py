@@ -867,9 +867,10 @@ def _trigger(c: dict[str, Any], w: str) -> GrowthTrigger | str | None:
 
 _TOP = {"schema", "env_id", "description", "algo", "steps", "n_envs", "vec_env", "seed", "threads",
         "normalize", "win", "evaluation", "checkpoint", "coaching", "pipeline", *ALGOS}  # fmt: skip
-PRESETS = ("robust", "weak", "room")
-"""Auto-tuning presets a ``[pipeline]`` table may name: those of :mod:`pidlab.controller.autotune`
-and ``room`` (:mod:`pidlab.region.room`, pendulums only). Named here so that training does not import
+PRESETS = ("robust", "weak", "room", "balance")
+"""Auto-tuning presets a ``[pipeline]`` table may name: those of :mod:`pidlab.controller.autotune`,
+``room`` (:mod:`pidlab.region.room`, pendulums only) and ``balance`` (:mod:`pidlab.controller.balance`,
+robots whose model card has a ``[balance]`` table). Named here so that training does not import
 the tuner and python-control; a test checks they agree."""
 
 
@@ -883,7 +884,7 @@ class PipelineSettings:
         Seeds per condition; the pipeline trains the recipe's agent with and without the coach.
     steps : int
         Budget of each run, env steps (agent + coach).
-    preset : {"robust", "weak", "room"}
+    preset : {"robust", "weak", "room", "balance"}
         Auto-tuning preset.
     roa_samples : int
         Simulated initial states in the final certification of the region of attraction.
