@@ -503,13 +503,14 @@ def _analyze(
     from tqdm.auto import tqdm
 
     from pidlab.controller.analysis import analyze_coach
+    from pidlab.controller.balance import design_linearization
     from pidlab.controller.pid import Coach
     from pidlab.controller.rollout import coach_alone
     from pidlab.report.plots import write_plots
 
     with s.stage("analyze"):
         coach = Coach(spec, s.loaded)
-        analysis = analyze_coach(coach, s.loaded)
+        analysis = analyze_coach(coach, s.loaded, design_linearization(spec, s.loaded))
         if not analysis.stable:
             unstable = f"{s.env_id}: the auto-tuned coach's closed loop is unstable; see {tuned_path}"
             raise PipelineError(unstable)

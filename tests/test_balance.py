@@ -7,6 +7,7 @@ How often the coach falls from perturbed starts is a benchmark (docs/coach.md), 
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import mujoco
@@ -19,8 +20,10 @@ from pidlab.controller.balance import (
     _Geometry,
     balance_gain,
     balanced_posture,
+    design_linearization,
     tune_balance,
 )
+from pidlab.controller.analysis import analyze_coach
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import load_spec
 from pidlab.errors import ModelCardError, PidlabError
@@ -165,3 +168,49 @@ def test_a_posture_that_needs_a_joint_outside_its_range_is_refused(models) -> No
     other = dataclasses.replace(loaded, card=dataclasses.replace(card, balance=deep))
     with pytest.raises(PidlabError, match="preset balance: the posture of .* needs .* outside its range"):
         balanced_posture(other)
+
+
+@pytest.mark.parametrize("env", LEGGED)
+def test_the_analysis_of_a_balance_coach_is_at_its_posture(env, models) -> None:
+    """``pidlab analyze`` linearizes a balance coach where it was designed, not at the reset pose."""
+    loaded = models[env]
+    spec = load_spec(TUNING / f"{env}.pidlab-balance.toml")
+    lin = design_linearization(spec, loaded)
+    assert lin is not None and lin.eps == 1e-4
+    assert lin.op.qpos == pytest.approx(spec.provenance["balance_posture_qpos"], abs=1e-12)
+    assert lin.op.ctrl == pytest.approx([dict(spec.offset)[a] for a in loaded.input_names], abs=1e-12)
+    # the same closed loop the design reported: stable at the posture
+    analysis = analyze_coach(Coach(spec, loaded), loaded, lin)
+    assert analysis.stable
+    radius = max(abs(p.value) for p in analysis.discrete.poles)
+    assert radius == pytest.approx(spec.provenance["balance_lqr_spectral_radius"], abs=1e-3)
+    from typer.testing import CliRunner
+
+    from pidlab.cli import app
+
+    result = CliRunner().invoke(app, ["analyze", str(TUNING / f"{env}.pidlab-balance.toml"), "--episodes", "0"])
+    out = result.stdout
+    assert result.exit_code == 0 and "plant linearized at the balance posture the coach was designed at" in out
+    assert " nan " not in out  # an undefined crossover is shown as "-"
+
+
+def test_a_coach_of_another_preset_is_analysed_at_the_card_s_point(models) -> None:
+    spec = load_spec(TUNING / "Walker2d-v5.pidlab-room.toml")
+    assert design_linearization(spec, models["Walker2d-v5"]) is None
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"balance_linearize_eps": "x"}, "balance_linearize_eps 'x': expected a step in (0, 1)"),
+        ({"balance_posture_qpos": [0.0, 1.0]}, "qpos"),
+    ],
+)
+def test_a_damaged_balance_provenance_is_refused_in_one_line(models, change, message) -> None:
+    spec = load_spec(TUNING / "Walker2d-v5.pidlab-balance.toml")
+    damaged = dataclasses.replace(spec, provenance={**spec.provenance, **change})
+    with pytest.raises(PidlabError, match=re.escape(message)):
+        design_linearization(damaged, models["Walker2d-v5"])
+    no_u0 = dataclasses.replace(spec, offset=spec.offset[1:])
+    with pytest.raises(PidlabError, match="offset names every actuator"):
+        design_linearization(no_u0, models["Walker2d-v5"])

@@ -772,6 +772,7 @@ def analyze(
 ) -> None:
     """Analyze a coach: margins, poles, responses, and its score alone on the real env."""
     from pidlab.controller.analysis import analyze_coach
+    from pidlab.controller.balance import design_linearization
     from pidlab.controller.pid import Coach
     from pidlab.controller.rollout import MAX_EPISODES, coach_alone
     from pidlab.controller.spec import load_spec
@@ -788,7 +789,7 @@ def analyze(
     spec = load_spec(spec_file)
     loaded = load_model(spec.env_id)
     coach = Coach(spec, loaded)
-    result = analyze_coach(coach, loaded)
+    result = analyze_coach(coach, loaded, design_linearization(spec, loaded))
     score = None
     if episodes:
         with _progress_bars(progress) as bar:

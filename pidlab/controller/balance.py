@@ -34,7 +34,7 @@ other presets.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import mujoco
 import numpy as np
@@ -332,3 +332,35 @@ def _closed_loop(loaded: LoadedModel, lin: Linearization, K: np.ndarray) -> np.n
     rows = _observed_states(loaded.require_card(), lin)
     A, B = np.asarray(lin.sysd.A), np.asarray(lin.sysd.B)
     return A[np.ix_(rows, rows)] - B[rows] @ K
+
+
+def design_linearization(spec: CoachSpec, loaded: LoadedModel) -> Linearization | None:
+    """The linear model about the posture a balance coach was designed at (None: not a balance coach).
+
+    A ``balance`` coach is designed about its posture, not about the model card's operating point
+    (the env's reset pose); its margins and poles mean something there only. The posture is the
+    one its provenance records (``balance_posture_qpos``), at rest, with the coach's offset ``u0`` as
+    the control, linearized with the step the design used.
+
+    Raises
+    ------
+    PidlabError
+        A recorded posture of the wrong length, an offset that does not name every actuator, or a
+        recorded step outside (0, 1).
+    """
+    qpos = spec.provenance.get("balance_posture_qpos")
+    if qpos is None:
+        return None
+    offset = dict(spec.offset)
+    missing = [a for a in loaded.input_names if a not in offset]
+    if missing:
+        raise PidlabError(
+            f"{spec.name}: a balance coach's offset names every actuator (its u0); missing {', '.join(missing)}"
+        )
+    ctrl = [offset[a] for a in loaded.input_names]
+    op = resolve_operating_point(loaded, qpos=qpos, qvel=np.zeros(loaded.model.nv), ctrl=ctrl)
+    op = replace(op, source="the balance posture the coach was designed at", ctrl_source="the coach's offset u0")
+    eps = spec.provenance.get("balance_linearize_eps", LINEARIZE_EPS)
+    if not isinstance(eps, (int, float)) or not 0 < eps < 1:
+        raise PidlabError(f"{spec.name}: balance_linearize_eps {eps!r}: expected a step in (0, 1)")
+    return linearize(loaded, op, eps=float(eps))

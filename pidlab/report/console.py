@@ -223,7 +223,12 @@ def _db(x: float) -> str:
         return "inf"
     if x == float("-inf"):
         return "-inf"
-    return f"{x:.2f}"
+    return _defined(x, ".2f")
+
+
+def _defined(x: float, fmt: str) -> str:
+    """``x`` formatted, or "-" where it is not defined (NaN: no crossover, no margin)."""
+    return "-" if np.isnan(x) else format(x, fmt)
 
 
 def margins_table(title: str, margins: Sequence[Any]) -> Table:
@@ -248,14 +253,14 @@ def margins_table(title: str, margins: Sequence[Any]) -> Table:
             m.actuator,
             _db(m.gain_margin_db),
             _db(m.lower_gain_margin_db),
-            f"{m.phase_margin_deg:.1f}",
-            f"{m.delay_margin_s:.4g}",
-            f"{m.disk_margin:.3f}",
-            f"{m.disk_gain_margin_db:.2f}",
-            f"{m.disk_phase_margin_deg:.1f}",
+            _defined(m.phase_margin_deg, ".1f"),
+            _defined(m.delay_margin_s, ".4g"),
+            _defined(m.disk_margin, ".3f"),
+            _defined(m.disk_gain_margin_db, ".2f"),
+            _defined(m.disk_phase_margin_deg, ".1f"),
             _db(m.ms_db),
-            f"{m.gain_crossover:.4g}",
-            f"{m.phase_crossover:.4g}",
+            _defined(m.gain_crossover, ".4g"),
+            _defined(m.phase_crossover, ".4g"),
         )
     return t
 

@@ -145,6 +145,12 @@ def rescue_summary(region: Any) -> dict[str, Any]:
     }  # fmt: skip
 
 
+def _analysed_at(analysis: Any) -> str:
+    """Where the analysis linearized the plant, when not at the model card's operating point."""
+    op = analysis.linearization.op
+    return "" if op.source.startswith("card") else f"; the plant linearized at {op.source}"
+
+
 def _rescued_meaning(r: dict[str, Any]) -> str:
     """What a rescue is for this coach: into its certified core, or (certified by simulation) held."""
     if "core" in r["coverage"]:
@@ -253,7 +259,9 @@ def _coach(f: PipelineFacts) -> list[str]:
         "",
         "### Stability margins",
         "",
-        "The discrete loop (what runs), broken at each actuator in turn, the other loops closed.",
+        "The discrete loop (what runs), broken at each actuator in turn, the other loops closed"
+        + _analysed_at(f.analysis)
+        + ".",
         "",
     ]
     formats = {"gm_db": ".2f", "lower_gm_db": ".2f", "pm_deg": ".1f", "delay_ms": ".1f", "disk_alpha": ".3f",
