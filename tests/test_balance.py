@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import tomllib
 
+from pidlab.controller.analysis import analyze_coach
 from pidlab.controller.balance import (
     FLAT_TOLERANCE,
     _Geometry,
@@ -23,7 +24,6 @@ from pidlab.controller.balance import (
     design_linearization,
     tune_balance,
 )
-from pidlab.controller.analysis import analyze_coach
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import load_spec
 from pidlab.errors import ModelCardError, PidlabError
@@ -48,7 +48,12 @@ def test_a_card_reads_its_balance_table() -> None:
     b = card.balance
     assert b is not None
     assert (b.feet, b.bend, b.hips, b.ankles, b.height, b.pitch) == (
-        ("foot",), (("knee", -0.1),), ("hip",), ("ankle",), "rootz", "rooty"
+        ("foot",),
+        (("knee", -0.1),),
+        ("hip",),
+        ("ankle",),
+        "rootz",
+        "rooty",
     )
     assert b.joints() == ("knee", "hip", "ankle", "rootz", "rooty")
     assert parse_card(tomllib.loads(GOOD), "card.toml").balance is None
@@ -57,9 +62,15 @@ def test_a_card_reads_its_balance_table() -> None:
 @pytest.mark.parametrize(
     ("edit", "message"),
     [
-        (lambda s: s.replace('feet = ["foot"]', "feet = []"), "balance.feet: expected a non-empty list of names"),
+        (
+            lambda s: s.replace('feet = ["foot"]', "feet = []"),
+            "balance.feet: expected a non-empty list of names",
+        ),
         (lambda s: s.replace('hips = ["hip"]', 'hips = "hip"'), "balance.hips: expected a non-empty list"),
-        (lambda s: s.replace("knee = -0.1", "knee = 9.0"), "balance.bend.knee = 9.0: expected a finite number"),
+        (
+            lambda s: s.replace("knee = -0.1", "knee = 9.0"),
+            "balance.bend.knee = 9.0: expected a finite number",
+        ),
         (lambda s: s.replace('pitch = "rooty"\n', ""), "balance: missing field 'pitch'"),
         (lambda s: s + "colour = 1\n", "balance: unknown field(s) ['colour']"),
     ],
@@ -132,7 +143,9 @@ def test_the_coach_holds_the_robot_standing_on_the_floor(env, models) -> None:
 
 
 def test_a_card_without_a_balance_table_is_refused(models) -> None:
-    with pytest.raises(PidlabError, match=r"preset balance: the model card of InvertedPendulum-v5 has no \[balance\]"):
+    with pytest.raises(
+        PidlabError, match=r"preset balance: the model card of InvertedPendulum-v5 has no \[balance\]"
+    ):
         tune_balance(models["InvertedPendulum-v5"])
 
 
@@ -144,7 +157,9 @@ def test_a_card_without_a_balance_table_is_refused(models) -> None:
     ],
 )
 def test_balance_options_it_would_ignore_are_refused(args, message) -> None:
-    code, err = cli_in_process("tune", "Walker2d-v5", "--auto", "--preset", "balance", *args, "-o", "/proc/no/w.toml")
+    code, err = cli_in_process(
+        "tune", "Walker2d-v5", "--auto", "--preset", "balance", *args, "-o", "/proc/no/w.toml"
+    )
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
 
 
@@ -154,7 +169,9 @@ def test_a_bend_outside_the_joint_s_range_is_refused_with_the_card(models) -> No
     loaded = models["Walker2d-v5"]
     card = loaded.require_card()
     bent = dataclasses.replace(card.balance, bend=(("leg_joint", 0.5), ("leg_left_joint", -0.15)))
-    with pytest.raises(ModelCardError, match=r"balance.bend.leg_joint = 0.5: outside the joint's range \[-2.618, 0\]"):
+    with pytest.raises(
+        ModelCardError, match=r"balance.bend.leg_joint = 0.5: outside the joint's range \[-2.618, 0\]"
+    ):
         dataclasses.replace(card, balance=bent).check_against(loaded.model, loaded.frame_skip)
 
 
@@ -188,9 +205,13 @@ def test_the_analysis_of_a_balance_coach_is_at_its_posture(env, models) -> None:
 
     from pidlab.cli import app
 
-    result = CliRunner().invoke(app, ["analyze", str(TUNING / f"{env}.pidlab-balance.toml"), "--episodes", "0"])
+    result = CliRunner().invoke(
+        app, ["analyze", str(TUNING / f"{env}.pidlab-balance.toml"), "--episodes", "0"]
+    )
     out = result.stdout
-    assert result.exit_code == 0 and "plant linearized at the balance posture the coach was designed at" in out
+    assert (
+        result.exit_code == 0 and "plant linearized at the balance posture the coach was designed at" in out
+    )
     assert " nan " not in out  # an undefined crossover is shown as "-"
 
 

@@ -438,4 +438,7 @@ def test_the_rescue_paragraph_says_what_a_rescue_is_and_no_nan(with_core):
     if with_core:
         assert "into its certified core" in text and "the certified core 25.0 %" in text
     else:
-        assert "holds the system 3 s without a termination" in text and "certified core" not in text.split("(")[-1]
+        assert (
+            "holds the system 3 s without a termination" in text
+            and "certified core" not in text.split("(")[-1]
+        )

@@ -1719,7 +1719,8 @@ def run(
         int | None, typer.Option(help="Env steps per training run (default: the recipe's pipeline table).")
     ] = None,
     preset: Annotated[
-        str | None, typer.Option(help="Auto-tuning preset, robust, weak, room or balance (default: the recipe's).")
+        str | None,
+        typer.Option(help="Auto-tuning preset, robust, weak, room or balance (default: the recipe's)."),
     ] = None,
     condition: Annotated[
         str | None,

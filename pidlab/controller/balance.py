@@ -56,6 +56,7 @@ SETTLE_SPAN = 0.01
 LINEARIZE_EPS = 1e-4
 """Finite-difference step of the posture's linear model (1e-6 resolves the contacts' kinks)."""
 
+
 @dataclass(frozen=True)
 class BalanceDesign:
     """The LQR's weights, and optionally one knee bend for every ``bend`` joint of the card.
@@ -355,11 +356,14 @@ def design_linearization(spec: CoachSpec, loaded: LoadedModel) -> Linearization 
     missing = [a for a in loaded.input_names if a not in offset]
     if missing:
         raise PidlabError(
-            f"{spec.name}: a balance coach's offset names every actuator (its u0); missing {', '.join(missing)}"
+            f"{spec.name}: a balance coach's offset names every actuator (its u0); "
+            f"missing {', '.join(missing)}"
         )
     ctrl = [offset[a] for a in loaded.input_names]
     op = resolve_operating_point(loaded, qpos=qpos, qvel=np.zeros(loaded.model.nv), ctrl=ctrl)
-    op = replace(op, source="the balance posture the coach was designed at", ctrl_source="the coach's offset u0")
+    op = replace(
+        op, source="the balance posture the coach was designed at", ctrl_source="the coach's offset u0"
+    )
     eps = spec.provenance.get("balance_linearize_eps", LINEARIZE_EPS)
     if not isinstance(eps, (int, float)) or not 0 < eps < 1:
         raise PidlabError(f"{spec.name}: balance_linearize_eps {eps!r}: expected a step in (0, 1)")

@@ -154,11 +154,13 @@ def _analysed_at(analysis: Any) -> str:
 def _rescued_meaning(r: dict[str, Any]) -> str:
     """What a rescue is for this coach: into its certified core, or (certified by simulation) held."""
     if "core" in r["coverage"]:
-        return "the states from which the coach brings the system into its certified core without a termination"
+        return (
+            "the states from which the coach brings the system into its certified core without a termination"
+        )
     horizon = f" {_num(r['horizon_s'], 'g')} s" if r.get("horizon_s") is not None else ""
     return (
-        f"the states from which the coach holds the system{horizon} without a termination (a coach certified by "
-        "simulation has no Lyapunov core to enter)"
+        f"the states from which the coach holds the system{horizon} without a termination (a coach "
+        "certified by simulation has no Lyapunov core to enter)"
     )
 
 
