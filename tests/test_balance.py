@@ -224,7 +224,7 @@ def test_a_coach_of_another_preset_is_analysed_at_the_card_s_point(models) -> No
     ("change", "message"),
     [
         ({"balance_linearize_eps": "x"}, "balance_linearize_eps 'x': expected a step in (0, 1)"),
-        ({"balance_posture_qpos": [0.0, 1.0]}, "qpos"),
+        ({"balance_posture_qpos": [0.0, 1.0]}, "its recorded posture (provenance balance_posture_qpos): qpos has 2"),
     ],
 )
 def test_a_damaged_balance_provenance_is_refused_in_one_line(models, change, message) -> None:

@@ -360,7 +360,11 @@ def design_linearization(spec: CoachSpec, loaded: LoadedModel) -> Linearization 
             f"missing {', '.join(missing)}"
         )
     ctrl = [offset[a] for a in loaded.input_names]
-    op = resolve_operating_point(loaded, qpos=qpos, qvel=np.zeros(loaded.model.nv), ctrl=ctrl)
+    try:
+        op = resolve_operating_point(loaded, qpos=qpos, qvel=np.zeros(loaded.model.nv), ctrl=ctrl)
+    except PidlabError as exc:
+        where = f"{spec.name}: its recorded posture (provenance balance_posture_qpos)"
+        raise PidlabError(f"{where}: {exc}") from None
     op = replace(
         op, source="the balance posture the coach was designed at", ctrl_source="the coach's offset u0"
     )
