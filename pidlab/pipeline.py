@@ -26,7 +26,9 @@ Everything lands in one folder::
       figures/             PNG figures
       report.md, report.html
 
-Run again, the same command skips finished stages and resumes the sweep from its checkpoints. A
+Run again, the same command skips finished stages, reads back the rescue simulations a stopped
+bounds stage had done (kept in ``.rescue-labels/`` until the stage ends), and resumes the sweep
+from its checkpoints. A
 folder that holds a pipeline with other settings is refused and left untouched. Everything the
 pipeline reads back (its record, the files of finished stages, the experiment's record) is checked
 before it writes anything, and a damaged one is named in one line. The pipeline holds the lock of
@@ -36,6 +38,7 @@ OUT (:func:`pidlab.provenance.hold_lock`) from start to end: a second command in
 from __future__ import annotations
 
 import shlex
+import shutil
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import AbstractContextManager, contextmanager
@@ -86,6 +89,10 @@ if TYPE_CHECKING:
 PIPELINE_SCHEMA = "pidlab.pipeline/1"
 STAGES = ("linearize", "tune", "analyze", "bounds", "train", "report")
 CONDITIONS = ("none", "coached")
+RESCUE_JOURNAL = ".rescue-labels"
+"""The bounds stage keeps each rescue simulation's outcome here until the stage ends, so that a
+stopped pipeline resumes its rescue region instead of simulating it again
+(:mod:`pidlab.region.journal`)."""
 
 
 @dataclass(frozen=True)
@@ -583,7 +590,9 @@ def _rescue(
             bar.n = int(100 * (fraction or 0.0))
             bar.refresh()
 
-        region = estimate_rescue(spec, s.loaded, default_settings(spec, s.loaded), s.workers, progress)
+        journal = s.folder / RESCUE_JOURNAL
+        settings = default_settings(spec, s.loaded)
+        region = estimate_rescue(spec, s.loaded, settings, s.workers, progress, journal)
     coached = with_rescue(spec, region)
     title = f"{spec.env_id} / {spec.name}"
     save_figure(plot_rescue_region(region.grid, coached.bounds, units, title), png)
@@ -632,6 +641,7 @@ def _bounds(
                 coached, facts["rescue"] = _rescue(s, coached, units, rescue_png)
             save_spec(coached, coach_path)
             write_json(roa_json, facts)
+            shutil.rmtree(s.folder / RESCUE_JOURNAL, ignore_errors=True)  # its outcomes are in coach.toml
     return load_spec(coach_path), read_json(roa_json), coach_path, roa_png
 
 
@@ -829,11 +839,15 @@ def _stages(
     """The six stages of one session, after its record was written."""
     folder = s.folder
     units = {v.name: v.unit for v in s.loaded.require_card().observation}
-    lin, lti = _linearize(s)
-    spec, tuning, tuned_path = _tune(s, lin)
-    analysis, figures, score = _analyze(s, spec, tuned_path)
-    region_kind = _coached_recipe(s.env_id, s.settings, recipe).coaching.region
-    coached, roa, coach_path, roa_png = _bounds(s, spec, units, region_kind)
+    try:
+        lin, lti = _linearize(s)
+        spec, tuning, tuned_path = _tune(s, lin)
+        analysis, figures, score = _analyze(s, spec, tuned_path)
+        region_kind = _coached_recipe(s.env_id, s.settings, recipe).coaching.region
+        coached, roa, coach_path, roa_png = _bounds(s, spec, units, region_kind)
+    except KeyboardInterrupt:  # the stages that finished keep their times
+        _finish_record(folder, record, s.stages)
+        raise
     sweep_plan, sweep = _train(s, coach_path, workers, argv)
     failed = sweep.count("failed")
     if sweep.interrupted:

@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 
 from pidlab.controller.spec import load_spec
+from pidlab.pipeline import RESCUE_JOURNAL
+from pidlab.region.journal import CHUNK
 from pidlab.rl.recipe import RecipeError, load_pipeline_settings, parse_pipeline
 from pidlab.rl.rundir import spec_digest
 from tests.helpers import cli_in_process
@@ -62,8 +64,26 @@ def _interrupted_in_training(out: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.CompletedProcess(argv, proc.returncode, "".join(seen) + out_text, err)
 
 
+def _interrupted_in_the_rescue_region(out: Path) -> subprocess.CompletedProcess[str]:
+    """Start the pipeline, SIGTERM it once its bounds stage has journaled rescue simulations."""
+    argv = [sys.executable, "-m", "pidlab", "run", "InvertedPendulum-v5", "--out", str(out), *TINY, "--no-progress"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while not any((out / RESCUE_JOURNAL).glob("*/chunk-*.npz")):
+        assert proc.poll() is None and time.monotonic() < deadline, "the bounds stage kept no journal"
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    out_text, err = proc.communicate(timeout=300)
+    return subprocess.CompletedProcess(argv, proc.returncode, out_text, err)
+
+
 def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     out = tmp_path / "ip"
+    # killed in its rescue region: the simulations done are kept and read back on resuming
+    stopped = _interrupted_in_the_rescue_region(out)
+    assert stopped.returncode == 130, stopped.stderr[-2000:]
+    assert "run the same command to resume" in stopped.stderr and "Traceback" not in stopped.stderr
+    assert not (out / "coach.toml").exists() and (out / RESCUE_JOURNAL).is_dir()
     # killed while it trains: exit 130, one line saying how to resume, no traceback (not even a worker's)
     stopped = _interrupted_in_training(out)
     assert stopped.returncode == 130, stopped.stderr[-2000:]
@@ -90,6 +110,7 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     assert {k: list(v) for k, v in coached.bounds["box"].items()} == roa["bounds"]["box"]
     # the recipe's condition (rescue-terminal) takes over outside the coach's validated rescue region
     assert coached.bounds["takeover"] == "rescue" and roa["rescue"]["validation"]["failures"] == 0
+    assert roa["rescue"]["reused"] >= CHUNK and not (out / RESCUE_JOURNAL).exists()  # read back, then removed
     assert list(coached.bounds["rescue"]["variables"]) == roa["rescue"]["variables"]
     assert json.loads((out / "tune.json").read_text())["preset"] == "room"
     runs = out / "experiment" / "runs" / "InvertedPendulum-v5"
@@ -122,7 +143,7 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     fraction = roa["bounds"]["one_step_action_fraction"]
     assert ("for agent actions up to" in report) == (fraction < 1.0)
     record = json.loads((out / "pipeline.json").read_text())
-    assert record["identity"]["settings"]["steps"] == 1024 and len(record["resumes"]) == 1
+    assert record["identity"]["settings"]["steps"] == 1024 and len(record["resumes"]) == 2  # stopped twice
     assert record["git"]["sha"] and record["versions"]["mujoco"]
     assert record["schema"] == "pidlab.pipeline/1" and record["created"]
     assert record["command"][:2] == ["pidlab", "run"]
@@ -139,7 +160,7 @@ def test_pipeline_end_to_end_interrupted_resumed(tmp_path):
     assert {p: (out / p).read_bytes() for p in before} == before
     assert model.stat().st_mtime_ns == mtime
     assert _without_timings(report) == _without_timings((out / "report.md").read_text())
-    assert len(json.loads((out / "pipeline.json").read_text())["resumes"]) == 2
+    assert len(json.loads((out / "pipeline.json").read_text())["resumes"]) == 3
 
     # other settings in the same folder: refused, one line, nothing touched
     code, err = cli_in_process("run", "InvertedPendulum-v5", "--out", str(out), *TINY[:2], "--steps", "2048",

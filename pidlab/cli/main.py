@@ -1765,9 +1765,14 @@ def run(
     )
     folder = out or f"out/{env}"
     argv = ["pidlab", *sys.argv[1:]]
-    result = run_pipeline(env, folder, settings, workers=workers, progress_bar=progress, argv=argv)
+    resume = "interrupted: finished stages and runs are kept; run the same command to resume"
+    try:
+        result = run_pipeline(env, folder, settings, workers=workers, progress_bar=progress, argv=argv)
+    except KeyboardInterrupt:  # in a stage before training (a rescue region keeps its simulations)
+        typer.echo(resume, err=True)
+        raise typer.Exit(code=130) from None
     if result.interrupted:
-        typer.echo("interrupted: finished stages and runs are kept; run the same command to resume", err=True)
+        typer.echo(resume, err=True)
         raise typer.Exit(code=130)
     typer.echo(f"report: {result.report_html}")
     typer.echo(f"        {result.report_md} (Markdown, figures in {result.out / 'figures'})")

@@ -142,6 +142,7 @@ def rescue_summary(region: Any) -> dict[str, Any]:
                      **{k: cov.fraction(k) for k in cov.contained}},
         "elapsed_s": region.elapsed_s,
         "horizon_s": region.settings.horizon_s,
+        "reused": region.reused,
     }  # fmt: skip
 
 
