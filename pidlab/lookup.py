@@ -622,7 +622,7 @@ def _per_variable(value: Any, where: str, names: tuple[str, ...] | None) -> dict
 # ----------------------------------------------------------------------------- a learned rescue region
 
 CLASSIFIER_FIELDS = ("shape", "trigger", "action_fraction", "variables", "lower", "upper", "layers",
-                     "threshold", "coach", "provenance")  # fmt: skip
+                     "threshold", "coach", "anchor", "provenance")  # fmt: skip
 """The fields of a ``[bounds.rescue]`` table whose region is a classifier (``shape = "classifier"``)."""
 
 MAX_CLASSIFIER_VARIABLES = 24
@@ -671,6 +671,11 @@ class RescueClassifier:
         What the region was derived for (the state is tested before the agent's step runs).
     action_fraction : float
         0 (no agent step is allowed for).
+    anchor : tuple of float or None
+        Where the coach hands back: the state its law regulates to, which the region must hold and
+        toward whose score the hand-back region tightens (:meth:`anchor_point`). None: the domain
+        box's centre, the operating point (a coach designed elsewhere, such as the ``balance``
+        preset's posture, names its own).
     """
 
     variables: tuple[str, ...]
@@ -681,6 +686,13 @@ class RescueClassifier:
     coach: str = ""
     trigger: str = "predictive"
     action_fraction: float = 0.0
+    anchor: tuple[float, ...] | None = None
+
+    def anchor_point(self) -> np.ndarray:
+        """Where the coach hands back, shape ``(k,)``: :attr:`anchor`, else the domain box's centre."""
+        if self.anchor is not None:
+            return np.array(self.anchor, dtype=float)
+        return (np.array(self.lower, dtype=float) + np.array(self.upper, dtype=float)) / 2.0
 
     def scaled(self, points: np.ndarray) -> np.ndarray:
         """``points`` (shape ``(n, k)``) scaled to [-1, 1] over the domain box."""
@@ -710,7 +722,7 @@ class RescueClassifier:
             "layers": layers_table(self.layers),
             "threshold": float(self.threshold),
             "coach": self.coach,
-        }
+        } | ({} if self.anchor is None else {"anchor": [float(v) for v in self.anchor]})
 
 
 def coach_digest(env_id: str, loops: Any, offset: Any) -> str:
@@ -770,7 +782,19 @@ def parse_classifier(t: Any, where: str = "bounds.rescue") -> RescueClassifier:
         raise SpecError(f"{where}.threshold: {threshold!r}; expected a finite number")
     if not isinstance(t.get("coach"), str) or not t["coach"]:
         raise SpecError(f"{where}.coach: expected the digest of the coach the classifier was fitted for")
-    return RescueClassifier(tuple(names), tuple(lower), tuple(upper), layers, float(threshold), t["coach"])
+    anchor = _anchor(t.get("anchor"), lower, upper, f"{where}.anchor")
+    return RescueClassifier(tuple(names), tuple(lower), tuple(upper), layers, float(threshold), t["coach"],
+                            anchor=anchor)  # fmt: skip
+
+
+def _anchor(value: Any, lower: Any, upper: Any, where: str) -> tuple[float, ...] | None:
+    """An optional hand-back point: one finite number per variable, inside the domain box."""
+    if value is None:
+        return None
+    point = _finite_list(value, len(lower), where)
+    if not all(lo <= v <= hi for v, lo, hi in zip(point, lower, upper, strict=True)):
+        raise SpecError(f"{where}: {point}; expected a point inside the domain box (lower .. upper)")
+    return tuple(float(v) for v in point)
 
 
 def parse_rescue(t: Any, where: str = "bounds.rescue") -> LookupGrid | RescueClassifier:

@@ -22,6 +22,7 @@ from pidlab.controller.balance import (
     balance_gain,
     balanced_posture,
     design_linearization,
+    design_observation,
     tune_balance,
 )
 from pidlab.controller.pid import Coach
@@ -235,3 +236,20 @@ def test_a_damaged_balance_provenance_is_refused_in_one_line(models, change, mes
     no_u0 = dataclasses.replace(spec, offset=spec.offset[1:])
     with pytest.raises(PidlabError, match="offset names every actuator"):
         design_linearization(no_u0, models["Walker2d-v5"])
+
+
+def test_a_classifier_region_of_a_balance_coach_is_anchored_at_its_posture(models) -> None:
+    """The region must hold, and hands back toward, the posture the coach regulates to."""
+    from pidlab.region.classifier import _anchor
+
+    loaded = models["Walker2d-v5"]
+    spec = load_spec(TUNING / "Walker2d-v5.pidlab-balance.toml")
+    names = ("rooty_pos", "leg_joint_pos", "rooty_vel")
+    setpoints = {lp.signal: lp.setpoint for lp in spec.loops}
+    y = design_observation(spec, loaded, names)
+    assert y == pytest.approx([setpoints[v] for v in names], abs=1e-12)  # the law's own setpoints
+    box = ((-1.0, -2.0, -2.0), (1.0, 0.0, 2.0))
+    assert _anchor(spec, loaded, names, box) == pytest.approx(tuple(y))
+    assert _anchor(load_spec(TUNING / "Walker2d-v5.pidlab-room.toml"), loaded, names, box) is None
+    with pytest.raises(PidlabError, match=r"the posture the coach regulates to lies outside the domain \(leg_joint_pos"):
+        _anchor(spec, loaded, names, ((-1.0, -0.1, -2.0), (1.0, 0.0, 2.0)))

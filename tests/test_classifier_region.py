@@ -54,8 +54,11 @@ def test_the_score_is_the_network_computed_by_hand() -> None:
 
 def test_a_classifier_round_trips_through_its_toml_table() -> None:
     c = _tiny(0.25)
+    assert "anchor" not in c.to_table()  # a region handing back at the operating point: as before
     back = parse_rescue(c.to_table())
     assert isinstance(back, RescueClassifier) and back == c
+    anchored = dataclasses.replace(c, anchor=(0.5,))
+    assert anchored.to_table()["anchor"] == [0.5] and parse_rescue(anchored.to_table()) == anchored
     x = np.linspace(-1, 1, 7)[:, None]
     assert np.array_equal(back.scores(x), c.scores(x))
 
@@ -85,6 +88,9 @@ def _table(**change: object) -> dict:
         ({"threshold": float("inf")}, r"threshold: inf; expected a finite number"),
         ({"coach": ""}, r"coach: expected the digest"),
         ({"cells": [3]}, r"unknown field\(s\) \['cells'\]"),
+        ({"anchor": [1.5]}, r"anchor: \[1.5\]; expected a point inside the domain box"),
+        ({"anchor": [0.0, 0.0]}, r"anchor: expected a list of 1 finite numbers"),
+        ({"anchor": "x"}, r"anchor: expected a list of 1 finite numbers"),
     ],
 )  # fmt: skip
 def test_a_damaged_classifier_table_is_one_spec_error(change: dict, message: str) -> None:
@@ -163,6 +169,15 @@ def test_the_region_object_tests_observations_and_narrows_for_the_hand_back() ->
     assert high.inner(0.5).inner(0.5).threshold == pytest.approx(-0.6)
     with pytest.raises(CoachingError, match="expected the env's observation, 3 numbers"):
         region.contains(np.zeros(2))
+
+
+def test_a_coach_that_regulates_elsewhere_hands_back_at_its_anchor() -> None:
+    """The hand-back region tightens toward the score where the coach regulates to, not the box's centre."""
+    names = ("slider_pos", "hinge_sin", "hinge_vel")
+    anchored = ClassifierRegion(dataclasses.replace(_tiny(-0.9), anchor=(0.5,)), names)
+    assert anchored.operating_score == pytest.approx(math.tanh(1.0) - 0.5)  # scored at x = 0.5
+    assert anchored.inner(0.5).threshold == pytest.approx((-0.9 + math.tanh(1.0) - 0.5) / 2)
+    assert anchored.inner(0.5).contains(np.array([0.0, 0.5, 0.0]))  # the anchor is in the hand-back region
 
 
 def _small(**kw: object) -> ClassifierSettings:

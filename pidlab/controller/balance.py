@@ -48,7 +48,7 @@ from pidlab.linear.linearize import Linearization, linearize
 from pidlab.plant.card import Balance, ModelCard
 from pidlab.plant.model import LoadedModel
 from pidlab.plant.observation import observe_at
-from pidlab.plant.operating_point import resolve_operating_point, settle
+from pidlab.plant.operating_point import OperatingPoint, resolve_operating_point, settle
 
 SETTLE_SPAN = 0.01
 """Half-width (m, rad) of the settle's scan of the base's height and pitch."""
@@ -335,19 +335,19 @@ def _closed_loop(loaded: LoadedModel, lin: Linearization, K: np.ndarray) -> np.n
     return A[np.ix_(rows, rows)] - B[rows] @ K
 
 
-def design_linearization(spec: CoachSpec, loaded: LoadedModel) -> Linearization | None:
-    """The linear model about the posture a balance coach was designed at (None: not a balance coach).
+def design_point(spec: CoachSpec, loaded: LoadedModel) -> OperatingPoint | None:
+    """The posture a balance coach was designed at, at rest (None: not a balance coach).
 
     A ``balance`` coach is designed about its posture, not about the model card's operating point
-    (the env's reset pose); its margins and poles mean something there only. The posture is the
-    one its provenance records (``balance_posture_qpos``), at rest, with the coach's offset ``u0`` as
-    the control, linearized with the step the design used.
+    (the env's reset pose): it regulates the robot to it, and its margins and poles mean something
+    there only. The posture is the one its provenance records (``balance_posture_qpos``), at rest,
+    with the coach's offset ``u0`` as the control.
 
     Raises
     ------
     PidlabError
-        A recorded posture of the wrong length, an offset that does not name every actuator, or a
-        recorded step outside (0, 1).
+        A recorded posture that is not ``nq`` finite numbers, or an offset that does not name every
+        actuator.
     """
     qpos = spec.provenance.get("balance_posture_qpos")
     if qpos is None:
@@ -365,10 +365,33 @@ def design_linearization(spec: CoachSpec, loaded: LoadedModel) -> Linearization 
     except PidlabError as exc:
         where = f"{spec.name}: its recorded posture (provenance balance_posture_qpos)"
         raise PidlabError(f"{where}: {exc}") from None
-    op = replace(
+    return replace(
         op, source="the balance posture the coach was designed at", ctrl_source="the coach's offset u0"
     )
+
+
+def design_linearization(spec: CoachSpec, loaded: LoadedModel) -> Linearization | None:
+    """The linear model about :func:`design_point` (None: not a balance coach), with the design's step.
+
+    Raises
+    ------
+    PidlabError
+        As :func:`design_point`, or a recorded step outside (0, 1).
+    """
+    op = design_point(spec, loaded)
+    if op is None:
+        return None
     eps = spec.provenance.get("balance_linearize_eps", LINEARIZE_EPS)
     if not isinstance(eps, (int, float)) or not 0 < eps < 1:
         raise PidlabError(f"{spec.name}: balance_linearize_eps {eps!r}: expected a step in (0, 1)")
     return linearize(loaded, op, eps=float(eps))
+
+
+def design_observation(spec: CoachSpec, loaded: LoadedModel, variables: tuple[str, ...]) -> np.ndarray | None:
+    """The observation's ``variables`` at :func:`design_point` (None: not a balance coach)."""
+    op = design_point(spec, loaded)
+    if op is None:
+        return None
+    card = loaded.require_card()
+    y = observe_at(card, loaded.model, op.qpos, op.qvel)
+    return np.array([y[card.observation_names.index(v)] for v in variables], dtype=float)

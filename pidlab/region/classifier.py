@@ -346,7 +346,9 @@ def estimate_classifier(
         s, est = settings, work.est
         labelled = draw_states(work.est, s.samples + s.calibration)
         rescued, _ = est.rescued(labelled, "labelling")
-        unfitted = RescueClassifier(s.variables, *_box(work.est.domain), layers=(), coach=law_digest(spec))
+        box = _box(work.est.domain)
+        anchor = _anchor(spec, loaded, s.variables, box)
+        unfitted = RescueClassifier(s.variables, *box, layers=(), coach=law_digest(spec), anchor=anchor)
         layers, focused = _fitted(work, unfitted, labelled[: s.samples], rescued[: s.samples])
         scores = replace(unfitted, layers=layers).scores(labelled[s.samples :])
         accuracy = float(np.mean((scores >= 0.0) == rescued[s.samples :]))
@@ -354,6 +356,32 @@ def estimate_classifier(
         clf, rounds, removed, scores_inside = _validate(work, clf, s.validation)
         clf, edge = _validate_edge(work, clf, scores_inside)
         return _scored(spec, work, clf, (rounds, removed, *edge, accuracy), focused)
+
+
+def _anchor(
+    spec: CoachSpec, loaded: LoadedModel, variables: tuple[str, ...], box: tuple[tuple[float, ...], ...]
+) -> tuple[float, ...] | None:
+    """Where a coach designed about a point of its own hands back (a balance coach's posture), or None.
+
+    Raises
+    ------
+    RegionError
+        That point lies outside the domain box.
+    """
+    from pidlab.controller.balance import design_observation
+
+    y = design_observation(spec, loaded, variables)
+    if y is None:
+        return None
+    lower, upper = box
+    rows = zip(variables, y, lower, upper, strict=True)
+    outside = [f"{v} {x:.4g}" for v, x, lo, hi in rows if not lo <= x <= hi]
+    if outside:
+        raise RegionError(
+            f"the posture the coach regulates to lies outside the domain ({', '.join(outside)}); "
+            "widen --domain"
+        )
+    return tuple(float(v) for v in y)
 
 
 def focus_level(rescued_scores: np.ndarray) -> float:
@@ -400,12 +428,13 @@ def _validate(
     work: _Work, clf: RescueClassifier, n: int
 ) -> tuple[RescueClassifier, int, int, np.ndarray]:
     """Fresh draws inside until one has no failure: the classifier, rounds, failures, the draw's scores."""
-    centre = ((np.array(clf.lower) + np.array(clf.upper)) / 2.0)[None, :]
+    anchor = clf.anchor_point()[None, :]
+    where = "the operating point" if clf.anchor is None else "the point its coach regulates to"
 
     def inside(c: RescueClassifier) -> Callable[[np.ndarray], np.ndarray]:
-        if not c.inside(centre)[0]:
+        if not c.inside(anchor)[0]:
             raise RegionError(
-                "the classifier region leaves out the operating point (where the coach hands back): a "
+                f"the classifier region leaves out {where} (where the coach hands back): a "
                 "failure scores as high as it; fit on more samples (--samples) or longer (--epochs)"
             )
         return c.inside

@@ -299,8 +299,9 @@ class ClassifierRegion:
         ``inner(fraction)``: the threshold moved from the validated one towards the operating point's
         score by ``1 - fraction`` (1: the validated region).
     operating_score : float, optional
-        The score at the operating point (default: at the domain box's centre, which the estimate
-        puts at the operating point).
+        The score where the coach hands back (default: at the classifier's
+        :meth:`~pidlab.lookup.RescueClassifier.anchor_point`, the domain box's centre, which the
+        estimate puts at the operating point, unless the coach regulates to a point of its own).
     """
 
     kind = "rescue"
@@ -320,7 +321,7 @@ class ClassifierRegion:
         self._scale = 2.0 / (self._hi - self._lo)
         self._layers = classifier.layers
         if operating_score is None:
-            operating_score = float(classifier.scores(((self._lo + self._hi) / 2.0)[None, :])[0])
+            operating_score = float(classifier.scores(classifier.anchor_point()[None, :])[0])
         self.operating_score = operating_score
         self.fraction = fraction
         self.scale = 1.0  # a rescue region is not scaled (a width schedule on one is refused)
