@@ -182,7 +182,7 @@ def test_a_coach_that_regulates_elsewhere_hands_back_at_its_anchor() -> None:
 
 def _small(**kw: object) -> ClassifierSettings:
     base = ClassifierSettings(VARS, HALF, samples=10000, calibration=2000, validation=200, coverage=600,
-                              width=16, epochs=100, seed=3, focus=1000)  # fmt: skip
+                              width=16, epochs=100, seed=3, focus=1000, near=300)  # fmt: skip
     return dataclasses.replace(base, **kw)
 
 
@@ -222,8 +222,10 @@ def test_classifier_accounts_add_up(idp_classifier: tuple) -> None:
     assert p["coverage_rescue"] == r.coverage and 0.0 <= r.coverage <= 1.0
     assert r.coverage_grid is not None and 0.0 <= r.coverage_grid <= 1.0  # the shipped grid, same states
     assert 0.0 < r.volume <= 1.0 and 0.0 < r.rescued_fraction < 1.0
-    # labels, focus, validation, its edge, coverage
-    assert p["simulations"] >= 10000 + 2000 + 1000 + 200 + 200 + 600
+    # labels, focus, near, validation, its edge, coverage
+    assert p["simulations"] >= 10000 + 2000 + 1000 + 300 + 200 + 200 + 600
+    # the states drawn near the operating point (the IDP coach's own): nearly all rescued
+    assert p["near"] == 300 and p["near_rescued"] > 2 * r.rescued_fraction and r.classifier.anchor is None
     # the focused states were drawn where the first fit scores like the rescued ones: far richer in rescues
     assert p["focus"] == 1000 and p["focus_rescued"] > 2 * r.rescued_fraction
     assert p["edge_samples"] == 200 and p["edge_share"] == 0.05 and p["edge_band"] > 0.0
@@ -289,6 +291,7 @@ def test_settings_out_of_range_are_refused() -> None:
         (["--domain", "hinge_sin=1", "--write", "-o", "x.toml"], "--write and --output: choose one"),
         (["--domain", "hinge_sin=1", "--edge-share", "2"], "--edge-share 2"),
         (["--domain", "hinge_sin=1", "--focus", "-1"], "--focus -1: expected an integer in [0, 2000000]"),
+        (["--domain", "hinge_sin=1", "--near", "-1"], "--near -1: expected an integer in [0, 2000000]"),
         (["--domain", "hinge_sin=1", "--into", "up"], "--into 'up': expected one of core, box"),
     ],
 )

@@ -18,11 +18,13 @@ from scipy.stats import binomtest
 from pidlab.controller.spec import load_spec
 from pidlab.errors import RegionError
 from pidlab.region.coverage import (
+    NEAR_SCALES,
     DomainCoverage,
     DomainSettings,
     _reach,
     _round_up,
     _score,
+    draw_near,
     draw_states,
     measure_domain_coverage,
 )
@@ -139,6 +141,22 @@ def test_draws_keep_the_joints_within_their_ranges(models) -> None:
     cart = states[:, settings.variables.index("slider_pos")]
     assert np.all(np.abs(cart) <= 1.0) and np.abs(cart).max() > 0.8
     assert np.all(np.abs(states[:, 0]) < 0.2)  # the pole within the termination limit
+
+
+def test_near_draws_lie_in_boxes_about_their_centres_at_every_scale(models) -> None:
+    """Each centre in turn; each state within half the domain of its own centre, some very near it."""
+    settings = dataclasses.replace(IP_DOMAIN, half_range=(0.2, 1.0, 4.0, 1.5))
+    half = np.array(settings.half_range)
+    centres = np.array([[0.0, 0.0, 0.0, 0.0], [0.1, -0.5, 1.0, 0.0]])
+    with _estimate(_spec(IP), models[IP], settings) as (est, _, _):
+        states = draw_near(est, 400, centres)
+    assert states.shape == (400, 4)
+    lo, hi = np.array([-0.2, -1.0, -4.0, -1.5]), np.array([0.2, 1.0, 4.0, 1.5])
+    assert np.all(states >= lo) and np.all(states <= hi)  # clipped to the domain
+    nearest = np.min([np.max(np.abs(states - c) / half, axis=1) for c in centres], axis=0)
+    assert np.all(nearest <= NEAR_SCALES[1] + 1e-12)
+    assert np.mean(nearest < 0.05) > 0.2 and np.mean(nearest > 0.2) > 0.2  # log-uniform scales: near and far
+    assert np.abs(states[:, 0]).max() < 0.2  # only states the env can be in (the pole's limit)
 
 
 def test_a_standing_robot_starts_on_the_floor_in_the_estimates(models) -> None:

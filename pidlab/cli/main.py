@@ -1081,6 +1081,14 @@ def rescue_classifier(
             "fitted on too (0: none); the threshold and the validation stay uniform."
         ),
     ] = 0,
+    near: Annotated[
+        int,
+        typer.Option(
+            help="Further labelled states drawn in boxes about the point the coach hands back at (and the "
+            "operating point), 1 % to 50 % of the domain, and fitted on too (0: none): uniform draws over "
+            "many variables come near neither."
+        ),
+    ] = 0,
     width: Annotated[int, typer.Option(help="Units per hidden layer (two hidden layers).")] = 64,
     epochs: Annotated[int, typer.Option(help="Passes over the labelled states.")] = 100,
     horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
@@ -1114,7 +1122,7 @@ def rescue_classifier(
     settings = ClassifierSettings(
         tuple(box), tuple(box.values()), samples=samples, calibration=calibration, validation=validation,
         coverage=coverage, width=width, epochs=epochs, horizon_s=horizon, seed=seed, edge_share=edge_share,
-        focus=focus, into=into,
+        focus=focus, into=into, near=near,
     )  # fmt: skip
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:

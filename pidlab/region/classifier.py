@@ -56,7 +56,7 @@ from pidlab.controller.spec import CoachSpec, law_digest
 from pidlab.errors import RegionError
 from pidlab.lookup import MAX_CLASSIFIER_VARIABLES, MAX_WIDTH, RescueClassifier, is_classifier
 from pidlab.plant.model import LoadedModel
-from pidlab.region.coverage import draw_states
+from pidlab.region.coverage import draw_near, draw_states
 from pidlab.region.networks import fit_tanh_network
 from pidlab.region.rescue import (
     MAX_ROUNDS,
@@ -111,6 +111,10 @@ class ClassifierSettings:
     focus : int
         Further labelled states drawn where a first fit scores at least :func:`focus_level`, fitted
         on too (0: none).
+    near : int
+        Further labelled states drawn near where the coach hands back and near the operating point
+        (:func:`pidlab.region.coverage.draw_near`), fitted on too (0: none): a domain of many
+        variables has no uniform label near either.
     into : {"core", "box"}
         Where a rescue ends (:data:`pidlab.region.rescue.RESCUE_ENDS`): the certified core (a coach
         certified by simulation: the horizon held), or the horizon held and ended in the
@@ -131,6 +135,7 @@ class ClassifierSettings:
     edge_share: float = 0.05
     focus: int = 0
     into: str = "core"
+    near: int = 0
 
     def __post_init__(self) -> None:
         """Refuse settings out of range at once (:class:`RegionError` naming the field)."""
@@ -146,7 +151,8 @@ def _check_settings(s: ClassifierSettings) -> None:
         )
     for name, h in zip(s.variables, s.half_range, strict=True):
         number(h, f"half-range of {name}", RegionError, low=0.0, low_open=True)
-    counts = (("samples", 100), ("calibration", 100), ("validation", 1), ("coverage", 1), ("focus", 0))
+    counts = (("samples", 100), ("calibration", 100), ("validation", 1), ("coverage", 1), ("focus", 0),
+              ("near", 0))  # fmt: skip
     for name, low in counts:
         integer(getattr(s, name), name, RegionError, low=low, high=MAX_SAMPLES, param=name)
     integer(s.width, "width", RegionError, low=2, high=MAX_WIDTH, param="width")
@@ -403,30 +409,35 @@ def focus_level(rescued_scores: np.ndarray) -> float:
 def _fitted(
     work: _Work, unfitted: RescueClassifier, labelled: np.ndarray, rescued: np.ndarray
 ) -> tuple[tuple[tuple[np.ndarray, np.ndarray], ...], dict[str, Any]]:
-    """The network fitted on the uniform labels, then (``focus``) on the focused ones too; their facts."""
+    """The network fitted on the uniform labels and (``focus``, ``near``) the further ones; their facts."""
     s = work.settings
-    x, y = unfitted.scaled(labelled), rescued
+    xs, ys = [unfitted.scaled(labelled)], [rescued]
+    facts: dict[str, Any] = {}
+    if s.focus:
+        work.report("fitting", None)
+        layers = fit_layers(xs[0], ys[0], s.width, s.epochs, s.negative_weight, s.seed)
+        first = replace(unfitted, layers=layers)
+        level = focus_level(first.scores(labelled[rescued]))
+        drawn = draw_states(work.est, s.focus, keep=lambda v: first.scores(v) >= level)
+        ok, _ = work.est.rescued(drawn, "focus")
+        xs, ys = [*xs, unfitted.scaled(drawn)], [*ys, ok]
+        facts |= {"focus": s.focus, "focus_level": level, "focus_rescued": float(ok.mean())}
+    if s.near:
+        centre = (np.array(unfitted.lower) + np.array(unfitted.upper)) / 2.0
+        centres = np.unique(np.vstack([unfitted.anchor_point(), centre]), axis=0)
+        drawn = draw_near(work.est, s.near, centres)
+        ok, _ = work.est.rescued(drawn, "near")
+        xs, ys = [*xs, unfitted.scaled(drawn)], [*ys, ok]
+        facts |= {"near": s.near, "near_rescued": float(ok.mean())}
     work.report("fitting", None)
-    layers = fit_layers(x, y, s.width, s.epochs, s.negative_weight, s.seed)
-    if not s.focus:
-        return layers, {}
-    first = replace(unfitted, layers=layers)
-    level = focus_level(first.scores(labelled[rescued]))
-    drawn = draw_states(work.est, s.focus, keep=lambda v: first.scores(v) >= level)
-    ok, _ = work.est.rescued(drawn, "focus")
-    work.report("fitting", None)
-    layers = fit_layers(np.vstack([x, unfitted.scaled(drawn)]), np.concatenate([y, ok]), s.width, s.epochs,
-                        s.negative_weight, s.seed)  # fmt: skip
-    return layers, {"focus": s.focus, "focus_level": level, "focus_rescued": float(ok.mean())}
+    return fit_layers(np.vstack(xs), np.concatenate(ys), s.width, s.epochs, s.negative_weight, s.seed), facts
 
 
 def _box(d: _Domain) -> tuple[tuple[float, ...], tuple[float, ...]]:
     return tuple(float(v) for v in d.lower), tuple(float(v) for v in d.upper)
 
 
-def _validate(
-    work: _Work, clf: RescueClassifier, n: int
-) -> tuple[RescueClassifier, int, int, np.ndarray]:
+def _validate(work: _Work, clf: RescueClassifier, n: int) -> tuple[RescueClassifier, int, int, np.ndarray]:
     """Fresh draws inside until one has no failure: the classifier, rounds, failures, the draw's scores."""
     anchor = clf.anchor_point()[None, :]
     where = "the operating point" if clf.anchor is None else "the point its coach regulates to"

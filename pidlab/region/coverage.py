@@ -248,6 +248,44 @@ def draw_states(est: _Estimate, n: int, keep: Callable[[np.ndarray], np.ndarray]
     return np.array(out).reshape(n, len(d.grid_vars))
 
 
+NEAR_SCALES = (0.01, 0.5)
+"""The smallest and largest box about a point that :func:`draw_near` draws in, as a fraction of the
+domain's half-widths (log-uniform between them)."""
+
+
+def draw_near(est: _Estimate, n: int, centres: np.ndarray) -> np.ndarray:
+    """``n`` states the env can be in, drawn in boxes about ``centres`` (rows, in turn), in the domain.
+
+    Each state's box is the domain's half-widths times a scale drawn log-uniform in
+    :data:`NEAR_SCALES`, clipped to the domain. Uniform draws over a domain of many variables never
+    come near one point (on Walker2d's 16 variables, none of 210,000 lay within 30 % of the
+    half-widths of the posture in every variable); these do, at every distance.
+
+    Raises
+    ------
+    RegionError
+        The env can be in almost none of them (the termination rule or the joint ranges).
+    """
+    d, sim, rng = est.domain, est.pool.sim, est.rng
+    centres = np.atleast_2d(np.asarray(centres, dtype=float))
+    half = (np.asarray(d.upper) - np.asarray(d.lower)) / 2.0
+    lo, hi = np.log(NEAR_SCALES[0]), np.log(NEAR_SCALES[1])
+    out: list[np.ndarray] = []
+    drawn = 0
+    while len(out) < n:
+        if drawn > MAX_DRAWS * n:
+            raise RegionError(f"after {drawn:,} draws near the operating point only {len(out):,} of {n:,} "
+                              "states were ones the env can be in")  # fmt: skip
+        m = max(n, 1000)
+        scale = np.exp(rng.uniform(lo, hi, (m, 1)))
+        batch = centres[np.arange(m) % len(centres)] + scale * half * rng.uniform(-1.0, 1.0, (m, len(half)))
+        batch = np.clip(batch, d.lower, d.upper)
+        drawn += m
+        alive = np.array([_possible(sim, d.to_plant(v, sim), est.grounded) for v in batch], dtype=bool)
+        out.extend(batch[alive][: n - len(out)])
+    return np.array(out).reshape(n, len(half))
+
+
 def _possible(sim: Any, x: np.ndarray, grounded: bool) -> bool:
     """Whether the env can be in the state ``x``: within the joint ranges, not terminated."""
     obs = sim.start(x, grounded=grounded)

@@ -522,6 +522,11 @@ def classifier_view(r: Any, spec_name: str, env_id: str, units: dict[str, str]) 
             f"focus: fitted again with {s.focus:,} more labelled states where a first fit scored at least "
             f"{r.provenance['focus_level']:.4g} ({r.provenance['focus_rescued']:.1%} of them rescued)\n"
         )
+    if s.near:
+        head.append(
+            f"near: fitted with {s.near:,} more labelled states in boxes about where the coach hands back "
+            f"and the operating point ({r.provenance['near_rescued']:.1%} of them rescued)\n"
+        )
     head.append(
         f"validation in MuJoCo: {s.validation:,} fresh states in the region, 0 not rescued "
         f"(failure rate < {r.failure_bound_95:.2%} at 95 %); {r.validation_rounds} draw(s), "
