@@ -10,6 +10,7 @@ happened under the coach. The figures go to docs/results/coverage/ENV.json, the 
 docs/rescue.md between ``<!-- coverage-table -->`` and ``<!-- /coverage-table -->``.
 
 Run: .venv/bin/python benchmarks/coverage_table.py [--envs Hopper-v5] [--states 20000] [--workers 2]
+[--new-only]
 """
 
 from __future__ import annotations
@@ -214,13 +215,18 @@ def row(env: str, coach: Coach, c: DomainCoverage) -> str:
     return f"| {env} | {coach.label} | {rescuable} | {region} | {false} | {train} |"
 
 
-def measure(env: str, states: int, workers: int | None) -> list[str]:
-    """Score ``env``'s coaches on the same states; write their JSON; the table rows."""
+def measure(env: str, states: int, workers: int | None, new_only: bool = False) -> list[str]:
+    """Score ``env``'s coaches on the same states; write their JSON; the table rows.
+
+    ``new_only``: score only the coaches appended to :data:`COACHES` since the env's JSON was written,
+    on the same states (the JSON's settings must be these), and keep the rows already measured.
+    """
     loaded = load_model(env)
     box = DOMAINS[env]
     settings = DomainSettings(tuple(box), tuple(box.values()), states=states)
-    found, lines = [], []
-    for coach in COACHES[env]:
+    found = _measured_before(env, settings) if new_only else []
+    lines = []
+    for coach in COACHES[env][len(found):]:
         path = spec_file(env, coach)
         mine = replace(settings, into=coach.into)
         c = measure_domain_coverage(load_spec(path), loaded, mine, workers=workers)
@@ -232,6 +238,23 @@ def measure(env: str, states: int, workers: int | None) -> list[str]:
     return lines
 
 
+def _measured_before(env: str, settings: DomainSettings) -> list[dict]:
+    """The env's JSON rows, checked to be the first coaches of :data:`COACHES` on ``settings``' states."""
+    path = OUT / f"{env}.json"
+    rows = json.loads(path.read_text()) if path.exists() else []
+    for d, coach in zip(rows, COACHES[env], strict=False):
+        s = _coverage_of(d).settings
+        same = (s.variables, s.half_range, s.states, s.seed, s.horizon_s) == (
+            settings.variables, settings.half_range, settings.states, settings.seed, settings.horizon_s)
+        if d["label"] != coach.label or not same:
+            raise SystemExit(
+                f"{path}: row {d['label']!r} is not {coach.label!r} on these states; measure all"
+            )
+    if len(rows) > len(COACHES[env]):
+        raise SystemExit(f"{path}: more rows than coaches; measure all")
+    return rows
+
+
 def main() -> None:
     parser = Parser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -240,9 +263,13 @@ def main() -> None:
     parser.add_argument("--states", type=count, default=20_000, help="States per env (default 20,000).")
     parser.add_argument("--workers", type=count, default=None, help="Worker processes (default: the cores).")
     parser.add_argument("--table-only", action="store_true", help="Rebuild the table from the JSON files.")
+    parser.add_argument(
+        "--new-only", action="store_true",
+        help="Score only the coaches added since an env's JSON, on its states.",
+    )
     args = parser.parse_args()
     for env in [] if args.table_only else args.envs.split(","):
-        measure(env, args.states, args.workers)
+        measure(env, args.states, args.workers, args.new_only)
     lines = [line for env in DOMAINS for line in _rows_from_json(env)]
     head = [
         "| env | coach and region | states the coach rescues (termination domain) | coverage: rescue region "
