@@ -1049,6 +1049,25 @@ IntoOption = Annotated[
 ]
 """``--into`` of the rescue commands (:data:`pidlab.region.rescue.RESCUE_ENDS`)."""
 
+FocusOption = Annotated[
+    int,
+    typer.Option(
+        help="Further labelled states drawn where a first fit scores like the rescued states, and "
+        "fitted on too (0: none); the threshold and the validation stay uniform."
+    ),
+]
+"""``rescue-classifier --focus``."""
+
+NearOption = Annotated[
+    int,
+    typer.Option(
+        help="Further labelled states drawn in boxes about the point the coach hands back at (and the "
+        "operating point), 1 % to 50 % of the domain, and fitted on too (0: none): uniform draws over "
+        "many variables come near neither."
+    ),
+]
+"""``rescue-classifier --near``."""
+
 
 @app.command("rescue-classifier")
 @friendly_errors
@@ -1074,21 +1093,8 @@ def rescue_classifier(
         ),
     ] = 0.05,
     coverage: Annotated[int, typer.Option(help="Fresh states over the domain for the coverage.")] = 20_000,
-    focus: Annotated[
-        int,
-        typer.Option(
-            help="Further labelled states drawn where a first fit scores like the rescued states, and "
-            "fitted on too (0: none); the threshold and the validation stay uniform."
-        ),
-    ] = 0,
-    near: Annotated[
-        int,
-        typer.Option(
-            help="Further labelled states drawn in boxes about the point the coach hands back at (and the "
-            "operating point), 1 % to 50 % of the domain, and fitted on too (0: none): uniform draws over "
-            "many variables come near neither."
-        ),
-    ] = 0,
+    focus: FocusOption = 0,
+    near: NearOption = 0,
     width: Annotated[int, typer.Option(help="Units per hidden layer (two hidden layers).")] = 64,
     epochs: Annotated[int, typer.Option(help="Passes over the labelled states.")] = 100,
     horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
