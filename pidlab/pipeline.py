@@ -38,7 +38,6 @@ OUT (:func:`pidlab.provenance.hold_lock`) from start to end: a second command in
 from __future__ import annotations
 
 import shlex
-import shutil
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import AbstractContextManager, contextmanager
@@ -611,6 +610,7 @@ def _bounds(
     from pidlab.controller.spec import load_spec, save_spec
     from pidlab.files import save_figure
     from pidlab.region.bounds import with_bounds
+    from pidlab.region.journal import drop_journal
     from pidlab.report.pipeline import roa_summary
     from pidlab.report.plots import plot_roa_slice
     from pidlab.rl.rundir import spec_digest
@@ -641,7 +641,7 @@ def _bounds(
                 coached, facts["rescue"] = _rescue(s, coached, units, rescue_png)
             save_spec(coached, coach_path)
             write_json(roa_json, facts)
-            shutil.rmtree(s.folder / RESCUE_JOURNAL, ignore_errors=True)  # its outcomes are in coach.toml
+            drop_journal(s.folder / RESCUE_JOURNAL)  # its outcomes are in coach.toml
     return load_spec(coach_path), read_json(roa_json), coach_path, roa_png
 
 

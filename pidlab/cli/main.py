@@ -14,7 +14,6 @@ import functools
 import json
 import os
 import re
-import shutil
 import signal
 import sys
 import threading
@@ -1004,6 +1003,7 @@ def rescue(
     from pidlab.controller.spec import editing_spec, save_spec
     from pidlab.files import check_output_folder
     from pidlab.plant.model import load_model
+    from pidlab.region.journal import drop_journal
     from pidlab.region.rescue import default_settings, estimate_rescue, with_rescue
     from pidlab.report.console import rescue_view, wide_console
 
@@ -1036,7 +1036,7 @@ def rescue(
         if write:
             path = save_spec(with_rescue(spec, region), spec_file)
             con.print(f"wrote the rescue region into {path} as its takeover region")
-    _drop_journal(journal)
+    drop_journal(journal)
 
 
 IntoOption = Annotated[
@@ -1120,6 +1120,7 @@ def rescue_classifier(
     from pidlab.controller.spec import editing_spec, save_spec, writing_spec
     from pidlab.plant.model import load_model
     from pidlab.region.classifier import ClassifierSettings, with_classifier
+    from pidlab.region.journal import drop_journal
     from pidlab.report.console import classifier_view, wide_console
 
     if write and output:
@@ -1144,7 +1145,7 @@ def rescue_classifier(
         elif output and write_copy is not None:
             path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
             con.print(f"wrote the spec with its classifier region to {path}")
-    _drop_journal(journal)  # its outcomes are in the region written
+    drop_journal(journal)  # its outcomes are in the region written
 
 
 def _resumable_classifier(
@@ -1185,12 +1186,6 @@ def _said_resumed(con: Any, reused: int, journal: Any) -> None:
     """Say how many outcomes a resumed run read from its journal."""
     if reused:
         con.print(f"resumed: {reused:,} of the simulations were read from {journal}")
-
-
-def _drop_journal(journal: Any) -> None:
-    """Remove a journal whose outcomes are now in the figures the command printed or wrote."""
-    if journal is not None:
-        shutil.rmtree(journal, ignore_errors=True)
 
 
 def _with_bar(label: str, work: Callable[[Callable[[str, float | None], None]], Any]) -> Any:
@@ -1249,6 +1244,7 @@ def rescue_coverage(
     """Score each coach's regions over a domain: the rescuable states they hold, and their false claims."""
     from pidlab.files import check_output_file, write_json
     from pidlab.region.coverage import DomainSettings, measure_domain_coverage
+    from pidlab.region.journal import drop_journal
     from pidlab.report.console import coverage_view, wide_console
 
     box = _domain_box(domain)
@@ -1269,7 +1265,7 @@ def rescue_coverage(
         write_json(json_file, [c.to_dict() for c in found])
         con.print(f"wrote {json_file}")
     for journal in journals:
-        _drop_journal(journal)
+        drop_journal(journal)
 
 
 @app.command()

@@ -230,22 +230,19 @@ def draw_states(est: _Estimate, n: int, keep: Callable[[np.ndarray], np.ndarray]
     RegionError
         The domain (or ``keep``) leaves (almost) nothing of the box.
     """
-    d, sim, rng = est.domain, est.pool.sim, est.rng
-    out: list[np.ndarray] = []
-    drawn, most = 0, (MAX_DRAWS if keep is None else MAX_REGION_DRAWS) * n
-    while len(out) < n:
-        if drawn > most or (drawn >= FIRST_DRAWS and not out):
-            raise RegionError(
-                f"after {drawn:,} uniform draws only {len(out):,} of {n:,} states lay in the region's domain "
-                "(the termination rule, the joint ranges or the region leave almost nothing of the box)"
-            )
-        batch = rng.uniform(d.lower, d.upper, (max(n, 1000), len(d.grid_vars)))
-        drawn += len(batch)
-        if keep is not None:  # cheap and vectorized: before the simulator's check of each state
-            batch = batch[keep(batch)]
-        alive = np.array([_possible(sim, d.to_plant(v, sim), est.grounded) for v in batch], dtype=bool)
-        out.extend(batch[alive][: n - len(out)])
-    return np.array(out).reshape(n, len(d.grid_vars))
+    d, rng = est.domain, est.rng
+
+    def candidates(m: int) -> np.ndarray:
+        batch = rng.uniform(d.lower, d.upper, (m, len(d.grid_vars)))
+        # cheap and vectorized: before the simulator's check of each state
+        return batch if keep is None else batch[keep(batch)]
+
+    most = (MAX_DRAWS if keep is None else MAX_REGION_DRAWS) * n
+    why = (
+        "lay in the region's domain (the termination rule, the joint ranges or the region leave almost "
+        "nothing of the box)"
+    )
+    return _possible_states(est, n, candidates, most, ("uniform draws", why))
 
 
 NEAR_SCALES = (0.01, 0.5)
@@ -266,24 +263,44 @@ def draw_near(est: _Estimate, n: int, centres: np.ndarray) -> np.ndarray:
     RegionError
         The env can be in almost none of them (the termination rule or the joint ranges).
     """
-    d, sim, rng = est.domain, est.pool.sim, est.rng
+    d, rng = est.domain, est.rng
     centres = np.atleast_2d(np.asarray(centres, dtype=float))
     half = (np.asarray(d.upper) - np.asarray(d.lower)) / 2.0
     lo, hi = np.log(NEAR_SCALES[0]), np.log(NEAR_SCALES[1])
+
+    def candidates(m: int) -> np.ndarray:
+        scale = np.exp(rng.uniform(lo, hi, (m, 1)))
+        batch = centres[np.arange(m) % len(centres)] + scale * half * rng.uniform(-1.0, 1.0, (m, len(half)))
+        return np.clip(batch, d.lower, d.upper)
+
+    return _possible_states(
+        est, n, candidates, MAX_DRAWS * n, ("draws near their centres", "were ones the env can be in")
+    )
+
+
+def _possible_states(
+    est: _Estimate, n: int, candidates: Callable[[int], np.ndarray], most: int, said: tuple[str, str]
+) -> np.ndarray:
+    """``n`` states the env can be in, from ``candidates(m)``: those kept of ``m`` drawn.
+
+    Raises
+    ------
+    RegionError
+        More than ``most`` drawn, or none kept of the first :data:`FIRST_DRAWS`; ``said`` names the
+        draws and what the kept states are.
+    """
+    d, sim = est.domain, est.pool.sim
     out: list[np.ndarray] = []
     drawn = 0
     while len(out) < n:
-        if drawn > MAX_DRAWS * n:
-            raise RegionError(f"after {drawn:,} draws near the operating point only {len(out):,} of {n:,} "
-                              "states were ones the env can be in")  # fmt: skip
+        if drawn > most or (drawn >= FIRST_DRAWS and not out):
+            raise RegionError(f"after {drawn:,} {said[0]} only {len(out):,} of {n:,} states {said[1]}")
         m = max(n, 1000)
-        scale = np.exp(rng.uniform(lo, hi, (m, 1)))
-        batch = centres[np.arange(m) % len(centres)] + scale * half * rng.uniform(-1.0, 1.0, (m, len(half)))
-        batch = np.clip(batch, d.lower, d.upper)
+        batch = candidates(m)
         drawn += m
         alive = np.array([_possible(sim, d.to_plant(v, sim), est.grounded) for v in batch], dtype=bool)
         out.extend(batch[alive][: n - len(out)])
-    return np.array(out).reshape(n, len(half))
+    return np.array(out).reshape(n, len(d.grid_vars))
 
 
 def _possible(sim: Any, x: np.ndarray, grounded: bool) -> bool:

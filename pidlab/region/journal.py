@@ -131,6 +131,15 @@ class LabelJournal:
             parent.rmdir()
 
 
+def drop_journal(folder: str | Path | None) -> None:
+    """Delete a command's journal folder (every coach's and setting's), its outcomes now in what it wrote.
+
+    None (no journal was kept) does nothing.
+    """
+    if folder is not None:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def _number(path: Path) -> int:
     """The chunk file's number (0 for a name that has none)."""
     stem = path.stem.removeprefix("chunk-")
