@@ -115,13 +115,20 @@ def test_the_command_keeps_its_journal_beside_the_spec_and_removes_it_once_writt
     assert code == 2 and "the labels' journal must be a folder; move that file away" in err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
     (tmp_path / f".{out.name}.labels").unlink()
-    code, err = cli_in_process(
+    from typer.testing import CliRunner
+
+    from pidlab.cli import app
+
+    done = CliRunner().invoke(app, [
         "rescue-classifier", str(SPEC), "--domain", "hinge_pos=0.2,slider_pos=1,hinge_vel=4,slider_vel=1.5",
         "--samples", "3000", "--calibration", "1000", "--validation", "100", "--coverage", "200",
         "--width", "16", "--epochs", "60", "--seed", "1", "--edge-share", "0", "--workers", "1", "-o", str(out),
-    )  # fmt: skip
-    assert code == 0, err
+    ])  # fmt: skip
+    assert done.exit_code == 0, done.stderr
     assert out.exists() and not (tmp_path / f".{out.name}.labels").exists()
+    stages = [ln for ln in done.stdout.splitlines() if ln.startswith("classifier region: ")]
+    assert len(stages) >= 3 and len(set(stages)) == len(stages)  # off a terminal: one line per stage, in order
+    assert any("validation" in ln for ln in stages)
 
 
 GRID = rescue.RescueSettings(

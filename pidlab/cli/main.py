@@ -1189,12 +1189,30 @@ def _said_resumed(con: Any, reused: int, journal: Any) -> None:
 
 
 def _with_bar(label: str, work: Callable[[Callable[[str, float | None], None]], Any]) -> Any:
-    """``work(progress)`` under a transient progress bar (on a terminal) that shows its stages."""
+    """``work(progress)`` under a transient progress bar that shows its stages.
+
+    Off a terminal (a log file, a pipe) each stage gets one line on stdout as it starts instead, so
+    an hour-long estimate run in the background says where it is.
+    """
     from pidlab.report.console import progress_bar
 
-    with progress_bar(transient=True, disable=not sys.stdout.isatty()) as bar:
+    if not sys.stdout.isatty():
+        return work(_stage_lines(label))
+    with progress_bar(transient=True) as bar:
         task = bar.add_task(label, total=1.0)
         return work(lambda stage, f: bar.update(task, description=stage, completed=f or 0.0))
+
+
+def _stage_lines(label: str) -> Callable[[str, float | None], None]:
+    """A ``progress(stage, fraction)`` that prints ``LABEL: STAGE`` once per new stage, flushed."""
+    said: list[str] = []
+
+    def progress(stage: str, fraction: float | None) -> None:
+        if said[-1:] != [stage]:
+            said.append(stage)
+            print(f"{label}: {stage}", flush=True)
+
+    return progress
 
 
 def _domain_box(text: str) -> dict[str, float]:
