@@ -342,8 +342,26 @@ def test_a_domain_the_termination_rule_leaves_empty_is_refused_in_one_line() -> 
     with classifier._working(spec, loaded, settings, 1, None) as work:
         # a box whose every state leans the lower pole beyond 0.9 in sine: the env ends them all
         work.est.domain = dataclasses.replace(work.est.domain, lower=np.array([0.9]), upper=np.array([1.0]))
-        with pytest.raises(RegionError, match=r"after [0-9,]+ uniform draws only 0 of 10 states"):
+        with pytest.raises(RegionError, match=r"after [0-9,]+ uniform draws only 0 of 10 states lay in the "
+                           r"region's domain \(the termination rule or the joint ranges"):
             draw_states(work.est, 10)
+
+
+def test_a_region_too_thin_to_draw_from_says_which_draw_and_how_to_skip_it() -> None:
+    """A validation draw whose band holds none of the first draws names it (not the domain) in one line."""
+    from pidlab.region import classifier
+    from pidlab.region.coverage import FIRST_DRAWS, draw_states
+
+    spec, loaded = load_spec(SPEC), load_model(IDP)
+    settings = ClassifierSettings(("hinge_sin",), (0.1,), samples=100, calibration=100, validation=10, coverage=10)
+    with classifier._working(spec, loaded, settings, 1, None) as work:
+        never = lambda v: np.zeros(len(v), dtype=bool)  # noqa: E731
+        with pytest.raises(RegionError) as err:
+            draw_states(work.est, 10, keep=never, kept=classifier.KEPT["edge validation"])
+    assert str(err.value) == (
+        f"after {FIRST_DRAWS:,} uniform draws only 0 of 10 states lay in the region's edge band: too thin a share "
+        "of its domain to draw from uniformly (--edge-share 0 skips the edge draw)"
+    )
 
 
 def test_one_step_room_is_read_from_the_spec_s_region() -> None:

@@ -418,7 +418,8 @@ def _fitted(
         layers = fit_layers(xs[0], ys[0], s.width, s.epochs, s.negative_weight, s.seed)
         first = replace(unfitted, layers=layers)
         level = focus_level(first.scores(labelled[rescued]))
-        drawn = draw_states(work.est, s.focus, keep=lambda v: first.scores(v) >= level)
+        drawn = draw_states(work.est, s.focus, keep=lambda v: first.scores(v) >= level,
+                            kept=KEPT["focus"])  # fmt: skip
         ok, _ = work.est.rescued(drawn, "focus")
         xs, ys = [*xs, unfitted.scaled(drawn)], [*ys, ok]
         facts |= {"focus": s.focus, "focus_level": level, "focus_rescued": float(ok.mean())}
@@ -463,13 +464,22 @@ def _until_clean(
     """
     removed = 0
     for k in range(1, MAX_ROUNDS + 1):
-        drawn = draw_states(work.est, n, keep=keep_of(clf))
+        drawn = draw_states(work.est, n, keep=keep_of(clf), kept=KEPT[label])
         ok, _ = work.est.rescued(drawn, f"{label} {k}")
         if ok.all():
             return clf, k, removed, clf.scores(drawn)
         removed += int((~ok).sum())
         clf = replace(clf, threshold=raised_threshold(clf.threshold, clf.scores(drawn[~ok])))
     raise RegionError(f"the classifier region still failed {label} after {MAX_ROUNDS} draws")
+
+
+THIN = "too thin a share of its domain to draw from uniformly"
+KEPT = {
+    "validation": f"the region: {THIN} (fit over a smaller --domain)",
+    "edge validation": f"the region's edge band: {THIN} (--edge-share 0 skips the edge draw)",
+    "focus": f"the first fit's focus, states it scores like the rescued ones: {THIN} (--focus 0 skips it)",
+}
+"""What each draw kept by the classifier holds, for the error when its domain holds (almost) none of it."""
 
 
 def edge_width(threshold: float, scores_inside: np.ndarray, share: float) -> float:

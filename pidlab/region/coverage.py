@@ -219,11 +219,14 @@ class DomainCoverage:
         return out
 
 
-def draw_states(est: _Estimate, n: int, keep: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+def draw_states(
+    est: _Estimate, n: int, keep: Callable[[np.ndarray], np.ndarray] | None = None, kept: str = "what is kept"
+) -> np.ndarray:
     """``n`` states uniform in the estimate's domain that the env can be in (and that ``keep`` accepts).
 
     A state is dropped when the env's termination rule ends it or a limited joint lies outside its
-    range; starts are on the floor when ``est.grounded``.
+    range; starts are on the floor when ``est.grounded``. ``kept`` names what ``keep`` accepts, for
+    the error.
 
     Raises
     ------
@@ -239,8 +242,10 @@ def draw_states(est: _Estimate, n: int, keep: Callable[[np.ndarray], np.ndarray]
 
     most = (MAX_DRAWS if keep is None else MAX_REGION_DRAWS) * n
     why = (
-        "lay in the region's domain (the termination rule, the joint ranges or the region leave almost "
-        "nothing of the box)"
+        "lay in the region's domain (the termination rule or the joint ranges leave almost nothing of "
+        "the box)"
+        if keep is None
+        else f"lay in {kept}"
     )
     return _possible_states(est, n, candidates, most, ("uniform draws", why))
 
