@@ -1205,11 +1205,11 @@ def _with_bar(label: str, work: Callable[[Callable[[str, float | None], None]], 
 
 def _stage_lines(label: str) -> Callable[[str, float | None], None]:
     """A ``progress(stage, fraction)`` that prints ``LABEL: STAGE`` once per new stage, flushed."""
-    said: list[str] = []
+    last = [""]
 
     def progress(stage: str, fraction: float | None) -> None:
-        if said[-1:] != [stage]:
-            said.append(stage)
+        if stage != last[0]:
+            last[0] = stage
             print(f"{label}: {stage}", flush=True)
 
     return progress

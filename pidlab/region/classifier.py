@@ -221,6 +221,15 @@ class ClassifierRescue:
         return {**self.classifier.to_table(), "provenance": dict(self.provenance)}
 
 
+THIN = "too thin a share of its domain to draw from uniformly"
+KEPT = {
+    "validation": f"the region: {THIN} (fit over a smaller --domain)",
+    "edge validation": f"the region's edge band: {THIN} (--edge-share 0 skips the edge draw)",
+    "focus": f"the first fit's focus, states it scores like the rescued ones: {THIN} (--focus 0 skips it)",
+}
+"""What each draw kept by the classifier holds, for the error when its domain holds (almost) none of it."""
+
+
 def fit_layers(
     x: np.ndarray, y: np.ndarray, width: int, epochs: int, negative_weight: float, seed: int
 ) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
@@ -471,15 +480,6 @@ def _until_clean(
         removed += int((~ok).sum())
         clf = replace(clf, threshold=raised_threshold(clf.threshold, clf.scores(drawn[~ok])))
     raise RegionError(f"the classifier region still failed {label} after {MAX_ROUNDS} draws")
-
-
-THIN = "too thin a share of its domain to draw from uniformly"
-KEPT = {
-    "validation": f"the region: {THIN} (fit over a smaller --domain)",
-    "edge validation": f"the region's edge band: {THIN} (--edge-share 0 skips the edge draw)",
-    "focus": f"the first fit's focus, states it scores like the rescued ones: {THIN} (--focus 0 skips it)",
-}
-"""What each draw kept by the classifier holds, for the error when its domain holds (almost) none of it."""
 
 
 def edge_width(threshold: float, scores_inside: np.ndarray, share: float) -> float:
