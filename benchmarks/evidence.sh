@@ -23,8 +23,9 @@
 #   bash benchmarks/evidence.sh --teach8 InvertedDoublePendulum-v5  # Amendment 19: half the demonstrations,
 #                                                     # held (fresh seeds 120-129)
 #   bash benchmarks/evidence.sh --sac InvertedPendulum-v5    # Amendment 8: plain SAC beside plain PPO
-#                                                     # (the pendulums, and Hopper by Amendment 18;
-#                                                     # `none` reused from the confirmation)
+#                                                     # (the pendulums; Hopper by Amendment 18, `none`
+#                                                     # reused from the confirmation; Walker2d by
+#                                                     # Amendment 22, both at 300,000 env steps)
 #   bash benchmarks/evidence.sh --full InvertedDoublePendulum-v5  # Amendments 9 and 11: the classifier
 #                                                     # region over the full state (rescue-terminal-full;
 #                                                     # also InvertedPendulum-v5)
@@ -153,13 +154,14 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
     esac
 }
 
-sac_design() {  # Amendments 8 and 18: the plain SAC baseline beside plain PPO
+sac_design() {  # Amendments 8, 18 and 22: the plain SAC baseline beside plain PPO
     case $1 in
         InvertedPendulum-v5) echo "$1-sac none,none-sac 50000 100-109" ;;
         InvertedDoublePendulum-v5) echo "$1-sac none,none-sac 200000 100-109" ;;
         Hopper-v5) echo "$1-sac none,none-sac 300000 100-109" ;;
-        *) echo "evidence.sh: --sac is for InvertedPendulum-v5, InvertedDoublePendulum-v5 and Hopper-v5" \
-               "(docs/analysis-plan.md, Amendments 8 and 18)" >&2; exit 2 ;;
+        Walker2d-v5) echo "$1-sac none,none-sac 300000 100-109" ;;   # both at 300,000 (Amendment 22)
+        *) echo "evidence.sh: --sac is for the paper's four v5 envs" \
+               "(docs/analysis-plan.md, Amendments 8, 18 and 22)" >&2; exit 2 ;;
     esac
 }
 

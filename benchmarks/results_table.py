@@ -426,11 +426,18 @@ def _best_rows(env: str, base: tuple[str, str]) -> list[str]:
     folder, learner = base
     y = {m: _per_run(folder, m)[learner] for m in AIM}
     label = f"{learner} ({'SAC' if learner == 'none-sac' else 'PPO'}, {len(y['falls'])} runs)"
+    base_record = _load(folder)
+    budget = _budget(env, folder, base_record[1]) if base_record else 0
     out, seen = [], set()
     for sweep in TEACH_SWEEPS:
         name = f"{env}-{sweep}"
         loaded = _load(name)
         if loaded is None or _unfinished(env, name, loaded[1]):
+            continue
+        other = _budget(env, name, loaded[1])
+        if other != budget:  # falls and env steps to a kept target depend on the budget
+            why = f"not compared: its runs' budget is {other:,} env steps, the baseline's {budget:,}"
+            out.append(f"| {env} | {label} | {sweep} | all | {why} | - | - |")
             continue
         x = {m: _per_run(name, m) for m in AIM}
         seeds = tuple(loaded[1]["identity"]["seeds"])

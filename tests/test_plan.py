@@ -83,14 +83,15 @@ def test_a_sweep_of_another_agent_than_the_plans_is_exploratory():
     assert "governs the agent SAC in this sweep" in cited and "Confirmatory" not in cited
 
 
-def test_amendments_8_and_18_govern_plain_sac_on_the_pendulums_and_hopper_only():
+def test_amendments_8_18_and_22_govern_plain_sac_on_the_papers_envs():
     sweep, algos = ["none", "none-sac"], ["ppo", "sac"]
-    for env, k in (("InvertedPendulum-v5", 8), ("InvertedDoublePendulum-v5", 8), ("Hopper-v5", 18)):
+    owners = {"InvertedPendulum-v5": 8, "InvertedDoublePendulum-v5": 8, "Hopper-v5": 18, "Walker2d-v5": 22}
+    for env, k in owners.items():
         assert plan.role(range(100, 110), sweep, algos, [env]) == "confirmatory"
-        assert f"Amendment {k}" in plan.citation(range(100, 110), sweep, algos, [env])
-    assert "Amendment 8" not in plan.citation(range(100, 110), sweep, algos, ["Hopper-v5"])
-    assert plan.role(range(100, 110), sweep, algos, ["Walker2d-v5"]) == "exploratory"
-    assert plan.ungoverned(sweep, ["Walker2d-v5"]) == ("none-sac",)
+        assert plan.amendments_of(sweep, [env], range(100, 110)) == (k,)
+    assert "Amendment 8" not in plan.citation(range(100, 110), sweep, algos, ["Walker2d-v5"])
+    assert plan.role(range(110, 120), sweep, algos, ["Walker2d-v5"]) == "pilot"  # not its seeds
+    assert plan.ungoverned(sweep, ["Walker2d-v5"], range(100, 110)) == ()
     # SAC is governed only with the condition that names it
     assert plan.unplanned_algorithms(["ppo", "sac"], ["none", "paper"]) == ("sac",)
     assert plan.unplanned_algorithms(["ppo", "sac"], sweep, ["InvertedPendulum-v5"]) == ()
@@ -206,7 +207,12 @@ def test_the_runs_say_which_agents_a_sweep_trained(tmp_path):
     assert run_algorithms(tmp_path, [env], ["none"]) == ("ppo",)
     assert run_algorithms(tmp_path, [env], ["missing"]) == ()
     sweep = ["none", "none-sac"]
-    assert plan.role(range(100, 110), sweep, run_algorithms(tmp_path, [env], sweep)) == "exploratory"
+    assert plan.role(range(100, 110), sweep, run_algorithms(tmp_path, [env], sweep), [env]) == "confirmatory"
+    shield = tmp_path / "runs" / env / "rescue-terminal" / "seed-100"
+    shield.mkdir(parents=True)
+    (shield / "config.toml").write_text('[recipe]\nalgo = "sac"\n')  # no amendment governs SAC with it
+    sweep = ["none", "rescue-terminal"]
+    assert plan.role(range(100, 110), sweep, run_algorithms(tmp_path, [env], sweep), [env]) == "exploratory"
 
 
 def test_the_best_plain_baseline_follows_amendment_8_by_hand():
