@@ -426,8 +426,10 @@ def _best_rows(env: str, base: tuple[str, str]) -> list[str]:
     folder, learner = base
     y = {m: _per_run(folder, m)[learner] for m in AIM}
     label = f"{learner} ({'SAC' if learner == 'none-sac' else 'PPO'}, {len(y['falls'])} runs)"
-    base_record = _load(folder)
-    budget = _budget(env, folder, base_record[1]) if base_record else 0
+    loaded_base = _load(folder)
+    if loaded_base is None:  # named_baseline read it; nothing to read against once it is gone
+        return []
+    budget = _budget(env, folder, loaded_base[1])
     out, seen = [], set()
     for sweep in TEACH_SWEEPS:
         name = f"{env}-{sweep}"
