@@ -33,6 +33,8 @@
 #                                                     # its edge too (rescue-terminal-edge)
 #   bash benchmarks/evidence.sh --offpolicy InvertedPendulum-v5  # Amendment 13: SAC learning from the
 #                                                     # coach (rescue-replay, rescue-value, rescue-propose)
+#   bash benchmarks/evidence.sh --offpolicy InvertedDoublePendulum-v5  # Amendment 23: rescue-replay and
+#                                                     # demo-replay-shield against plain SAC
 #   bash benchmarks/evidence.sh --edgemodel InvertedPendulum-v5  # Amendment 14: the model predictor
 #                                                     # on that region (rescue-terminal-edge-model)
 #   bash benchmarks/evidence.sh --learned InvertedDoublePendulum-v5  # Amendment 15: a learned one-step
@@ -222,10 +224,13 @@ scoped_design() {  # Amendment 17: the learned model's margins where they decide
     esac
 }
 
-offpolicy_design() {  # Amendment 13: SAC that learns from the coach, against the best plain baseline
+offpolicy_design() {  # Amendments 13 and 23: SAC that learns from the coach, against the best plain baseline
     case $1 in
         InvertedPendulum-v5) echo "$1-offpolicy none,rescue-replay,rescue-value,rescue-propose,warm-start-keep-shield-short 50000 100-109" ;;
-        *) echo "evidence.sh: --offpolicy is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment 13)" >&2; exit 2 ;;
+        # no plain PPO in the sweep: its couplings are tested against plain SAC, copied from the sac sweep
+        InvertedDoublePendulum-v5) echo "$1-offpolicy none-sac,rescue-replay,demo-replay-shield 200000 100-109" ;;
+        *) echo "evidence.sh: --offpolicy is for InvertedPendulum-v5 and InvertedDoublePendulum-v5" \
+                "(docs/analysis-plan.md, Amendments 13 and 23)" >&2; exit 2 ;;
     esac
 }
 

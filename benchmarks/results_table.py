@@ -24,7 +24,7 @@ from pathlib import Path
 
 from bench_cli import run
 
-from pidlab.experiment.analysis import recipes_of_runs
+from pidlab.experiment.analysis import baseline_of, recipes_of_runs
 from pidlab.experiment.plan import ALONE_TARGETS, AMENDMENT_LIST, PlainLearner, best_plain_baseline
 from pidlab.experiment.stats import Estimate, median_saving
 from pidlab.experiment.sweep import finished
@@ -266,17 +266,17 @@ def _aim(e: Estimate, threshold: float) -> tuple[str, str]:
 def aim_text(row: dict[str, str], threshold: float) -> str:
     """A summary row's saving against none and the aim read from its interval."""
     if not row.get("saving", ""):
-        return "no saving (none never reached it)"
+        return "no saving (no coach never reached it)"
     saving = Estimate(_num(row["saving"]), _num(row["saving_low"]), _num(row["saving_high"]))
     return _aim(saving, threshold)[0]
 
 
-def _teach_row(env: str, sweep: str, c: str, rows: dict[tuple[str, str], dict[str, str]]) -> str:
+def _teach_row(env: str, sweep: str, c: str, rows: dict[tuple[str, str], dict[str, str]], base: str) -> str:
     def cell(metric: str, to_target: bool = False) -> str:
         row = rows.get((c, metric))
         return _cell(row, to_target) if row is not None else "-"
 
-    aims = [aim_text(rows[(c, m)], t) if c != "none" else "-" for m, t in AIM.items()]
+    aims = [aim_text(rows[(c, m)], t) if c != base else "-" for m, t in AIM.items()]
     verdicts = [rows[(c, m)]["verdict"] or "-" for m in ("falls", "env_steps_to_alone_target", "final_score")]
     clone = f"{cell('clone_score')} / {cell('dip_score')}" if (c, "clone_score") in rows else "-"
     cells = [env, sweep, c, cell("falls"), aims[0], cell("env_steps_to_alone_target", True), aims[1],
@@ -303,7 +303,8 @@ def teaching_tables() -> str:
             rows, record = loaded
             budget = _budget(env, name, record)
             conds = record["identity"]["conditions"]
-            out += [_teach_row(env, sweep, c, rows) for c in conds if (c, "final_score") in rows]
+            base = baseline_of(conds)  # the sweep's no coach: plain PPO, or plain SAC without it
+            out += [_teach_row(env, sweep, c, rows, base) for c in conds if (c, "final_score") in rows]
             ident = record["identity"]
             how.append(f"- **{env}, {sweep}**: {len(ident['seeds'])} seeds x {len(ident['conditions'])} "
                        f"conditions, {_share(env, budget)} env steps per run; "

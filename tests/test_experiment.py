@@ -65,6 +65,7 @@ SAC_ONLY = (
     "rescue-value",
     "rescue-propose",
     "demo-replay",
+    "demo-replay-shield",
 )  # the coach's transitions feed an off-policy agent's replay
 IP_ONLY = ("rescue-terminal-model",)  # the model predictor: on the other envs its error leaves no region
 FULL_ENVS = (IP, "InvertedDoublePendulum-v5")  # rescue-terminal-full: a classifier region fitted on the pendulums

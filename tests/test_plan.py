@@ -105,10 +105,19 @@ def test_amendment_13_governs_the_off_policy_couplings_on_invertedpendulum_only(
     assert plan.amendments_of(sweep, ip, range(100, 110)) == (13,)
     assert "Amendment 13" in plan.citation(range(100, 110), sweep, ["ppo", "sac"], ip)
     assert plan.role(range(100, 110), sweep, ["ppo", "sac"], idp) == "exploratory"
-    assert plan.ungoverned(sweep, idp) == ("rescue-replay", "rescue-value", "rescue-propose",
-                                           "warm-start-keep-shield-short")  # fmt: skip
+    # Amendment 23 governs rescue-replay there, not the other two
+    assert plan.ungoverned(sweep, idp) == ("rescue-value", "rescue-propose", "warm-start-keep-shield-short")
     # its PPO comparator keeps Amendment 4's seeds too; 13 governs it on InvertedPendulum's 100-109
     assert plan.amendments_of(["warm-start-keep-shield-short"], ip, range(110, 120)) == (4,)
+
+
+def test_amendment_23_governs_two_sac_couplings_on_the_double_pendulum_against_plain_sac():
+    sweep, idp = ["none-sac", "rescue-replay", "demo-replay-shield"], ["InvertedDoublePendulum-v5"]
+    assert plan.role(range(100, 110), sweep, ["sac"], idp) == "confirmatory"
+    assert plan.amendments_of(sweep, idp, range(100, 110)) == (8, 23)
+    assert "Amendment 23" in plan.citation(range(100, 110), sweep, ["sac"], idp)
+    for env in ("InvertedPendulum-v5", "Hopper-v5", "Walker2d-v5"):
+        assert "demo-replay-shield" in plan.ungoverned(sweep, [env])
 
 
 def test_an_amendment_governs_only_its_envs_and_seeds():

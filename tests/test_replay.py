@@ -347,6 +347,30 @@ def test_sac_keeps_the_coachs_demonstrations_in_the_coach_buffer(spec, tmp_path,
     assert 300 - 8 <= state["sb3"]["n_updates"] <= 300
 
 
+def test_sac_demonstrations_behind_the_shield_share_the_coach_buffer_with_its_rescues(spec, tmp_path):
+    """demo-replay-shield: the demonstrations first, then the coach's steps of every veto, in one buffer."""
+    from pidlab.rl import demonstrations as demo
+    from pidlab.rl.checkpoint import _read_npz
+
+    data = recipe_data(demonstrations={"steps": 100, "noise": 0.1})  # the helpers' rescue-terminal shield
+    folder = tmp_path / "run"
+    result = train(parse_recipe(data, "tiny"), spec, folder, progress_bar=False)
+    demos = demo.load(folder / demo.FILE)
+    coach = _read_npz(latest_checkpoint(folder) / "coach_buffer.npz")
+    agent = _read_npz(latest_checkpoint(folder) / "replay_buffer.npz")
+    state = read_json(latest_checkpoint(folder) / "state.json")
+    rescues = result.coach_steps - len(demos)
+    assert len(demos) == 100 and rescues > 0 and result.interventions > 0  # the shield acted after them
+    assert state["sb3"]["coach_transitions"] == len(coach["rewards"]) == result.coach_steps
+    assert np.array_equal(coach["observations"][:100, 0], demos.obs)  # the demonstrations lead the buffer
+    # the agent's buffer: its actions only, the vetoed ones included; none of the demonstrations
+    assert len(agent["rewards"]) == result.agent_steps + result.interventions
+    # every rescue step bought a gradient step, less one per vetoed action (SB3 bought that one)
+    assert state["sb3"]["coach_counted"] == rescues - result.interventions
+    # a rescue under way at the budget finishes first, so the run may end a few env steps over it
+    assert state["num_timesteps"] == result.env_steps >= 400
+
+
 def test_sac_demonstrations_without_a_coach_buffer_are_refused(spec):
     recipe = parse_recipe(sac_recipe_data(off_after=0.0, demonstrations={"steps": 100, "noise": 0.1}), "tiny")
     with pytest.raises(CoachingError, match="add coaching.coach_buffer"):

@@ -30,6 +30,19 @@ from pidlab.files import load_json, read_toml
 from pidlab.rl.rundir import read_csv_rows
 
 BASELINE = "none"
+PLAIN_SAC = "none-sac"
+
+
+def baseline_of(conditions: Sequence[str]) -> str:
+    """The condition a sweep's couplings are tested against (docs/analysis-plan.md, Amendment 23).
+
+    Plain PPO (``none``) when the sweep has it; else plain SAC (``none-sac``) when the sweep has
+    that, so that a sweep of SAC couplings beside ``none-sac`` alone is judged against plain SAC;
+    else ``none`` (no comparison is drawn).
+    """
+    if BASELINE not in conditions and PLAIN_SAC in conditions:
+        return PLAIN_SAC
+    return BASELINE
 
 
 @dataclass(frozen=True)
@@ -119,6 +132,8 @@ class Analysis:
     comparisons: dict[tuple[str, str], dict[str, Comparison]]
     algorithms: tuple[str, ...] = ("ppo",)
     """The algorithms the recipes trained (the analysis plan governs PPO)."""
+    baseline: str = BASELINE
+    """The condition every coached one is tested against (:func:`baseline_of`)."""
 
     def improvement(self, env: str, condition: str, measure: str) -> Estimate | None:
         """P(improvement over no coach) of one measure, or None (no such comparison)."""
@@ -481,10 +496,12 @@ def compare_env(
     """Every coached condition of ``env`` against no coach, in the plan's two families, with verdicts.
 
     ``win_target``: the env's paper target (it decides whether the paper's target in env steps is
-    in the secondary family); ``reps``: bootstrap resamples of the savings.
+    in the secondary family); ``reps``: bootstrap resamples of the savings. No coach is the sweep's
+    baseline (:func:`baseline_of`): plain PPO, or plain SAC in a sweep without plain PPO.
     """
-    base = loaded.get((env, BASELINE), [])
-    coached = [c for c in conditions if c != BASELINE and loaded.get((env, c)) and base]
+    baseline = baseline_of(conditions)
+    base = loaded.get((env, baseline), [])
+    coached = [c for c in conditions if c != baseline and loaded.get((env, c)) and base]
     never = {c: all(r.metrics.never_trained for r in loaded[(env, c)]) for c in coached}
     out: dict[tuple[str, str], dict[str, Comparison]] = {}
     for family, names in (("primary", plan.PRIMARY), ("secondary", plan.secondary_measures(env, win_target))):
@@ -538,6 +555,7 @@ def analyze(experiment: dict[str, Any], root: Path, recipes: dict[str, Any], rep
         missing=tuple(missing),
         comparisons=comparisons,
         algorithms=run_algorithms(root, envs, conditions) or tuple(sorted({recipes[e].algo for e in envs})),
+        baseline=baseline_of(conditions),
     )
 
 

@@ -119,6 +119,9 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
     Amendment(20, ("rescue-terminal-room-focus",), envs=("Hopper-v5",)),
     Amendment(21, ("rescue-terminal-room-focus-learned",), envs=("Hopper-v5",)),
     Amendment(22, ("none-sac",), envs=("Walker2d-v5",), algorithms=("sac",)),
+    Amendment(
+        23, ("rescue-replay", "demo-replay-shield"), envs=("InvertedDoublePendulum-v5",), algorithms=("sac",)
+    ),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 

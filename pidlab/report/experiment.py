@@ -299,12 +299,12 @@ def design_note(a: Analysis, env: str) -> str:
 
 def reading(a: Analysis, env: str, family: str | None = None) -> list[str]:
     """Plain sentences from the numbers (the human reading goes in docs/); ``family``: only that one."""
-    if (env, BASELINE) not in a.cells:
+    if (env, a.baseline) not in a.cells:
         return ["No uncoached condition in this experiment: no comparison is drawn."]
     out = []
     for cond in a.conditions:
         cell, comps = a.cells.get((env, cond)), a.comparisons.get((env, cond))
-        if cell is None or cond == BASELINE or not comps:
+        if cell is None or cond == a.baseline or not comps:
             continue
         parts = [f"{MEASURE[n].label}: {verdict_text(c)}" for n, c in comps.items()
                  if family is None or c.family_name == family]  # fmt: skip
@@ -471,11 +471,19 @@ def _comparison_rows(a: Analysis, env: str, cells: Sequence[CellResult], family:
     return rows
 
 
+def _baseline_note(a: Analysis) -> list[str]:
+    """Which condition is 'no coach' when it is not plain PPO (empty when it is)."""
+    if a.baseline == BASELINE:
+        return []
+    return [f"No coach here is `{a.baseline}` (the plain SAC learner): the sweep has no plain PPO, so its "
+            "couplings are tested against plain SAC (docs/analysis-plan.md, Amendment 23).", ""]  # fmt: skip
+
+
 def _improvement_section(a: Analysis, env: str, cells: Sequence[CellResult]) -> list[str]:
     header = ["condition", "measure", "P(better than no coach) [95 % CI]", "saving of the median [95 % CI]",
               "exact p", "Holm p", "verdict"]  # fmt: skip
     sizes = _family_sizes(a, env)
-    lines = ["### Against no coach", "", design_note(a, env), ""]
+    lines = ["### Against no coach", "", *_baseline_note(a), design_note(a, env), ""]
     for family, title in (("primary", "Primary measures"), ("secondary", "Secondary: the paper's measures")):
         if family in sizes:
             lines += [f"#### {title} (Holm family of {sizes[family]})", "",

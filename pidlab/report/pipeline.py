@@ -496,7 +496,7 @@ def agent_alone(a: Analysis, env: str) -> list[str]:
             continue
         per_seed = ", ".join(f"{r.metrics.final_score:.0f}" for r in cell.runs)
         c = a.comparisons.get((env, cond), {}).get("final_score")
-        if cond == BASELINE or c is None:
+        if cond == a.baseline or c is None:
             p, exact, holm = "-", "-", "-"
         else:
             e = c.improvement
