@@ -120,6 +120,13 @@ def test_amendment_23_governs_two_sac_couplings_on_the_double_pendulum_against_p
         assert "demo-replay-shield" in plan.ungoverned(sweep, [env])
 
 
+def test_amendment_24_governs_the_room_shields_sac_coupling_on_hopper_against_plain_sac():
+    sweep, hopper = ["none-sac", "rescue-replay-room"], ["Hopper-v5"]
+    assert plan.role(range(100, 110), sweep, ["sac"], hopper) == "confirmatory"
+    assert plan.amendments_of(sweep, hopper, range(100, 110)) == (18, 24)
+    assert plan.role(range(100, 110), sweep, ["sac"], ["Walker2d-v5"]) == "exploratory"
+
+
 def test_an_amendment_governs_only_its_envs_and_seeds():
     short, hopper = ["none", "warm-start-keep-shield-short"], ["Hopper-v5"]
     idp = ["InvertedDoublePendulum-v5"]

@@ -249,16 +249,16 @@ def test_the_sac_sweep_is_for_the_envs_an_amendment_governs(env):
     ]
 
 
-def test_the_offpolicy_sweeps_refuse_the_locomotion_envs():
-    """Amendments 13 and 23 govern SAC's couplings on the two pendulums; other envs are refused at once."""
+def test_the_offpolicy_sweeps_refuse_walker2d():
+    """Amendments 13, 23 and 24 govern SAC's couplings on the pendulums and Hopper; Walker2d is refused at once."""
     import subprocess
 
     done = subprocess.run(["bash", str(ROOT / "benchmarks" / "evidence.sh"), "--offpolicy", "Walker2d-v5"],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip().splitlines() == [
-        "evidence.sh: --offpolicy is for InvertedPendulum-v5 and InvertedDoublePendulum-v5 "
-        "(docs/analysis-plan.md, Amendments 13 and 23)"
+        "evidence.sh: --offpolicy is for InvertedPendulum-v5, InvertedDoublePendulum-v5 and Hopper-v5 "
+        "(docs/analysis-plan.md, Amendments 13, 23 and 24)"
     ]
 
 

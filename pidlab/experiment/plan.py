@@ -122,6 +122,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
     Amendment(
         23, ("rescue-replay", "demo-replay-shield"), envs=("InvertedDoublePendulum-v5",), algorithms=("sac",)
     ),
+    Amendment(24, ("rescue-replay-room",), envs=("Hopper-v5",), algorithms=("sac",)),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 
