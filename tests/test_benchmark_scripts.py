@@ -121,6 +121,7 @@ def test_an_unknown_flag_is_one_line_and_exit_2(script, monkeypatch, capsys):
         ("coaching_throughput.py", ["--envs", "Nope-v5"], "cannot read recipe"),
         ("model_trigger_latency.py", ["--pieces", "64,0"], "argument --pieces: '0': expected a whole number >= 1"),
         ("recompute.py", ["/nonexistent"], "/nonexistent: cannot be read"),
+        ("repeat_runs.py", ["/nonexistent", "/nonexistent", "X-v0", "c"], "no such run folder"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(name, args, says, monkeypatch, capsys):
@@ -195,3 +196,34 @@ def test_run_accounts_by_hand(tmp_path):
         row
         == "| X-v0 | c | 2 | 1 to 3 | 0 to 1 | 0.0 % to 50.0 % | 0 to 5 | 0 to 4 | 0.15 to 0.20 | 2 to 8 |"
     )
+
+
+def test_repeat_runs_by_hand(tmp_path):
+    """benchmarks/repeat_runs.py: the first differing evaluation, the resumes and SHAs, finished seeds only."""
+    import json
+
+    import repeat_runs
+
+    head = "env_steps_so_far,mean_return\n"
+    runs = {  # (experiment, seed): evaluation rows, resumes, sha, completed
+        ("short", 0): (["0,1.0", "10,2.0"], [], "a" * 40, True),
+        ("long", 0): (["0,1.0", "10,2.0", "20,3.0"], [], "b" * 40, True),
+        ("short", 1): (["0,1.0", "10,2.5"], [{"from_env_steps": 7}], "a" * 40, True),
+        ("long", 1): (["0,1.0", "10,2.0", "20,3.0"], [], "b" * 40, True),
+        ("short", 2): (["0,1.0"], [], "a" * 40, False),  # stopped: left out
+        ("long", 2): (["0,1.0"], [], "b" * 40, True),
+    }
+    for (where, seed), (rows, resumes, sha, completed) in runs.items():
+        d = tmp_path / where / "runs" / "X-v0" / "c" / f"seed-{seed}"
+        d.mkdir(parents=True)
+        (d / "evaluations.csv").write_text(head + "\n".join(rows) + "\n")
+        (d / "run.json").write_text(json.dumps({"git": {"sha": sha}, "resumes": resumes}))
+        (d / "summary.json").write_text(json.dumps({"completed": completed}))
+    short, long = (tmp_path / w / "runs" / "X-v0" / "c" for w in ("short", "long"))
+    assert repeat_runs._seeds(short) == {0, 1}
+    assert repeat_runs.compare(short, long, 0) == repeat_runs.Repeat(0, 2, None, ((), ()), ("a" * 12, "b" * 12))
+    one = repeat_runs.compare(short, long, 1)
+    assert one.first_difference == 10 and one.resumes == ((7,), ())
+    rows = repeat_runs.table([repeat_runs.compare(short, long, s) for s in (0, 1)]).splitlines()
+    assert rows[2] == f"| 0 | 2 | none: identical | - / - | {'a' * 12} / {'b' * 12} |"
+    assert rows[3] == f"| 1 | 2 | 10 | 7 / - | {'a' * 12} / {'b' * 12} |"
