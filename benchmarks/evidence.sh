@@ -34,7 +34,7 @@
 #   bash benchmarks/evidence.sh --offpolicy InvertedPendulum-v5  # Amendment 13: SAC learning from the
 #                                                     # coach (rescue-replay, rescue-value, rescue-propose)
 #   bash benchmarks/evidence.sh --offpolicy InvertedDoublePendulum-v5  # Amendment 23: rescue-replay and
-#                                                     # demo-replay-shield against plain SAC
+#                                                     # demo-replay-short against plain SAC
 #   bash benchmarks/evidence.sh --offpolicy Hopper-v5  # Amendment 24: rescue-replay-room against plain SAC
 #   bash benchmarks/evidence.sh --edgemodel InvertedPendulum-v5  # Amendment 14: the model predictor
 #                                                     # on that region (rescue-terminal-edge-model)
@@ -229,7 +229,7 @@ offpolicy_design() {  # Amendments 13, 23 and 24: SAC that learns from the coach
     case $1 in
         InvertedPendulum-v5) echo "$1-offpolicy none,rescue-replay,rescue-value,rescue-propose,warm-start-keep-shield-short 50000 100-109" ;;
         # no plain PPO in the sweep: its couplings are tested against plain SAC, copied from the sac sweep
-        InvertedDoublePendulum-v5) echo "$1-offpolicy none-sac,rescue-replay,demo-replay-shield 200000 100-109" ;;
+        InvertedDoublePendulum-v5) echo "$1-offpolicy none-sac,rescue-replay,demo-replay-short 200000 100-109" ;;
         Hopper-v5) echo "$1-offpolicy none-sac,rescue-replay-room 300000 100-109" ;;
         *) echo "evidence.sh: --offpolicy is for InvertedPendulum-v5, InvertedDoublePendulum-v5 and Hopper-v5" \
                 "(docs/analysis-plan.md, Amendments 13, 23 and 24)" >&2; exit 2 ;;

@@ -17,11 +17,13 @@ e.g. .venv/bin/python benchmarks/repeat_runs.py docs/results/Walker2d-v5-sac \
 from __future__ import annotations
 
 import csv
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from bench_cli import Parser, fail, run
+
+from pidlab.errors import ExperimentError
+from pidlab.files import load_json, read_text
 
 
 @dataclass(frozen=True)
@@ -35,16 +37,32 @@ class Repeat:
     shas: tuple[str, str]
 
 
+def _bad(path: Path, why: str) -> ExperimentError:
+    return ExperimentError(f"{path}: {why}")
+
+
 def _rows(run_dir: Path) -> list[list[str]]:
-    with (run_dir / "evaluations.csv").open(newline="") as f:
-        return list(csv.reader(f))[1:]
+    """The data rows of a run's ``evaluations.csv``; each must start with its env step."""
+    path = run_dir / "evaluations.csv"
+    rows = list(csv.reader(read_text(path, "evaluations log", ExperimentError).splitlines()))[1:]
+    for i, row in enumerate(rows):
+        if not row or not row[0].isdigit():
+            raise _bad(path, f"row {i + 1} does not start with an env step (a whole number)")
+    return rows
 
 
 def _record(run_dir: Path) -> tuple[tuple[int, ...], str]:
     """The env steps at which the run was resumed, and the git SHA that started it (``run.json``)."""
-    record = json.loads((run_dir / "run.json").read_text())
-    resumes = tuple(int(r.get("from_env_steps", -1)) for r in record.get("resumes") or ())
-    return resumes, str(record.get("git", {}).get("sha", "?"))[:12]
+    path = run_dir / "run.json"
+    record = load_json(path, "run record", ExperimentError)
+    resumes = record.get("resumes") if isinstance(record, dict) else None
+    git = record.get("git") if isinstance(record, dict) else None
+    if not isinstance(resumes, list | type(None)) or not isinstance(git, dict):
+        raise _bad(path, "not a run record (expected a list 'resumes' and a table 'git')")
+    steps = [r.get("from_env_steps") if isinstance(r, dict) else None for r in resumes or ()]
+    if not all(isinstance(x, int) for x in steps):
+        raise _bad(path, "a resume without its env step (from_env_steps)")
+    return tuple(steps), str(git.get("sha", "?"))[:12]
 
 
 def compare(short: Path, long: Path, seed: int) -> Repeat:
@@ -59,12 +77,16 @@ def compare(short: Path, long: Path, seed: int) -> Repeat:
 
 def _finished(run_dir: Path) -> bool:
     summary = run_dir / "summary.json"
-    return summary.is_file() and json.loads(summary.read_text()).get("completed") is True
+    if not summary.is_file():
+        return False
+    data = load_json(summary, "run summary", ExperimentError)
+    return isinstance(data, dict) and data.get("completed") is True
 
 
 def _seeds(folder: Path) -> set[int]:
-    """The seeds of the finished runs of a condition folder."""
-    return {int(p.name.removeprefix("seed-")) for p in folder.glob("seed-*") if _finished(p)}
+    """The seeds of the finished runs of a condition folder (folders ``seed-N``; others are ignored)."""
+    runs = (p for p in folder.glob("seed-*") if p.name.removeprefix("seed-").isdigit())
+    return {int(p.name.removeprefix("seed-")) for p in runs if _finished(p)}
 
 
 def table(repeats: list[Repeat]) -> str:

@@ -227,3 +227,15 @@ def test_repeat_runs_by_hand(tmp_path):
     rows = repeat_runs.table([repeat_runs.compare(short, long, s) for s in (0, 1)]).splitlines()
     assert rows[2] == f"| 0 | 2 | none: identical | - / - | {'a' * 12} / {'b' * 12} |"
     assert rows[3] == f"| 1 | 2 | 10 | 7 / - | {'a' * 12} / {'b' * 12} |"
+    # damaged files are named in one line, not a traceback
+    from pidlab.errors import ExperimentError
+
+    (long / "seed-0" / "evaluations.csv").write_text(head + "x,2.0\n")
+    with pytest.raises(ExperimentError, match="row 1 does not start with an env step"):
+        repeat_runs.compare(short, long, 0)
+    (short / "seed-1" / "run.json").write_text(json.dumps({"git": {}, "resumes": [{}]}))
+    with pytest.raises(ExperimentError, match="a resume without its env step"):
+        repeat_runs.compare(short, long, 1)
+    (short / "seed-0" / "summary.json").write_text('{"completed": tr')
+    with pytest.raises(ExperimentError, match="run summary is damaged"):
+        repeat_runs._seeds(short)

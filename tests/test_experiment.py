@@ -65,6 +65,7 @@ SAC_ONLY = (
     "rescue-value",
     "rescue-propose",
     "demo-replay",
+    "demo-replay-short",
     "demo-replay-shield",
     "rescue-replay-room",
 )  # the coach's transitions feed an off-policy agent's replay

@@ -112,12 +112,12 @@ def test_amendment_13_governs_the_off_policy_couplings_on_invertedpendulum_only(
 
 
 def test_amendment_23_governs_two_sac_couplings_on_the_double_pendulum_against_plain_sac():
-    sweep, idp = ["none-sac", "rescue-replay", "demo-replay-shield"], ["InvertedDoublePendulum-v5"]
+    sweep, idp = ["none-sac", "rescue-replay", "demo-replay-short"], ["InvertedDoublePendulum-v5"]
     assert plan.role(range(100, 110), sweep, ["sac"], idp) == "confirmatory"
     assert plan.amendments_of(sweep, idp, range(100, 110)) == (8, 23)
     assert "Amendment 23" in plan.citation(range(100, 110), sweep, ["sac"], idp)
     for env in ("InvertedPendulum-v5", "Hopper-v5", "Walker2d-v5"):
-        assert "demo-replay-shield" in plan.ungoverned(sweep, [env])
+        assert "demo-replay-short" in plan.ungoverned(sweep, [env])
 
 
 def test_amendment_24_governs_the_room_shields_sac_coupling_on_hopper_against_plain_sac():

@@ -347,6 +347,20 @@ def test_sac_keeps_the_coachs_demonstrations_in_the_coach_buffer(spec, tmp_path,
     assert 300 - 8 <= state["sb3"]["n_updates"] <= 300
 
 
+def test_sac_learning_starts_right_after_demonstrations_shorter_than_its_warm_up(spec, tmp_path):
+    """The demonstrations are SAC's warm-up: 50 of them end a warm-up of 100 (learning_starts) at 50."""
+    from pidlab.rl.checkpoint import _read_npz
+
+    data = recipe_data(off_after=0.0, view="hidden", demonstrations={"steps": 50, "noise": 0.1})
+    assert data["sac"]["learning_starts"] == 100
+    result = train(parse_recipe(data, "tiny"), spec, tmp_path / "run", progress_bar=False)
+    state = read_json(latest_checkpoint(tmp_path / "run") / "state.json")
+    agent = _read_npz(latest_checkpoint(tmp_path / "run") / "replay_buffer.npz")
+    assert result.coach_steps == 50 and len(agent["rewards"]) == result.agent_steps == 350
+    # every agent env step bought one gradient step (SB3 trains once per rollout of 8), none random
+    assert 350 - 8 <= state["sb3"]["n_updates"] <= 350
+
+
 def test_sac_demonstrations_behind_the_shield_share_the_coach_buffer_with_its_rescues(spec, tmp_path):
     """demo-replay-shield: the demonstrations first, then the coach's steps of every veto, in one buffer."""
     from pidlab.rl import demonstrations as demo

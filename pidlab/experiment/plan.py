@@ -120,7 +120,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
     Amendment(21, ("rescue-terminal-room-focus-learned",), envs=("Hopper-v5",)),
     Amendment(22, ("none-sac",), envs=("Walker2d-v5",), algorithms=("sac",)),
     Amendment(
-        23, ("rescue-replay", "demo-replay-shield"), envs=("InvertedDoublePendulum-v5",), algorithms=("sac",)
+        23, ("rescue-replay", "demo-replay-short"), envs=("InvertedDoublePendulum-v5",), algorithms=("sac",)
     ),
     Amendment(24, ("rescue-replay-room",), envs=("Hopper-v5",), algorithms=("sac",)),
 )

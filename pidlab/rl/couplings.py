@@ -30,8 +30,8 @@ Warm start (:class:`WarmStartCoupling`)
     rounds are checkpointed counters (``kept_rounds``, and ``kept_at``: SB3's update count at the
     last round, so a resume does not repeat one). With SAC (which needs a ``coach_buffer``) there is
     no cloning: every demonstration step enters the coach's buffer as a transition of the coach's,
-    counted as an env step towards ``learning_starts`` (:mod:`pidlab.rl.replay`); demonstrations as
-    long as ``learning_starts`` replace SAC's random warm-up.
+    counted as an env step; the demonstrations replace SAC's random warm-up (``learning_starts`` is
+    their number, :func:`pidlab.rl.train.new_model`).
 Value trigger (:class:`ValueTriggerCoupling`, TS2C-style)
     SAC's critic judges, before each agent action that the rescue region lets pass, whether the
     coach's proposal is worth more; the coach then takes over as at a veto.

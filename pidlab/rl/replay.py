@@ -39,10 +39,10 @@ Gradient steps per env step
     SB3's ``num_timesteps`` counts env steps here (the coach's steps are added, and a vetoed agent
     action, which never ran, is not), so it equals the run's env steps. Uncoached SAC makes the
     same number of gradient steps per env step, so a comparison of the two is at the same
-    update-to-data ratio. Demonstration steps count the same way: demonstrations as long as
-    ``learning_starts`` take the place of SAC's random warm-up, and learning starts right after
-    them. A coupling without a coach buffer (``rescue-terminal``) makes gradient steps only for
-    the agent's steps.
+    update-to-data ratio. Demonstration steps count the same way, and they take the place of SAC's
+    random warm-up: ``learning_starts`` is their number (:func:`pidlab.rl.train.new_model`), so
+    learning starts right after them. A coupling without a coach buffer (``rescue-terminal``) makes
+    gradient steps only for the agent's steps.
 """
 
 from __future__ import annotations

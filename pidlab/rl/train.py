@@ -250,7 +250,9 @@ def new_model(recipe: Recipe, venv: Any) -> Any:
     """A new agent of ``recipe`` on ``venv``.
 
     SAC counts env steps (:mod:`pidlab.rl.envclock`); with a coach buffer it is
-    :mod:`pidlab.rl.replay`'s, with a proposer :mod:`pidlab.rl.proposer`'s.
+    :mod:`pidlab.rl.replay`'s, with a proposer :mod:`pidlab.rl.proposer`'s. With a coach buffer and
+    demonstrations, SAC's warm-up is the demonstrations: ``learning_starts`` is their length,
+    whatever the recipe's (learning starts right after them).
     """
     kwargs = {"policy": "MlpPolicy", "env": venv, "seed": recipe.seed, "device": "cpu", "verbose": 0,
               **sb3_arguments(recipe)}  # fmt: skip
@@ -258,6 +260,9 @@ def new_model(recipe: Recipe, venv: Any) -> Any:
     if recipe.algo == "sac" and buffer is not None:
         from pidlab.rl.replay import CoachReplaySAC
 
+        demos = recipe.coaching.demonstrations
+        if demos is not None:
+            kwargs["learning_starts"] = demos.steps
         return CoachReplaySAC(coach_share=buffer.share, coach_buffer_size=buffer.size, **kwargs)
     if recipe.algo == "sac" and recipe.coaching.proposer is not None:
         from pidlab.rl.proposer import ProposerSAC
