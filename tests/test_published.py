@@ -249,6 +249,26 @@ def test_the_sac_sweep_is_for_the_envs_an_amendment_governs(env):
     ]
 
 
+def test_the_teaching_table_reads_the_aim_against_the_sweeps_own_baseline():
+    """In a sweep without plain PPO, plain SAC is the baseline row (no aim) and the couplings carry the aim."""
+    import results_table
+
+    def row(cond: str, metric: str, saving: str = "") -> dict[str, str]:
+        cells = {"iqm": "10", "ci_low": "5", "ci_high": "20", "metric": metric, "reached": "10", "runs": "10",
+                 "saving": saving, "saving_low": saving, "saving_high": saving, "verdict": ""}  # fmt: skip
+        return {"condition": cond, **cells}
+
+    rows = {}
+    for cond, saving in (("none-sac", ""), ("demo-replay-short", "0.95")):
+        for metric in ("falls", "env_steps_to_alone_target", "final_score"):
+            rows[(cond, metric)] = row(cond, metric, saving if metric != "final_score" else "")
+    base = results_table.baseline_of(["none-sac", "demo-replay-short"])
+    plain = results_table._teach_row("Foo-v5", "offpolicy", "none-sac", rows, base)
+    coupled = results_table._teach_row("Foo-v5", "offpolicy", "demo-replay-short", rows, base)
+    assert "saving" not in plain and "aim" not in plain  # with none as the baseline: "no saving (...)"
+    assert coupled.count("saving +95.0 % [+95.0 %, +95.0 %]: **met**") == 2
+
+
 def test_the_offpolicy_sweeps_refuse_walker2d():
     """Amendments 13, 23 and 24 govern SAC's couplings on the pendulums and Hopper; Walker2d is refused at once."""
     import subprocess
