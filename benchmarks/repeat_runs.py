@@ -24,6 +24,8 @@ from bench_cli import Parser, fail, run
 
 from pidlab.errors import ExperimentError
 from pidlab.files import load_json, read_text
+from pidlab.provenance import read_record
+from pidlab.rl.rundir import RUN_SCHEMA
 
 
 @dataclass(frozen=True)
@@ -54,15 +56,11 @@ def _rows(run_dir: Path) -> list[list[str]]:
 def _record(run_dir: Path) -> tuple[tuple[int, ...], str]:
     """The env steps at which the run was resumed, and the git SHA that started it (``run.json``)."""
     path = run_dir / "run.json"
-    record = load_json(path, "run record", ExperimentError)
-    resumes = record.get("resumes") if isinstance(record, dict) else None
-    git = record.get("git") if isinstance(record, dict) else None
-    if not isinstance(resumes, list | type(None)) or not isinstance(git, dict):
-        raise _bad(path, "not a run record (expected a list 'resumes' and a table 'git')")
-    steps = [r.get("from_env_steps") if isinstance(r, dict) else None for r in resumes or ()]
+    record = read_record(path, RUN_SCHEMA, ExperimentError)
+    steps = [r.extra.get("from_env_steps") for r in record.resumes]
     if not all(isinstance(x, int) for x in steps):
         raise _bad(path, "a resume without its env step (from_env_steps)")
-    return tuple(steps), str(git.get("sha", "?"))[:12]
+    return tuple(steps), str(record.git.get("sha", "?"))[:12]
 
 
 def compare(short: Path, long: Path, seed: int) -> Repeat:
