@@ -36,6 +36,8 @@
 #   bash benchmarks/evidence.sh --offpolicy InvertedDoublePendulum-v5  # Amendment 23: rescue-replay and
 #                                                     # demo-replay-short against plain SAC
 #   bash benchmarks/evidence.sh --offpolicy Hopper-v5  # Amendment 24: rescue-replay-room against plain SAC
+#   bash benchmarks/evidence.sh --offpolicy Walker2d-v5  # Amendment 25: demo-replay-balance against plain SAC
+#                                                     # (after --sac Walker2d-v5, whose none-sac it copies)
 #   bash benchmarks/evidence.sh --edgemodel InvertedPendulum-v5  # Amendment 14: the model predictor
 #                                                     # on that region (rescue-terminal-edge-model)
 #   bash benchmarks/evidence.sh --learned InvertedDoublePendulum-v5  # Amendment 15: a learned one-step
@@ -225,14 +227,15 @@ scoped_design() {  # Amendment 17: the learned model's margins where they decide
     esac
 }
 
-offpolicy_design() {  # Amendments 13, 23 and 24: SAC that learns from the coach, against the best plain baseline
+offpolicy_design() {  # Amendments 13, 23, 24 and 25: SAC that learns from the coach, against the best plain baseline
     case $1 in
         InvertedPendulum-v5) echo "$1-offpolicy none,rescue-replay,rescue-value,rescue-propose,warm-start-keep-shield-short 50000 100-109" ;;
         # no plain PPO in the sweep: its couplings are tested against plain SAC, copied from the sac sweep
         InvertedDoublePendulum-v5) echo "$1-offpolicy none-sac,rescue-replay,demo-replay-short 200000 100-109" ;;
         Hopper-v5) echo "$1-offpolicy none-sac,rescue-replay-room 300000 100-109" ;;
-        *) echo "evidence.sh: --offpolicy is for InvertedPendulum-v5, InvertedDoublePendulum-v5 and Hopper-v5" \
-                "(docs/analysis-plan.md, Amendments 13, 23 and 24)" >&2; exit 2 ;;
+        Walker2d-v5) echo "$1-offpolicy none-sac,demo-replay-balance 300000 100-109" ;;
+        *) echo "evidence.sh: --offpolicy is for the paper's four v5 envs" \
+                "(docs/analysis-plan.md, Amendments 13, 23, 24 and 25)" >&2; exit 2 ;;
     esac
 }
 

@@ -68,6 +68,7 @@ SAC_ONLY = (
     "demo-replay-short",
     "demo-replay-shield",
     "rescue-replay-room",
+    "demo-replay-balance",
 )  # the coach's transitions feed an off-policy agent's replay
 IP_ONLY = ("rescue-terminal-model",)  # the model predictor: on the other envs its error leaves no region
 FULL_ENVS = (IP, "InvertedDoublePendulum-v5")  # rescue-terminal-full: a classifier region fitted on the pendulums
@@ -78,6 +79,8 @@ ROOM_ONLY = (  # the room coach's classifier region: fitted on Hopper
     "rescue-terminal-room-full", "rescue-terminal-room-focus", "rescue-terminal-room-focus-learned",
     "rescue-replay-room",
 )  # fmt: skip
+BALANCE_ENVS = ("Hopper-v5", "Walker2d-v5")  # the balance preset: a standing posture of the legged envs
+BALANCE_ONLY = ("demo-replay-balance",)
 RETIRED = {  # shipped as published, refused in one line since a spec of theirs was found unsound
     "rescue-terminal-room-focus-learned": r"the learned forecast reads inputs \[\] as blind, and this env's are \[0\]",
 }
@@ -134,6 +137,7 @@ def test_shipped_conditions_resolve_on_all_four_envs():
                 or (name in EDGE_ONLY and env != IP)
                 or (name in LEARNED_ONLY and env != "InvertedDoublePendulum-v5")
                 or (name in ROOM_ONLY and env != "Hopper-v5")
+                or (name in BALANCE_ONLY and env not in BALANCE_ENVS)
             ):
                 continue
             given = with_overrides(recipe, algo="sac") if name in SAC_ONLY else recipe
@@ -148,7 +152,8 @@ def test_shipped_conditions_resolve_on_all_four_envs():
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: .*use predictor = 'exact'"):
                 resolve(conditions[name], recipe)
         elsewhere = (*(EDGE_ONLY if env != IP else ()), *(LEARNED_ONLY if env != "InvertedDoublePendulum-v5" else ()),
-                     *(ROOM_ONLY if env != "Hopper-v5" else ()))  # fmt: skip
+                     *(ROOM_ONLY if env != "Hopper-v5" else ()),
+                     *(BALANCE_ONLY if env not in BALANCE_ENVS else ()))  # fmt: skip
         for name in elsewhere:
             coach = conditions[name].for_env(env).coach
             with pytest.raises(ConditionError, match=f"condition {name} on {env}: coach '{coach}' not found"):

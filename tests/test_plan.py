@@ -127,6 +127,14 @@ def test_amendment_24_governs_the_room_shields_sac_coupling_on_hopper_against_pl
     assert plan.role(range(100, 110), sweep, ["sac"], ["Walker2d-v5"]) == "exploratory"
 
 
+def test_amendment_25_governs_the_balance_coachs_demonstrations_on_walker2d_against_plain_sac():
+    sweep, walker = ["none-sac", "demo-replay-balance"], ["Walker2d-v5"]
+    assert plan.role(range(100, 110), sweep, ["sac"], walker) == "confirmatory"
+    assert plan.amendments_of(sweep, walker, range(100, 110)) == (22, 25)
+    assert "Amendment 25" in plan.citation(range(100, 110), sweep, ["sac"], walker)
+    assert plan.role(range(100, 110), sweep, ["sac"], ["Hopper-v5"]) == "exploratory"
+
+
 def test_an_amendment_governs_only_its_envs_and_seeds():
     short, hopper = ["none", "warm-start-keep-shield-short"], ["Hopper-v5"]
     idp = ["InvertedDoublePendulum-v5"]

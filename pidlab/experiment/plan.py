@@ -123,6 +123,7 @@ AMENDMENT_LIST: tuple[Amendment, ...] = (
         23, ("rescue-replay", "demo-replay-short"), envs=("InvertedDoublePendulum-v5",), algorithms=("sac",)
     ),
     Amendment(24, ("rescue-replay-room",), envs=("Hopper-v5",), algorithms=("sac",)),
+    Amendment(25, ("demo-replay-balance",), envs=("Walker2d-v5",), algorithms=("sac",)),
 )
 """Every amendment that governs conditions, in the plan's order (Amendment 6 is a procedure)."""
 
