@@ -18,6 +18,18 @@ from pidlab.plant.model import LoadedModel, load_model
 from tests.helpers import DATA, PAPER_ENVS
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _sb3_logdir(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Keep SB3's default log folder in pytest's temporary tree.
+
+    A raw SB3 ``learn`` without a logger of its own creates ``$TMPDIR/SB3-<time>`` for every
+    call (its ``configure`` makes the folder even when it writes nothing); pidlab's runs set
+    their own logger, but tests that drive SB3 directly would litter the machine's temporary
+    folder with empty folders.
+    """
+    os.environ.setdefault("SB3_LOGDIR", str(tmp_path_factory.mktemp("sb3")))
+
+
 @pytest.fixture(scope="session")
 def models() -> dict[str, LoadedModel]:
     return {env: load_model(env) for env in PAPER_ENVS}
