@@ -209,6 +209,23 @@ def test_coverage_cli_refuses_bad_input_in_one_line(args, message) -> None:
     assert code == 2 and message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("command", ["rescue-coverage", "rescue-classifier"])
+def test_a_domain_variable_the_env_lacks_is_refused_before_anything_is_said(command, tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from pidlab.cli import app
+
+    spec = tmp_path / "coach.toml"
+    spec.write_bytes((TUNING / "InvertedPendulum-v5.pidlab-rescue.toml").read_bytes())
+    result = CliRunner().invoke(app, [command, str(spec), "--domain", "hinge_pos=0.2,nope_pos=1"])
+    assert result.exit_code == 2 and result.stdout == ""  # no journal announced for work never done
+    assert result.stderr.strip().splitlines() == [
+        "pidlab: error: 'nope_pos' is not an observation variable of InvertedPendulum-v5; valid names: "
+        "slider_pos, hinge_pos, slider_vel, hinge_vel"
+    ]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["coach.toml"]
+
+
 def test_coverage_cli_prints_and_writes_the_figures(tmp_path) -> None:
     from typer.testing import CliRunner
 

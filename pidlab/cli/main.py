@@ -1134,6 +1134,7 @@ def rescue_classifier(
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
+        _check_domain_names(box, loaded)
         con = wide_console()
         journal = _journal_beside(con, output or spec_file, "labels")  # beside the spec it writes
         found = _resumable_classifier(con, spec, loaded, settings, workers, journal)
@@ -1215,6 +1216,13 @@ def _stage_lines(label: str) -> Callable[[str, float | None], None]:
     return progress
 
 
+def _check_domain_names(box: dict[str, float], loaded: Any) -> None:
+    """Refuse a ``--domain`` variable the env does not observe, before any journal is announced."""
+    card = loaded.require_card()
+    for name in box:
+        card.variable(name)  # UnknownSignalError (one line, exit 2) names the valid ones
+
+
 def _domain_box(text: str) -> dict[str, float]:
     """``--domain``: ``VARIABLE=HALF-WIDTH`` pairs; a malformed one is refused in one line."""
     import math
@@ -1270,6 +1278,7 @@ def rescue_coverage(
     if json_file is not None:
         check_output_file(json_file, "json")
     specs, loaded = _specs_of_one_env(spec_files)
+    _check_domain_names(box, loaded)
     con = wide_console()
     journals = [_journal_beside(con, f, "coverage-labels") for f in spec_files]
     found = []
