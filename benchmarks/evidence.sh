@@ -248,6 +248,18 @@ model_design() {  # the model predictor in training (issue 38): exploratory, on 
 }
 
 for env in "${envs[@]}"; do design "$env" > /dev/null; done   # a wrong name stops before any work
+needs_plain_sac() {  # an off-policy sweep without plain PPO copies plain SAC from the env's --sac sweep
+    [ "$mode" = offpolicy ] && [[ ",$2," == *",none-sac,"* ]] || return 0
+    [ -e "results/$1-sac/experiment.json" ] || [ -e "docs/results/$1-sac/experiment.json" ] || {
+        echo "evidence.sh: --offpolicy $1 copies its plain SAC runs from the --sac sweep, and there is none" \
+             "(no results/$1-sac or docs/results/$1-sac); run bash benchmarks/evidence.sh --sac $1 first" >&2
+        exit 2
+    }
+}
+for env in "${envs[@]}"; do
+    read -r _ conditions _ _ <<< "$(design "$env")"
+    needs_plain_sac "$env" "$conditions"
+done
 bash scripts/setup.sh
 export PATH="$PWD/.venv/bin:$PATH"
 for env in "${envs[@]}"; do

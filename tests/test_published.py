@@ -282,6 +282,30 @@ def test_the_offpolicy_sweeps_refuse_an_env_outside_the_paper():
     ]
 
 
+def test_an_offpolicy_sweep_without_the_plain_sac_runs_it_copies_is_refused(tmp_path):
+    """Amendments 23-25 copy none-sac from the env's --sac sweep; without it the script stops before any work."""
+    import shutil
+    import subprocess
+
+    (tmp_path / "benchmarks").mkdir()
+    shutil.copy(ROOT / "benchmarks" / "evidence.sh", tmp_path / "benchmarks" / "evidence.sh")
+    script = ["bash", str(tmp_path / "benchmarks" / "evidence.sh"), "--offpolicy", "Hopper-v5"]
+    done = subprocess.run(script, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.strip().splitlines() == [
+        "evidence.sh: --offpolicy Hopper-v5 copies its plain SAC runs from the --sac sweep, and there is none "
+        "(no results/Hopper-v5-sac or docs/results/Hopper-v5-sac); run bash benchmarks/evidence.sh --sac "
+        "Hopper-v5 first"
+    ]
+    (tmp_path / "docs" / "results" / "Hopper-v5-sac").mkdir(parents=True)
+    (tmp_path / "docs" / "results" / "Hopper-v5-sac" / "experiment.json").write_text("{}")
+    done = subprocess.run(script, capture_output=True, text=True, timeout=60)  # past the check: no setup here
+    assert "copies its plain SAC runs" not in done.stderr and "scripts/setup.sh" in done.stderr
+    ip = ["bash", str(tmp_path / "benchmarks" / "evidence.sh"), "--offpolicy", "InvertedPendulum-v5"]
+    done = subprocess.run(ip, capture_output=True, text=True, timeout=60)  # its sweep holds plain PPO
+    assert "copies its plain SAC runs" not in done.stderr and "scripts/setup.sh" in done.stderr
+
+
 @pytest.mark.parametrize(
     ("sweep", "amendment", "home", "env"),
     [("edgemodel", 14, "InvertedPendulum-v5", "Hopper-v5"),
