@@ -247,7 +247,6 @@ model_design() {  # the model predictor in training (issue 38): exploratory, on 
     esac
 }
 
-for env in "${envs[@]}"; do design "$env" > /dev/null; done   # a wrong name stops before any work
 needs_plain_sac() {  # an off-policy sweep without plain PPO copies plain SAC from the env's --sac sweep
     [ "$mode" = offpolicy ] && [[ ",$2," == *",none-sac,"* ]] || return 0
     [ -e "results/$1-sac/experiment.json" ] || [ -e "docs/results/$1-sac/experiment.json" ] || {
@@ -256,8 +255,9 @@ needs_plain_sac() {  # an off-policy sweep without plain PPO copies plain SAC fr
         exit 2
     }
 }
-for env in "${envs[@]}"; do
-    read -r _ conditions _ _ <<< "$(design "$env")"
+for env in "${envs[@]}"; do   # a wrong name, or missing runs to copy, stops before any work
+    line=$(design "$env")       # an assignment: design's exit 2 stops the script (set -e)
+    read -r _ conditions _ _ <<< "$line"
     needs_plain_sac "$env" "$conditions"
 done
 bash scripts/setup.sh
