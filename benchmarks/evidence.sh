@@ -146,15 +146,15 @@ teach_design() {  # the teaching couplings' sweeps (docs/analysis-plan.md, Amend
         teach5) echo "$1-teach5 none,residual $steps $seeds" ;;
         teach6) case $1 in   # Amendment 7: the locomotion envs' reduced design
                     Hopper-v5|Walker2d-v5) echo "$1-teach6 none,rescue-terminal,warm-start-keep-shield-short $steps $seeds" ;;
-                    *) echo "evidence.sh: --teach6 is for Hopper-v5 and Walker2d-v5 (docs/analysis-plan.md, Amendment 7)" >&2; exit 2 ;;
+                    *) echo "evidence.sh: --teach6 $1: the design is for Hopper-v5 and Walker2d-v5 (docs/analysis-plan.md, Amendment 7)" >&2; exit 2 ;;
                 esac ;;
         teach7) case $1 in   # Amendment 10: the demonstrations' weight held, on fresh seeds
                     InvertedDoublePendulum-v5) echo "$1-teach7 none,warm-start-hold $steps 110-119" ;;
-                    *) echo "evidence.sh: --teach7 is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 10)" >&2; exit 2 ;;
+                    *) echo "evidence.sh: --teach7 $1: the design is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 10)" >&2; exit 2 ;;
                 esac ;;
         teach8) case $1 in   # Amendment 19: half the demonstrations, held, on fresh seeds
                     InvertedDoublePendulum-v5) echo "$1-teach8 none,warm-start-hold-short $steps 120-129" ;;
-                    *) echo "evidence.sh: --teach8 is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 19)" >&2; exit 2 ;;
+                    *) echo "evidence.sh: --teach8 $1: the design is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 19)" >&2; exit 2 ;;
                 esac ;;
     esac
 }
@@ -165,7 +165,7 @@ sac_design() {  # Amendments 8, 18 and 22: the plain SAC baseline beside plain P
         InvertedDoublePendulum-v5) echo "$1-sac none,none-sac 200000 100-109" ;;
         Hopper-v5) echo "$1-sac none,none-sac 300000 100-109" ;;
         Walker2d-v5) echo "$1-sac none,none-sac 300000 100-109" ;;   # both at 300,000 (Amendment 22)
-        *) echo "evidence.sh: --sac is for the paper's four v5 envs" \
+        *) echo "evidence.sh: --sac $1: the design is for the paper's four v5 envs" \
                "(docs/analysis-plan.md, Amendments 8, 18 and 22)" >&2; exit 2 ;;
     esac
 }
@@ -174,56 +174,56 @@ full_design() {  # Amendments 9 and 11: the rescue region over the full state (a
     case $1 in
         InvertedPendulum-v5) echo "$1-full none,rescue-terminal,rescue-terminal-full 50000 100-109" ;;
         InvertedDoublePendulum-v5) echo "$1-full none,rescue-terminal,rescue-terminal-full 200000 100-109" ;;
-        *) echo "evidence.sh: --full is for the pendulums (docs/analysis-plan.md, Amendments 9 and 11)" >&2; exit 2 ;;
+        *) echo "evidence.sh: --full $1: the design is for the pendulums (docs/analysis-plan.md, Amendments 9 and 11)" >&2; exit 2 ;;
     esac
 }
 
 edge_design() {  # Amendment 12: the classifier region validated at its edge, after the trigger's terminal rule
     case $1 in
         InvertedPendulum-v5) echo "$1-edge none,rescue-terminal,rescue-terminal-edge 50000 100-109" ;;
-        *) echo "evidence.sh: --edge is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment 12)" >&2; exit 2 ;;
+        *) echo "evidence.sh: --edge $1: the design is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment 12)" >&2; exit 2 ;;
     esac
 }
 
 edgemodel_design() {  # Amendment 14: the model predictor on the classifier region validated at its edge
     case $1 in
         InvertedPendulum-v5) echo "$1-edgemodel none,rescue-terminal-edge,rescue-terminal-edge-model 50000 100-109" ;;
-        *) echo "evidence.sh: --edgemodel is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment 14)" >&2; exit 2 ;;
+        *) echo "evidence.sh: --edgemodel $1: the design is for InvertedPendulum-v5 (docs/analysis-plan.md, Amendment 14)" >&2; exit 2 ;;
     esac
 }
 
 learned_design() {  # Amendment 15: a learned one-step model on the full-state region of InvertedDoublePendulum
     case $1 in
         InvertedDoublePendulum-v5) echo "$1-learned none,rescue-terminal-full,rescue-terminal-full-learned 200000 100-109" ;;
-        *) echo "evidence.sh: --learned is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 15)" >&2; exit 2 ;;
+        *) echo "evidence.sh: --learned $1: the design is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 15)" >&2; exit 2 ;;
     esac
 }
 
 room_design() {  # Amendment 16: Hopper's room coach and its classifier region over the legs
     case $1 in
         Hopper-v5) echo "$1-room none,rescue-terminal,rescue-terminal-room-full 300000 100-109" ;;
-        *) echo "evidence.sh: --room is for Hopper-v5 (docs/analysis-plan.md, Amendment 16)" >&2; exit 2 ;;
+        *) echo "evidence.sh: --room $1: the design is for Hopper-v5 (docs/analysis-plan.md, Amendment 16)" >&2; exit 2 ;;
     esac
 }
 
 roomfocus_design() {  # Amendment 20: Hopper's room coach with its classifier region fitted with focus
     case $1 in
         Hopper-v5) echo "$1-roomfocus none,rescue-terminal-room-full,rescue-terminal-room-focus 300000 100-109" ;;
-        *) echo "evidence.sh: --roomfocus is for Hopper-v5 (docs/analysis-plan.md, Amendment 20)" >&2; exit 2 ;;
+        *) echo "evidence.sh: --roomfocus $1: the design is for Hopper-v5 (docs/analysis-plan.md, Amendment 20)" >&2; exit 2 ;;
     esac
 }
 
 roommodel_design() {  # Amendment 21: that region asked through a learned one-step model, on Hopper
     case $1 in
         Hopper-v5) echo "$1-roommodel none,rescue-terminal-room-focus,rescue-terminal-room-focus-learned 300000 100-109" ;;
-        *) echo "evidence.sh: --roommodel is for Hopper-v5 (docs/analysis-plan.md, Amendment 21)" >&2; exit 2 ;;
+        *) echo "evidence.sh: --roommodel $1: the design is for Hopper-v5 (docs/analysis-plan.md, Amendment 21)" >&2; exit 2 ;;
     esac
 }
 
 scoped_design() {  # Amendment 17: the learned model's margins where they decide a veto, and the linear bound
     case $1 in
         InvertedDoublePendulum-v5) echo "$1-scoped none,rescue-terminal-full,rescue-terminal-full-learned,rescue-terminal-full-scoped 200000 100-109" ;;
-        *) echo "evidence.sh: --scoped is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 17)" >&2; exit 2 ;;
+        *) echo "evidence.sh: --scoped $1: the design is for InvertedDoublePendulum-v5 (docs/analysis-plan.md, Amendment 17)" >&2; exit 2 ;;
     esac
 }
 
@@ -234,7 +234,7 @@ offpolicy_design() {  # Amendments 13, 23, 24 and 25: SAC that learns from the c
         InvertedDoublePendulum-v5) echo "$1-offpolicy none-sac,rescue-replay,demo-replay-short 200000 100-109" ;;
         Hopper-v5) echo "$1-offpolicy none-sac,rescue-replay-room 300000 100-109" ;;
         Walker2d-v5) echo "$1-offpolicy none-sac,demo-replay-balance 300000 100-109" ;;
-        *) echo "evidence.sh: --offpolicy is for the paper's four v5 envs" \
+        *) echo "evidence.sh: --offpolicy $1: the design is for the paper's four v5 envs" \
                 "(docs/analysis-plan.md, Amendments 13, 23, 24 and 25)" >&2; exit 2 ;;
     esac
 }
@@ -242,18 +242,27 @@ offpolicy_design() {  # Amendments 13, 23, 24 and 25: SAC that learns from the c
 model_design() {  # the model predictor in training (issue 38): exploratory, on the confirmatory seeds
     case $1 in
         InvertedPendulum-v5) echo "$1-model none,rescue-terminal,rescue-terminal-model 50000 100-109" ;;
-        *) echo "evidence.sh: --model is for InvertedPendulum-v5 (on the other envs the linear forecast's" \
+        *) echo "evidence.sh: --model $1: the design is for InvertedPendulum-v5 (on the other envs the linear forecast's" \
                "error leaves no rescue region: docs/rescue.md)" >&2; exit 2 ;;
     esac
 }
 
-needs_plain_sac() {  # an off-policy sweep without plain PPO copies plain SAC from the env's --sac sweep
+needs_plain_sac() {  # an off-policy sweep without plain PPO copies plain SAC from the env's finished --sac sweep
     [ "$mode" = offpolicy ] && [[ ",$2," == *",none-sac,"* ]] || return 0
-    [ -e "results/$1-sac/experiment.json" ] || [ -e "docs/results/$1-sac/experiment.json" ] || {
-        echo "evidence.sh: --offpolicy $1 copies its plain SAC runs from the --sac sweep, and there is none" \
-             "(no results/$1-sac or docs/results/$1-sac); run bash benchmarks/evidence.sh --sac $1 first" >&2
-        exit 2
-    }
+    local seeds first last seed place missing=0
+    read -r _ _ _ seeds <<< "$(sac_design "$1")"
+    first=${seeds%-*} last=${seeds#*-}
+    for ((seed = first; seed <= last; seed++)); do   # a finished run is in either place
+        for place in results docs/results; do
+            grep -qs '"completed": true' "$place/$1-sac/runs/$1/none-sac/seed-$seed/summary.json" && continue 2
+        done
+        missing=$((missing + 1))
+    done
+    [ "$missing" -eq 0 ] && return 0
+    echo "evidence.sh: --offpolicy $1 copies its plain SAC runs (none-sac, seeds $seeds) from the --sac sweep," \
+         "and $missing of the $((last - first + 1)) are not finished in results/$1-sac or docs/results/$1-sac;" \
+         "run bash benchmarks/evidence.sh --sac $1 first" >&2
+    exit 2
 }
 for env in "${envs[@]}"; do   # a wrong name, or missing runs to copy, stops before any work
     line=$(design "$env")       # an assignment: design's exit 2 stops the script (set -e)

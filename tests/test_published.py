@@ -245,7 +245,8 @@ def test_the_sac_sweep_is_for_the_envs_an_amendment_governs(env):
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip().splitlines() == [
-        "evidence.sh: --sac is for the paper's four v5 envs (docs/analysis-plan.md, Amendments 8, 18 and 22)"
+        f"evidence.sh: --sac {env}: the design is for the paper's four v5 envs "
+        "(docs/analysis-plan.md, Amendments 8, 18 and 22)"
     ]
 
 
@@ -277,28 +278,42 @@ def test_the_offpolicy_sweeps_refuse_an_env_outside_the_paper():
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip().splitlines() == [
-        "evidence.sh: --offpolicy is for the paper's four v5 envs "
+        "evidence.sh: --offpolicy Ant-v5: the design is for the paper's four v5 envs "
         "(docs/analysis-plan.md, Amendments 13, 23, 24 and 25)"
     ]
 
 
 def test_an_offpolicy_sweep_without_the_plain_sac_runs_it_copies_is_refused(tmp_path):
-    """Amendments 23-25 copy none-sac from the env's --sac sweep; without it the script stops before any work."""
+    """Amendments 23-25 copy none-sac from the env's finished --sac sweep; short of it the script stops at once."""
     import shutil
     import subprocess
 
     (tmp_path / "benchmarks").mkdir()
     shutil.copy(ROOT / "benchmarks" / "evidence.sh", tmp_path / "benchmarks" / "evidence.sh")
     script = ["bash", str(tmp_path / "benchmarks" / "evidence.sh"), "--offpolicy", "Hopper-v5"]
+
+    def refusal(missing: int) -> list[str]:
+        return [
+            "evidence.sh: --offpolicy Hopper-v5 copies its plain SAC runs (none-sac, seeds 100-109) from the --sac "
+            f"sweep, and {missing} of the 10 are not finished in results/Hopper-v5-sac or docs/results/Hopper-v5-sac; "
+            "run bash benchmarks/evidence.sh --sac Hopper-v5 first"
+        ]
+
+    def finish(place: str, seeds: range, completed: str = "true") -> None:
+        for seed in seeds:
+            run = tmp_path / place / "Hopper-v5-sac" / "runs" / "Hopper-v5" / "none-sac" / f"seed-{seed}"
+            run.mkdir(parents=True, exist_ok=True)
+            (run / "summary.json").write_text(f'{{\n  "completed": {completed},\n  "env_steps": 5\n}}\n')
+
     done = subprocess.run(script, capture_output=True, text=True, timeout=60)
-    assert done.returncode == 2 and done.stdout == ""
-    assert done.stderr.strip().splitlines() == [
-        "evidence.sh: --offpolicy Hopper-v5 copies its plain SAC runs from the --sac sweep, and there is none "
-        "(no results/Hopper-v5-sac or docs/results/Hopper-v5-sac); run bash benchmarks/evidence.sh --sac "
-        "Hopper-v5 first"
-    ]
-    (tmp_path / "docs" / "results" / "Hopper-v5-sac").mkdir(parents=True)
-    (tmp_path / "docs" / "results" / "Hopper-v5-sac" / "experiment.json").write_text("{}")
+    assert (done.returncode, done.stdout, done.stderr.strip().splitlines()) == (2, "", refusal(10))
+    finish("docs/results", range(100, 106))  # a sweep stopped part-way: its checkpointed runs say so
+    finish("results", range(106, 109), completed="false")
+    for place in ("results", "docs/results"):  # each sweep folder holds its experiment.json from the start
+        (tmp_path / place / "Hopper-v5-sac" / "experiment.json").write_text("{}")
+    done = subprocess.run(script, capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stdout, done.stderr.strip().splitlines()) == (2, "", refusal(4))
+    finish("results", range(106, 110))  # finished here, the rest published: every one is there
     done = subprocess.run(script, capture_output=True, text=True, timeout=60)  # past the check: no setup here
     assert "copies its plain SAC runs" not in done.stderr and "scripts/setup.sh" in done.stderr
     ip = ["bash", str(tmp_path / "benchmarks" / "evidence.sh"), "--offpolicy", "InvertedPendulum-v5"]
@@ -322,5 +337,5 @@ def test_the_one_env_sweeps_refuse_other_envs(env, sweep, amendment, home):
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip().splitlines() == [
-        f"evidence.sh: --{sweep} is for {home} (docs/analysis-plan.md, Amendment {amendment})"
+        f"evidence.sh: --{sweep} {env}: the design is for {home} (docs/analysis-plan.md, Amendment {amendment})"
     ]
