@@ -76,6 +76,26 @@ def test_a_sweep_split_over_sessions_is_marked_in_progress_until_every_run_finis
     assert results_table._progress("sweep", record, 1000) == ""
 
 
+def test_the_site_navigation_says_in_progress_exactly_while_a_sweep_is_unfinished():
+    """A report's nav label in mkdocs.yml carries "(in progress)" while, and only while, runs are missing."""
+    import json
+    import re
+
+    import results_table
+
+    checked = 0
+    for line in (ROOT / "mkdocs.yml").read_text().splitlines():
+        entry = re.match(r'\s*- "?(.+?)"?: results/(.+)/report\.md$', line)
+        if entry is None or not (ROOT / "docs" / "results" / entry[2] / "experiment.json").is_file():
+            continue
+        record = json.loads((ROOT / "docs" / "results" / entry[2] / "experiment.json").read_text())
+        env = next(iter(record["identity"]["runs"])).split("/")[0]
+        unfinished = results_table._unfinished(env, entry[2], record)
+        assert ("(in progress)" in entry[1]) == bool(unfinished), f"{entry[2]}: label {entry[1]!r}, {unfinished!r}"
+        checked += 1
+    assert checked >= 40
+
+
 def test_the_evidence_script_refuses_an_env_without_a_design_before_any_work():
     import subprocess
 
