@@ -252,6 +252,8 @@ needs_plain_sac() {  # an off-policy sweep without plain PPO copies plain SAC fr
     local seeds first last seed place missing=0
     read -r _ _ _ seeds <<< "$(sac_design "$1")"
     first=${seeds%-*} last=${seeds#*-}
+    # pidlab.rl.rundir.finished_summary is the one reading of "finished", but this check runs before
+    # setup (a new machine has no .venv yet): its summary.json, written by pidlab, says "completed": true
     for ((seed = first; seed <= last; seed++)); do   # a finished run is in either place
         for place in results docs/results; do
             grep -qs '"completed": true' "$place/$1-sac/runs/$1/none-sac/seed-$seed/summary.json" && continue 2
