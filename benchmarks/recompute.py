@@ -5,12 +5,13 @@ holds its record (experiment.json) and, under runs/ENV/CONDITION/seed-S/, every 
 episodes.csv, evaluations.csv, summary.json and config.toml (the recipe it ran). This script
 analyzes those logs with pidlab's own code, without retraining, and compares the result byte for
 byte with the committed metrics.csv, summary.csv, report.md and report.html; then it recomputes the
-tables of docs/results/README.md (benchmarks/results_table.py) from the summaries. For a pipeline's
-experiment (docs/results/pipeline-ENV/experiment/) it also recomputes the section of the pipeline's
-own report (docs/results/pipeline-ENV/report.md) that reads those runs, "The agent alone" (its
-table, design note and reading), and its last section, "Why this coaching", from the published
-experiment it cites (the other sections come from stages whose data is not published),
-and checks that the pipeline's report.html is its report.md rendered.
+tables of docs/results/README.md (benchmarks/results_table.py) from the summaries, and
+docs/rescue.md's forecast tables (benchmarks/forecast_table.py) from the shipped specs and the
+published runs. For a pipeline's experiment (docs/results/pipeline-ENV/experiment/) it also
+recomputes the section of the pipeline's own report (docs/results/pipeline-ENV/report.md) that
+reads those runs, "The agent alone" (its table, design note and reading), and its last section,
+"Why this coaching", from the published experiment it cites (the other sections come from stages
+whose data is not published), and checks that the pipeline's report.html is its report.md rendered.
 
 With --write it writes the recomputed files (and that section of a pipeline's report, with its
 report.html) instead of comparing: run it after a change to the report code, then review the diff.
@@ -151,6 +152,14 @@ def check_readme() -> list[str]:
     return problems
 
 
+def check_forecast() -> list[str]:
+    """docs/rescue.md's forecast tables against benchmarks/forecast_table.py's (minutes: Hopper's rows)."""
+    import forecast_table
+
+    same = forecast_table.page_tables() == forecast_table.tables().strip()
+    return [] if same else [forecast_table.MISMATCH]
+
+
 def main(argv: list[str]) -> int:
     """Recompute the folders given (default: every published one); print what differs, or write it."""
     write = "--write" in argv
@@ -180,7 +189,7 @@ def main(argv: list[str]) -> int:
             problems += diffs
         print("\n".join(explanations(a)))
     if not argv and not write:
-        problems += check_readme()
+        problems += check_readme() + check_forecast()
     for p in problems:
         print(p)
     return 1 if problems else 0

@@ -144,8 +144,26 @@ def _main_job(options: list[str], cwd: Path, what: str) -> None:
         done = subprocess.run(argv, env=_env(), capture_output=True, text=True, timeout=900)
         _check(done, what)
         assert f"report: {out / 'report.html'}" in done.stdout
+        _the_main_job_warm_starts_with_the_recipes_condition(out)
         _MAIN_JOB[key] = out
     assert (_MAIN_JOB[key] / "report.html").is_file() and (_MAIN_JOB[key] / "report.md").is_file()
+
+
+def _the_main_job_warm_starts_with_the_recipes_condition(out: Path) -> None:
+    """The recipe's condition: the coach demonstrates, the agent is cloned, the report cites its evidence."""
+    import json
+
+    from pidlab.rl.recipe import load_pipeline_settings
+
+    settings = load_pipeline_settings(ROOT / "coach" / "InvertedPendulum-v5.toml")
+    run = out / "experiment" / "runs" / "InvertedPendulum-v5" / "coached" / "seed-0"
+    record = json.loads((run / "warm_start.json").read_text())
+    summary = json.loads((run / "summary.json").read_text())
+    assert record["demonstration_steps"] == 2500 and summary["kept_rounds"] >= 1
+    assert summary["env_steps"] == summary["agent_steps"] + summary["coach_steps"] >= 4000
+    report = (out / "report.md").read_text()
+    assert f"condition `{settings.condition}`" in report
+    assert "docs/results/InvertedPendulum-v5-teach4" in report  # its confirmation, on seeds 110-119
 
 
 def _without_out(options: list[str]) -> tuple[str, ...]:

@@ -368,23 +368,6 @@ def test_the_main_job_uses_the_coupling_its_confirmation_supports(env_id, folder
     assert verdicts["falls"] == "better" and "worse" not in verdicts.values()
 
 
-def test_the_main_job_warm_starts_with_the_recipes_condition(tmp_path):
-    """The recipe's condition: the coach demonstrates, the agent is cloned, the report cites its evidence."""
-    out = tmp_path / "ws"
-    args = ["--seeds", "1", "--steps", "4000", "--samples", "40", "--episodes", "1", "--workers", "2"]
-    done = _run("InvertedPendulum-v5", "--out", str(out), *args, "--no-progress")
-    assert done.returncode == 0, done.stderr[-2000:]
-    settings = load_pipeline_settings(ROOT / "coach" / "InvertedPendulum-v5.toml")
-    run = out / "experiment" / "runs" / "InvertedPendulum-v5" / "coached" / "seed-0"
-    record = json.loads((run / "warm_start.json").read_text())
-    summary = json.loads((run / "summary.json").read_text())
-    assert record["demonstration_steps"] == 2500 and summary["kept_rounds"] >= 1
-    assert summary["env_steps"] == summary["agent_steps"] + summary["coach_steps"] >= 4000
-    report = (out / "report.md").read_text()
-    assert f"condition `{settings.condition}`" in report
-    assert "docs/results/InvertedPendulum-v5-teach4" in report  # its confirmation, on seeds 110-119
-
-
 @pytest.mark.parametrize(
     ("keep", "says"),
     [
