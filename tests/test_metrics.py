@@ -242,6 +242,50 @@ def test_falls_and_env_resets_of_old_and_new_run_logs(tmp_path):
         read_logs(tmp_path, {**summary, "falls": -1})
 
 
+def test_episode_logs_read_by_column_are_the_rows_read_one_by_one(tmp_path):
+    """read_logs holds episodes.csv by column: the same numbers as row by row; a ragged row is damage."""
+    from pidlab.experiment.analysis import read_logs
+    from pidlab.rl.rundir import EPISODE_COLUMNS, csv_columns, read_csv_rows, read_csv_table
+
+    rows = [[str(i), str(10 * (i + 1)), str(10 * (i + 1)), "10", "0", "0", f"{i / 3!r}", f"{i / 7!r}", "0", "0",
+             str(i % 2), "0"] for i in range(5)]  # fmt: skip
+    columns = EPISODE_COLUMNS[: EPISODE_COLUMNS.index("runs")]  # a log written before roll-ins
+    text = ",".join(columns) + "\n" + "".join(",".join(r) + "\n" + ("\n" if i == 2 else "")
+                                                      for i, r in enumerate(rows))  # fmt: skip
+    (tmp_path / "episodes.csv").write_text(text)
+    (tmp_path / "evaluations.csv").write_text(
+        "env_steps_so_far,agent_steps_so_far,episodes_so_far,mean_return,std_return,min_return,max_return,mean_length,returns\n"
+        "50,50,5,10.0,0.0,10.0,10.0,10.0,10.0\n"
+    )
+    summary = {"completed": True, "env_steps": 50, "agent_steps": 50, "coach_steps": 0, "falls": 0,
+               "env_resets": 5, "episodes": 5}  # fmt: skip
+    got = read_logs(tmp_path, summary)
+    by_row = read_csv_rows(tmp_path / "episodes.csv")  # the blank line is skipped by both
+    assert got.returns.tolist() == [float(r["agent_return"]) for r in by_row] == [i / 3 for i in range(5)]
+    assert got.coached_returns.tolist() == [i / 7 for i in range(5)]
+    assert got.episode_env_steps.tolist() == [10.0, 20.0, 30.0, 40.0, 50.0]
+    assert got.env_episodes_ended.tolist() == [0, 1, 1, 2, 2]
+    assert np.isnan(got.episode_runs).all()  # no runs column: not a roll-in's log
+    header, kept = read_csv_table(tmp_path / "episodes.csv")
+    assert csv_columns(header, kept, "episodes.csv")["episode"] == ("0", "1", "2", "3", "4")
+    assert csv_columns(header, [], "x.csv") == {c: () for c in columns}
+    assert read_csv_table(tmp_path / "absent.csv") == ([], [])
+    # a row with a field too many (or too few) is named, not read shifted or padded
+    (tmp_path / "episodes.csv").write_text(text.replace("\n3,", "\n3,99,", 1))
+    with pytest.raises(ValueError, match="episodes.csv: row 4 has 13 fields, expected 12"):
+        read_logs(tmp_path, summary)
+    (tmp_path / "episodes.csv").write_text(text.replace(",0\n", "\n", 1))
+    with pytest.raises(ValueError, match="episodes.csv: row 1 has 11 fields, expected 12"):
+        read_logs(tmp_path, summary)
+    # a missing row is told by the count summary.json records before any field is read
+    (tmp_path / "episodes.csv").write_text(text.rsplit("\n", 2)[0][:-3] + "\n")
+    with pytest.raises(ValueError, match="episodes.csv holds 4 of the 5 episodes"):
+        read_logs(tmp_path, summary)
+    (tmp_path / "episodes.csv").write_text(text.replace(",1,0\n", ",2,0\n", 1))
+    with pytest.raises(ValueError, match="env_end = '2', expected 0 or 1"):
+        read_logs(tmp_path, summary)
+
+
 def test_the_papers_measures_in_env_episodes():
     # a terminal-view run: 8 training episodes; episodes 1, 2, 4 and 6 were ended by vetoes, so their
     # env episodes did not end: env episodes ended so far 0, 0, 1, 1, 2, 2, 3, 4

@@ -27,7 +27,7 @@ from pidlab.experiment.comparison import MEASURE, Comparison, decide, raw_compar
 from pidlab.experiment.metrics import Rule, RunLogs, RunMetrics, grid_points, moving_average, run_metrics
 from pidlab.experiment.stats import Estimate, bootstrap_ci, iqm
 from pidlab.files import load_json, read_toml
-from pidlab.rl.rundir import read_csv_rows
+from pidlab.rl.rundir import csv_columns, read_csv_rows, read_csv_table
 
 BASELINE = "none"
 PLAIN_SAC = "none-sac"
@@ -253,7 +253,21 @@ def _count(summary: Any, key: str) -> int | None:
     return value
 
 
-def _falls(summary: Any, episodes: list[dict[str, str]]) -> int:
+Columns = dict[str, tuple[str, ...]]
+"""A CSV log by column (:func:`pidlab.rl.rundir.csv_columns`)."""
+
+
+def _rows(columns: Columns) -> int:
+    """How many rows a log read by column holds."""
+    return len(next(iter(columns.values()), ()))
+
+
+def _floats(columns: Columns, name: str) -> np.ndarray:
+    """Column ``name`` as numbers (a missing column is an error only when the log has rows)."""
+    return np.array(columns[name] if _rows(columns) else (), dtype=float)
+
+
+def _falls(summary: Any, episodes: Columns) -> int:
     """The run's falls: ``summary.json``'s, else from ``episodes.csv``.
 
     A run logged before pidlab counted falls had no ``terminal`` view: each of its episodes that
@@ -262,10 +276,13 @@ def _falls(summary: Any, episodes: list[dict[str, str]]) -> int:
     falls = _count(summary, "falls")
     if falls is not None:
         return falls
-    return sum(int(r["fell"] if "fell" in r else r["terminated"]) for r in episodes)
+    if not _rows(episodes):
+        return 0
+    ended = episodes["fell"] if "fell" in episodes else episodes["terminated"]
+    return sum(int(v) for v in ended)
 
 
-def _env_resets(run_dir: Path, summary: Any, episodes: list[dict[str, str]]) -> int | None:
+def _env_resets(run_dir: Path, summary: Any, episodes: Columns) -> int | None:
     """The run's real env resets: ``summary.json``'s, else derived (None when the config is missing).
 
     Before pidlab counted them every episode's end was the env's: one reset per episode, plus
@@ -281,7 +298,7 @@ def _env_resets(run_dir: Path, summary: Any, episodes: list[dict[str, str]]) -> 
     if type(n_envs) is not int or n_envs < 1:
         raise ValueError(f"config.toml: n_envs = {n_envs!r}, expected an integer >= 1")
     resumes = _count(summary, "resumes") or 0
-    return len(episodes) + n_envs * (resumes + 1)
+    return _rows(episodes) + n_envs * (resumes + 1)
 
 
 def read_logs(run_dir: Path, summary: Any) -> RunLogs:
@@ -290,19 +307,20 @@ def read_logs(run_dir: Path, summary: Any) -> RunLogs:
     for name in ("episodes.csv", "evaluations.csv"):
         if not (run_dir / name).is_file():
             raise ValueError(f"{name} is missing")
-    episodes = read_csv_rows(run_dir / "episodes.csv")
+    header, rows = read_csv_table(run_dir / "episodes.csv")
     evals = read_csv_rows(run_dir / "evaluations.csv")
     if not evals and summary.get("completed"):
         raise ValueError("evaluations.csv holds no evaluation of the finished run")
-    for name, rows in (("episodes", episodes), ("evaluations", evals)):
+    for name, count in (("episodes", len(rows)), ("evaluations", len(evals))):
         recorded = summary.get(name)
-        if summary.get("completed") and type(recorded) is int and recorded != len(rows):
-            raise ValueError(f"{name}.csv holds {len(rows)} of the {recorded} {name} summary.json records")
+        if summary.get("completed") and type(recorded) is int and recorded != count:
+            raise ValueError(f"{name}.csv holds {count} of the {recorded} {name} summary.json records")
+    episodes = csv_columns(header, rows, "episodes.csv")
     return RunLogs(
-        returns=np.array([float(r["agent_return"]) for r in episodes]),
-        coached_returns=np.array([float(r["total_return"]) for r in episodes]),
-        episode_env_steps=np.array([float(r["env_steps_so_far"]) for r in episodes]),
-        episode_coach_steps=np.array([float(r["coach_steps"]) for r in episodes]),
+        returns=_floats(episodes, "agent_return"),
+        coached_returns=_floats(episodes, "total_return"),
+        episode_env_steps=_floats(episodes, "env_steps_so_far"),
+        episode_coach_steps=_floats(episodes, "coach_steps"),
         eval_env_steps=np.array([int(r["env_steps_so_far"]) for r in evals]),
         eval_agent_steps=np.array([float(r["agent_steps_so_far"]) for r in evals]),
         eval_means=np.array([float(r["mean_return"]) for r in evals]),
@@ -314,8 +332,8 @@ def read_logs(run_dir: Path, summary: Any) -> RunLogs:
         falls=_falls(summary, episodes),
         env_resets=_env_resets(run_dir, summary, episodes),
         env_episodes_ended=_env_episodes_ended(episodes),
-        episode_agent_steps=np.array([float(r["agent_steps"]) for r in episodes]),
-        episode_runs=np.array([_number(r.get("runs")) for r in episodes]),
+        episode_agent_steps=_floats(episodes, "agent_steps"),
+        episode_runs=np.array([_number(v) for v in episodes.get("runs", (None,) * _rows(episodes))]),
         eval_wall_s=_wall_clock(run_dir, evals),
         warm_start_at=_warm_start_at(run_dir),
     )
@@ -351,20 +369,19 @@ def _wall_clock(run_dir: Path, evals: list[dict[str, str]]) -> np.ndarray:
     return np.array([at.get(int(r["env_steps_so_far"]), float("nan")) for r in evals])
 
 
-def _env_episodes_ended(episodes: list[dict[str, str]]) -> np.ndarray | None:
+def _env_episodes_ended(episodes: Columns) -> np.ndarray | None:
     """Env episodes ended so far at each training episode's end (None: logs without ``env_end``).
 
     Logs written before the ``terminal`` view have no ``env_end`` column: each of their training
     episodes ended its env's episode.
     """
-    if not episodes or "env_end" not in episodes[0]:
+    if not _rows(episodes) or "env_end" not in episodes:
         return None
-    ends = []
-    for r in episodes:
-        if r["env_end"] not in ("0", "1"):
-            raise ValueError(f"episodes.csv: env_end = {r['env_end']!r}, expected 0 or 1")
-        ends.append(int(r["env_end"]))
-    return np.cumsum(ends)
+    ends = np.array(episodes["env_end"])
+    wrong = ~np.isin(ends, ("0", "1"))
+    if wrong.any():
+        raise ValueError(f"episodes.csv: env_end = {str(ends[wrong][0])!r}, expected 0 or 1")
+    return np.cumsum(ends == "1")
 
 
 def censored_values(runs: Sequence[RunData], name: str) -> tuple[np.ndarray, int]:
