@@ -8,6 +8,7 @@ and refused here, without training anything.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import json
 import shutil
@@ -84,6 +85,31 @@ def test_spec_digest_is_the_full_sha256_of_the_spec_text():
     spec = load_spec(TUNING / f"{IP}.pidlab-robust.toml")
     assert spec_digest(spec) == hashlib.sha256(dumps_spec(spec).encode("utf-8")).hexdigest()
     assert len(spec_digest(spec)) == 64
+    # remembered per spec object: another spec (a copy with another name) has its own digest
+    other = dataclasses.replace(spec, name="other")
+    assert spec_digest(other) == hashlib.sha256(dumps_spec(other).encode("utf-8")).hexdigest() != spec_digest(spec)
+    assert spec_digest(spec) == hashlib.sha256(dumps_spec(spec).encode("utf-8")).hexdigest()
+
+
+def test_runs_coached_by_one_spec_share_its_parse_and_a_damaged_one_is_named(tmp_path):
+    """load_run_config parses a coach.toml text once; a damaged copy still fails naming its own file."""
+    import tomli_w
+
+    from pidlab.rl.rundir import config_dict, load_run_config
+
+    recipe = load_recipe(ROOT / "coach" / f"{IP}.toml")
+    spec_path = TUNING / f"{IP}.pidlab-robust.toml"
+    spec = load_spec(spec_path)
+    runs = [tmp_path / f"run-{i}" for i in range(3)]
+    for run in runs:
+        run.mkdir()
+        (run / "config.toml").write_text(tomli_w.dumps(config_dict(recipe, spec, str(spec_path))))
+        shutil.copy(spec_path, run / "coach.toml")
+    first, second = load_run_config(runs[0])[1], load_run_config(runs[1])[1]
+    assert first is second and first == spec and spec_digest(first) == spec_digest(spec)
+    (runs[2] / "coach.toml").write_text((runs[2] / "coach.toml").read_text().replace("kp =", "kp = [", 1))
+    with pytest.raises(PidlabError, match=str(runs[2] / "coach.toml")):
+        load_run_config(runs[2])
 
 
 def published_copy(path: Path, out: Path) -> Path:

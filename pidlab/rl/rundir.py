@@ -16,6 +16,7 @@ import csv
 import io
 import os
 import sys
+import weakref
 from pathlib import Path
 from typing import Any
 
@@ -333,9 +334,38 @@ def read_state(checkpoint: Path) -> dict[str, int]:
     return state
 
 
+_DIGESTS: dict[int, tuple[weakref.ref[CoachSpec], str]] = {}
+""":func:`spec_digest` per spec object alive (its id, a weak reference to it, the digest)."""
+
+
 def spec_digest(spec: CoachSpec) -> str:
-    """SHA-256 of the spec's canonical text (what a run was coached by)."""
-    return digest(dumps_spec(spec))
+    """SHA-256 of the spec's canonical text (what a run was coached by).
+
+    Remembered while the spec object lives (a spec is immutable): a rescue region's spec takes a
+    tenth of a second to write out, and planning a sweep asks for every run's coach.
+    """
+    held = _DIGESTS.get(id(spec))
+    if held is not None and held[0]() is spec:
+        return held[1]
+    value = digest(dumps_spec(spec))
+    key = id(spec)
+    _DIGESTS[key] = (weakref.ref(spec, lambda _: _DIGESTS.pop(key, None)), value)
+    return value
+
+
+_RUN_SPECS: dict[str, CoachSpec] = {}
+"""The coach specs of the runs read last, by their text: the runs of a sweep share a few."""
+
+
+def _run_spec(text: str, where: str) -> CoachSpec:
+    """The spec a run's ``coach.toml`` holds (``text``), parsed once per text (errors name ``where``)."""
+    spec = _RUN_SPECS.get(text)
+    if spec is None:
+        spec = loads_spec(text, where)
+        if len(_RUN_SPECS) >= 8:
+            _RUN_SPECS.pop(next(iter(_RUN_SPECS)))
+        _RUN_SPECS[text] = spec
+    return spec
 
 
 def config_dict(recipe: Recipe, spec: CoachSpec | None, coach_source: str | None) -> dict[str, Any]:
@@ -423,7 +453,7 @@ def load_run_config(run_dir: str | Path) -> tuple[Recipe, CoachSpec | None, dict
         )
     spec = None
     if spec_path.exists():
-        spec = loads_spec(read_text(spec_path, "run's coach spec", RunDirError), str(spec_path))
+        spec = _run_spec(read_text(spec_path, "run's coach spec", RunDirError), str(spec_path))
     return recipe, spec, config
 
 
