@@ -1662,11 +1662,8 @@ def experiment(
         typer.Option(metavar="FILE", help="A recipe to use instead of coach/ENV.toml (repeatable)."),
     ] = None,
     algo: Annotated[
-        str | None,
-        typer.Option(
-            help="ppo or sac for every env (default: each recipe's); a condition that names its own algo "
-            "(none-sac) keeps it."
-        ),
+        str | None, typer.Option(help="ppo or sac for every env (default: each recipe's); a condition "
+                                      "naming its own algo (none-sac) keeps it.")
     ] = None,
     steps: Annotated[
         int | None, typer.Option(help="Budget in env steps for every run (default: each recipe's).")
