@@ -136,9 +136,9 @@ def quick_specs() -> list[tuple]:
     return [spec for spec in SPECS if len(spec) < 4 or spec[3] == KEPT_SAMPLES]
 
 
-def page_tables(text: str | None = None) -> str:
-    """The tables as they stand in the page (``text``, default docs/rescue.md), between the markers."""
-    text = PAGE.read_text() if text is None else text
+def page_tables() -> str:
+    """The tables as they stand in docs/rescue.md, between the markers."""
+    text = PAGE.read_text()
     return text[text.index(START) + len(START) : text.index(END)].strip()
 
 
