@@ -64,6 +64,7 @@ from pidlab.experiment.conditions import (
     resolve,
     select,
 )
+from pidlab.experiment.progress import steps_done
 from pidlab.experiment.reuse import Reuse, copy_run, find_reuses, record_reuses
 from pidlab.orphans import orphaned, stop_with_parent
 from pidlab.parallel import resolve_workers
@@ -478,6 +479,7 @@ def check_finished_logs(run_dirs: Iterable[Path]) -> None:
 
 STOP_FILE = ".stopping"
 STOP_TIMEOUT_S = 300.0  # how long an interrupted sweep waits for its runs to checkpoint
+POLL_S = 10.0  # how often a sweep reads its running runs' progress from their logs
 
 
 RUN_LOCK_WAIT_S = 30.0
@@ -571,7 +573,8 @@ def _worker_init(parent: int) -> None:
 Progress = Callable[[RunOutcome], None]
 
 
-def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, out: Path) -> None:
+def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, poll: Callable[[], None],
+                      out: Path) -> None:  # fmt: skip
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
@@ -582,9 +585,10 @@ def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, 
     futures = {pool.submit(execute, t) for t in tasks}
     try:
         while futures:
-            done, futures = wait(futures, return_when=FIRST_COMPLETED)
+            done, futures = wait(futures, timeout=POLL_S, return_when=FIRST_COMPLETED)
             for f in done:
                 report(f.result())
+            poll()
     except KeyboardInterrupt:
         (out / STOP_FILE).touch()  # queued runs return at once
         procs = list(getattr(pool, "_processes", {}).values())
@@ -631,7 +635,7 @@ def _join_ray(ray: Any, address: str) -> None:
         ) from None
 
 
-def _run_ray(tasks: Sequence[RunTask], report: Progress, out: Path) -> None:
+def _run_ray(tasks: Sequence[RunTask], report: Progress, poll: Callable[[], None], out: Path) -> None:
     """The tasks as Ray tasks, on the instance :func:`_ray_ready` started or joined."""
     import ray
 
@@ -639,9 +643,10 @@ def _run_ray(tasks: Sequence[RunTask], report: Progress, out: Path) -> None:
     pending = [remote.remote(t) for t in tasks]
     try:
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
+            done, pending = ray.wait(pending, num_returns=1, timeout=POLL_S)
             for ref in done:
                 report(ray.get(ref))
+            poll()
     except KeyboardInterrupt:
         (out / STOP_FILE).touch()
         for ref in pending:
@@ -763,23 +768,68 @@ def _key(t: RunTask | RunOutcome) -> tuple[str, str, int]:
 
 
 class _Tally:
-    """The outcomes of a sweep as they arrive, and the progress bar that shows them."""
+    """The outcomes of a sweep as they arrive, and the progress bar that shows them.
+
+    The bar counts env steps over every run (a run's budget once it is finished or copied, and
+    while it trains what its log has reached, :func:`pidlab.experiment.progress.steps_done`), so
+    that a sweep of hour-long runs shows its pace and the time it still needs. Without a bar each
+    finished run prints a line instead.
+    """
 
     def __init__(self, tasks: Sequence[RunTask], todo: Sequence[RunTask], progress_bar: bool,
                  copied: Iterable[Path] = ()) -> None:  # fmt: skip
         from tqdm.auto import tqdm
 
-        later = {t.run_dir for t in todo} | {str(c) for c in copied}
-        self.outcomes = {_key(t): RunOutcome(*_key(t), "skipped") for t in tasks if t.run_dir not in later}
-        self.bar = tqdm(total=len(tasks), initial=len(self.outcomes), unit="run", desc="experiment",
-                        disable=not progress_bar, dynamic_ncols=True)  # fmt: skip
+        later = {t.run_dir for t in todo}
+        self.outcomes = {_key(t): RunOutcome(*_key(t), "skipped") for t in tasks
+                         if t.run_dir not in later | {str(c) for c in copied}}  # fmt: skip
+        self.budgets = {_key(t): int(t.recipe["steps"]) for t in tasks}
+        self.dirs = {_key(t): Path(t.run_dir) for t in todo}
+        self.steps = {k: steps_done(self.dirs[k], b) if k in self.dirs else b
+                      for k, b in self.budgets.items()}  # fmt: skip
+        self.shown = progress_bar
+        self.total = sum(self.budgets.values())
+        self.bar = tqdm(total=self.total, initial=sum(self.steps.values()), unit=" env step",
+                        unit_scale=True, smoothing=0.0, desc="experiment", disable=not progress_bar,
+                        dynamic_ncols=True)  # fmt: skip
+        self.last = ""
+        self._postfix()
+
+    def _advance(self, key: tuple[str, str, int], steps: int) -> None:
+        """Move a run's progress on to ``steps`` (never back: a resume rewinds to its checkpoint)."""
+        new = max(self.steps[key], min(steps, self.budgets[key]))
+        self.bar.update(new - self.steps[key])
+        self.steps[key] = new
+
+    def _ended(self) -> int:
+        return sum(o.status in ("done", "skipped", "reused") for o in self.outcomes.values())
+
+    def _postfix(self) -> None:
+        self.bar.set_postfix_str(f"{self._ended()}/{len(self.budgets)} runs finished{self.last}")
+
+    def poll(self) -> None:
+        """Read the progress of the runs not yet reported from their logs."""
+        for key, run_dir in self.dirs.items():
+            if key not in self.outcomes:
+                self._advance(key, steps_done(run_dir, self.budgets[key]))
+        self._postfix()
 
     def __call__(self, o: RunOutcome) -> None:
-        self.outcomes[_key(o)] = o
-        self.bar.update(1)
+        key = _key(o)
+        self.outcomes[key] = o
+        if o.status in ("done", "skipped", "reused"):
+            self._advance(key, self.budgets[key])
+        elif key in self.dirs:
+            self._advance(key, steps_done(self.dirs[key], self.budgets[key]))
+        name = f"{o.env_id}/{o.condition}/seed-{o.seed}"
         if o.status == "failed":
-            self.bar.write(f"pidlab: run {o.env_id}/{o.condition}/seed-{o.seed} failed: {o.error}")
-        self.bar.set_postfix_str(f"last {o.env_id} {o.condition} seed {o.seed}: {o.status}")
+            self.bar.write(f"pidlab: run {name} failed: {o.error}", file=sys.stderr)
+        elif not self.shown and o.status == "done":
+            print(f"pidlab: run {name} done ({self._ended()} of {len(self.budgets)} runs finished; "
+                  f"{sum(self.steps.values()):,} of {self.total:,} env steps)",
+                  file=sys.stderr, flush=True)  # fmt: skip
+        self.last = f"; last {o.env_id} {o.condition} seed {o.seed}: {o.status}"
+        self._postfix()
 
     def ordered(self, tasks: Sequence[RunTask]) -> tuple[RunOutcome, ...]:
         """Every task's outcome, in task order (``stopped`` for a task that never reported)."""
@@ -792,9 +842,9 @@ def _dispatch(todo: Sequence[RunTask], backend: str, workers: int, tally: _Tally
     try:
         if todo:
             if backend == "process":
-                _run_process_pool(todo, min(workers, len(todo)), tally, out)
+                _run_process_pool(todo, min(workers, len(todo)), tally, tally.poll, out)
             else:
-                _run_ray(todo, tally, out)
+                _run_ray(todo, tally, tally.poll, out)
     except KeyboardInterrupt:
         return True
     finally:

@@ -1,0 +1,98 @@
+"""A sweep's progress in env steps, read from its runs' logs (hand-made run folders, no training)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from pidlab.experiment.progress import TAIL_BYTES, logged_env_steps, steps_done
+from pidlab.experiment.sweep import RunOutcome, RunTask, _Tally
+from pidlab.rl.rundir import EPISODE_COLUMNS, LEGACY_EPISODE_COLUMNS
+
+
+def _row(steps: int, width: int = len(EPISODE_COLUMNS)) -> str:
+    return ",".join([str(steps // 10), str(steps)] + ["0"] * (width - 2))
+
+
+def _log(run_dir: Path, steps: list[int], columns: tuple[str, ...] = EPISODE_COLUMNS, tail: str = "") -> Path:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    rows = "".join(_row(s, len(columns)) + "\n" for s in steps)
+    (run_dir / "episodes.csv").write_text(",".join(columns) + "\n" + rows + tail)
+    return run_dir
+
+
+def test_no_log_or_no_row_is_no_progress(tmp_path):
+    assert logged_env_steps(tmp_path / "missing") == 0
+    assert logged_env_steps(_log(tmp_path / "empty", [])) == 0
+    (tmp_path / "blank").mkdir()
+    (tmp_path / "blank" / "episodes.csv").write_text("")
+    assert logged_env_steps(tmp_path / "blank") == 0
+
+
+def test_the_last_complete_row_counts_and_a_row_being_written_does_not(tmp_path):
+    assert logged_env_steps(_log(tmp_path / "a", [13, 40, 77])) == 77
+    assert logged_env_steps(_log(tmp_path / "b", [13, 40], tail="4,45,0")) == 40
+    assert logged_env_steps(_log(tmp_path / "c", [13, 40, 77], columns=LEGACY_EPISODE_COLUMNS)) == 77
+
+
+def test_a_long_log_is_read_from_its_end(tmp_path):
+    steps = list(range(1, 5 * TAIL_BYTES))
+    run = _log(tmp_path / "long", steps, tail=_row(10**6)[:7])
+    assert (run / "episodes.csv").stat().st_size > 10 * TAIL_BYTES
+    assert logged_env_steps(run) == steps[-1]
+
+
+@pytest.mark.parametrize("last", ["4,abc,0", "4,-5," + "0," * (len(EPISODE_COLUMNS) - 3) + "0", "4,50"])
+def test_a_damaged_last_row_is_no_progress(tmp_path, last):
+    assert logged_env_steps(_log(tmp_path / "run", [13], tail=last + "\n")) == 0
+
+
+def test_a_finished_run_counts_its_budget_and_a_log_never_counts_past_it(tmp_path):
+    run = _log(tmp_path / "run", [50, 120])
+    assert steps_done(run, 100) == 100
+    assert steps_done(run, 1000) == 120
+    (run / "summary.json").write_text(json.dumps({"completed": True, "env_steps": 1000}))
+    assert steps_done(run, 1000) == 1000
+    (run / "summary.json").write_text("{damaged")
+    assert steps_done(run, 1000) == 120
+
+
+def _task(tmp_path: Path, seed: int, steps: int) -> RunTask:
+    run_dir = tmp_path / "runs" / "Env-v0" / "none" / f"seed-{seed}"
+    return RunTask("Env-v0", "none", seed, str(run_dir), {"steps": steps}, None, None, "digest")
+
+
+def test_the_tally_counts_finished_copied_and_running_runs_in_env_steps(tmp_path, capsys):
+    tasks = [_task(tmp_path, s, 1000) for s in range(4)]
+    _finished, copied, running, queued = tasks
+    _log(Path(running.run_dir), [100, 300])
+    tally = _Tally(tasks, [running, queued], progress_bar=False, copied=[Path(copied.run_dir)])
+    assert tally.total == 4000
+    assert tally.steps == {(t.env_id, t.condition, t.seed): s for t, s in zip(tasks, [1000, 1000, 300, 0], strict=True)}
+
+    _log(Path(running.run_dir), [100, 300, 650])
+    tally.poll()
+    assert sum(tally.steps.values()) == 2650
+
+    _log(Path(running.run_dir), [100])  # a resume rewound its log to a checkpoint: no step back
+    tally.poll()
+    assert sum(tally.steps.values()) == 2650
+
+    tally(RunOutcome("Env-v0", "none", 1, "reused"))
+    tally(RunOutcome("Env-v0", "none", 2, "done"))
+    assert sum(tally.steps.values()) == 3000
+    tally(RunOutcome("Env-v0", "none", 3, "stopped"))
+    assert sum(tally.steps.values()) == 3000
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == ["pidlab: run Env-v0/none/seed-2 done (3 of 4 runs finished; 3,000 of 4,000 env steps)"]
+    assert [o.status for o in tally.ordered(tasks)] == ["skipped", "reused", "done", "stopped"]
+
+
+def test_a_failed_run_is_one_line_on_stderr(tmp_path, capsys):
+    task = _task(tmp_path, 0, 1000)
+    tally = _Tally([task], [task], progress_bar=False)
+    tally(RunOutcome("Env-v0", "none", 0, "failed", error="RunDirError: damaged"))
+    assert capsys.readouterr().err.strip() == "pidlab: run Env-v0/none/seed-0 failed: RunDirError: damaged"
+    assert tally.steps[("Env-v0", "none", 0)] == 0
