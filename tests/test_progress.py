@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -29,6 +30,11 @@ def test_no_log_or_no_row_is_no_progress(tmp_path):
     (tmp_path / "blank").mkdir()
     (tmp_path / "blank" / "episodes.csv").write_text("")
     assert logged_env_steps(tmp_path / "blank") == 0
+    (tmp_path / "folder" / "episodes.csv").mkdir(parents=True)
+    assert logged_env_steps(tmp_path / "folder") == 0
+    (tmp_path / "pipe").mkdir()
+    os.mkfifo(tmp_path / "pipe" / "episodes.csv")  # opening it would wait for a writer
+    assert logged_env_steps(tmp_path / "pipe") == 0
 
 
 def test_the_last_complete_row_counts_and_a_row_being_written_does_not(tmp_path):

@@ -23,7 +23,9 @@ STEPS_COLUMN = "env_steps_so_far"
 
 
 def _last_complete_row(path: Path) -> tuple[str, str] | None:
-    """The header and the last newline-terminated row after it, or None."""
+    """The header and the last newline-terminated row after it, or None (also for a pipe or folder)."""
+    if not path.is_file():
+        return None
     with path.open("rb") as fh:
         header = fh.readline()
         fh.seek(0, os.SEEK_END)
