@@ -35,6 +35,9 @@ def test_no_log_or_no_row_is_no_progress(tmp_path):
     (tmp_path / "pipe").mkdir()
     os.mkfifo(tmp_path / "pipe" / "episodes.csv")  # opening it would wait for a writer
     assert logged_env_steps(tmp_path / "pipe") == 0
+    (tmp_path / "noise").mkdir()
+    (tmp_path / "noise" / "episodes.csv").write_bytes(b"x" * (100 * TAIL_BYTES))  # no newline at all
+    assert logged_env_steps(tmp_path / "noise") == 0
 
 
 def test_the_last_complete_row_counts_and_a_row_being_written_does_not(tmp_path):

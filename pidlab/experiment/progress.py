@@ -27,7 +27,7 @@ def _last_complete_row(path: Path) -> tuple[str, str] | None:
     if not path.is_file():
         return None
     with path.open("rb") as fh:
-        header = fh.readline()
+        header = fh.readline(TAIL_BYTES)  # a damaged log without newlines is not read whole
         fh.seek(0, os.SEEK_END)
         size = fh.tell()
         start = max(len(header), size - TAIL_BYTES)
