@@ -396,9 +396,8 @@ def _lock_file(target: Path) -> Path:
     return target if target.is_file() else target / LOCK_NAME
 
 
-def _holder(fd: int) -> int | None:
-    """The pid holding the flock on ``fd``'s file: from /proc/locks (Linux), else from the file."""
-    st = os.fstat(fd)
+def _flock_pid(st: os.stat_result) -> int | None:
+    """The pid holding a flock on the file of ``st``, from /proc/locks (Linux); None when none is seen."""
     key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
     try:
         with open("/proc/locks", encoding="ascii", errors="replace") as fh:
@@ -408,6 +407,26 @@ def _holder(fd: int) -> int | None:
                     return int(parts[4])
     except OSError:
         pass
+    return None
+
+
+def lock_holder(target: str | Path) -> int | None:
+    """The pid of the process that holds the lock of ``target`` now, or None.
+
+    Read from /proc/locks: nothing is opened for writing, created or locked, so it can be asked
+    while a sweep works in the folder. Where /proc/locks is missing (not Linux) it says None.
+    """
+    try:
+        return _flock_pid(os.stat(_lock_file(Path(target))))
+    except OSError:
+        return None
+
+
+def _holder(fd: int) -> int | None:
+    """The pid holding the flock on ``fd``'s file: from /proc/locks (Linux), else from the file."""
+    pid = _flock_pid(os.fstat(fd))
+    if pid is not None:
+        return pid
     try:
         text = os.pread(fd, 32, 0).decode("ascii", errors="replace").strip()
     except OSError:

@@ -372,6 +372,35 @@ def test_a_finished_run_with_a_cut_log_is_refused_before_any_write(tmp_path):
 # ---------------------------------------------------------------- sweeps
 
 
+def _the_status_tells_where_the_killed_sweep_stands(cmd: list[str], out: Path, second: Path) -> None:
+    """``--status`` on the killed sweep: the finished run, the checkpointed one; nothing written."""
+    from typer.testing import CliRunner
+
+    from pidlab.cli import app
+    from pidlab.provenance import lock_holder
+
+    deadline = time.time() + 60
+    while lock_holder(second) is not None and time.time() < deadline:  # its worker checkpoints, then ends
+        time.sleep(0.2)
+    assert lock_holder(second) is None
+    before = sorted((str(p), p.stat().st_mtime_ns) for p in out.rglob("*"))
+    result = CliRunner().invoke(app, [*cmd[1:], "--status"])
+    assert result.exit_code == 0, result.output
+    assert sorted((str(p), p.stat().st_mtime_ns) for p in out.rglob("*")) == before
+    lines = result.stdout.splitlines()
+    assert lines[0] == f"experiment {out}"
+    assert lines[1] == f"{IP} none    2 runs: 1 finished, 1 not started"
+    assert lines[2] == f"{IP} pidlab  2 runs: 1 under way, 1 not started"
+    newest = max(int(c.name) for c in (second / "checkpoints").iterdir() if (c / "state.json").exists())
+    assert lines[3].startswith(f"  {IP}/pidlab/seed-0: checkpoint at {newest:,} of 3,000 env steps, log at ")
+    assert "training now" not in lines[3]
+    assert lines[4].startswith("runs: 1 finished, 1 under way, 2 not started, 0 damaged (of 4); ")
+    code, stderr = cli_in_process(*cmd[1:], "--status", "--report-only")
+    assert code == 2 and stderr.strip() == (
+        "pidlab: error: --status with --report-only: the status writes no report (drop one of them)"
+    )
+
+
 def test_sweep_killed_and_restarted_loses_no_finished_run(tmp_path):
     """SIGKILL the sweep mid-run; the restart skips finished runs and resumes the unfinished one."""
     recipe = tiny_recipe(tmp_path, steps=3000, checkpoint=500)
@@ -392,6 +421,7 @@ def test_sweep_killed_and_restarted_loses_no_finished_run(tmp_path):
     done_before = (first / "summary.json").read_bytes()
     os.kill(proc.pid, signal.SIGKILL)  # the parent dies at once; its worker notices and checkpoints
     proc.wait(timeout=30)
+    _the_status_tells_where_the_killed_sweep_stands(cmd, out, second)
     restart = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert restart.returncode == 0, restart.stderr
     assert "4 done" not in restart.stdout and "skipped" in restart.stdout

@@ -8,8 +8,17 @@ from pathlib import Path
 
 import pytest
 
-from pidlab.experiment.progress import TAIL_BYTES, logged_env_steps, steps_done
+from pidlab.errors import RunDirError
+from pidlab.experiment.progress import (
+    TAIL_BYTES,
+    RunProgress,
+    logged_env_steps,
+    run_progress,
+    status_lines,
+    steps_done,
+)
 from pidlab.experiment.sweep import RunOutcome, RunTask, _Tally
+from pidlab.provenance import hold_lock, lock_holder
 from pidlab.rl.rundir import EPISODE_COLUMNS, LEGACY_EPISODE_COLUMNS
 
 
@@ -105,3 +114,63 @@ def test_a_failed_run_is_one_line_on_stderr(tmp_path, capsys):
     tally(RunOutcome("Env-v0", "none", 0, "failed", error="RunDirError: damaged"))
     assert capsys.readouterr().err.strip() == "pidlab: run Env-v0/none/seed-0 failed: RunDirError: damaged"
     assert tally.steps[("Env-v0", "none", 0)] == 0
+
+
+def _checkpoint(run_dir: Path, env_steps: int, **override: object) -> None:
+    folder = run_dir / "checkpoints" / f"{env_steps:012d}"
+    folder.mkdir(parents=True)
+    state = {"env_steps": env_steps, "agent_steps": env_steps, "coach_steps": 0, "episodes": 3,
+             "evaluations": 1, "num_timesteps": env_steps, **override}  # fmt: skip
+    (folder / "state.json").write_text(json.dumps(state))
+
+
+def test_a_run_is_not_started_under_way_finished_or_damaged(tmp_path):
+    assert run_progress(tmp_path / "nothing", 1000) == RunProgress("not started", 0, 0, False)
+    run = _log(tmp_path / "run", [40, 130])
+    assert run_progress(run, 1000) == RunProgress("under way", 0, 130, False)
+    _checkpoint(run, 100)
+    assert run_progress(run, 1000) == RunProgress("under way", 100, 130, False)
+    (run / "summary.json").write_text(json.dumps({"completed": True, "env_steps": 1000}))
+    assert run_progress(run, 1000) == RunProgress("finished", 1000, 1000, False)
+
+    cut = _log(tmp_path / "cut", [40])
+    _checkpoint(cut, 30, agent_steps=7)  # its counters disagree
+    found = run_progress(cut, 1000)
+    assert (found.state, found.checkpointed, found.logged) == ("damaged", 0, 40)
+    assert "env_steps is not agent_steps + coach_steps" in found.problem
+    _checkpoint(cut, 20)  # an older one that reads: a resume falls back to it
+    found = run_progress(cut, 1000)
+    assert (found.state, found.checkpointed) == ("damaged", 20)
+    assert "env_steps is not agent_steps + coach_steps" in found.problem
+    (run / "summary.json").write_text("{cut")
+    found = run_progress(run, 1000)
+    assert (found.state, found.checkpointed, found.logged) == ("damaged", 100, 130)
+    assert "summary.json" in found.problem
+
+
+def test_a_run_whose_lock_is_held_is_training_now(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    assert lock_holder(run) is None
+    with hold_lock(run, RunDirError):
+        assert lock_holder(run) == os.getpid()
+        assert run_progress(run, 1000) == RunProgress("under way", 0, 0, True)
+    assert lock_holder(run) is None
+    assert run_progress(run, 1000).state == "not started"
+
+
+def test_the_status_lines_hand_computed():
+    rows = [
+        ("Env-v0", "none", 0, 1000, RunProgress("finished", 1000, 1000, False)),
+        ("Env-v0", "none", 1, 1000, RunProgress("under way", 400, 650, True)),
+        ("Env-v0", "coached", 0, 1000, RunProgress("not started", 0, 0, False)),
+        ("Env-v0", "coached", 1, 1000, RunProgress("damaged", 0, 20, False, "state.json: damaged")),
+    ]
+    assert status_lines(rows) == [
+        "Env-v0 none     2 runs: 1 finished, 1 under way",
+        "Env-v0 coached  2 runs: 1 not started, 1 damaged",
+        "  Env-v0/none/seed-1: checkpoint at 400 of 1,000 env steps, log at 650; training now",
+        "  Env-v0/coached/seed-1: checkpoint at 0 of 1,000 env steps, log at 20; damaged: state.json: damaged",
+        "runs: 1 finished, 1 under way, 1 not started, 1 damaged (of 4); 1,400 of 4,000 env steps checkpointed "
+        "(35.0 %)",
+    ]

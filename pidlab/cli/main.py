@@ -1629,6 +1629,19 @@ def _seed_text(text: str) -> str:
     return text
 
 
+ReportOnlyOption = Annotated[
+    bool, typer.Option("--report-only", help="Write the report from the runs in DIR; train nothing.")
+]
+StatusOption = Annotated[
+    bool,
+    typer.Option(
+        "--status",
+        help="Say how far each run of this experiment is (finished, its checkpoint, its log); train "
+        "and write nothing. Safe while the experiment runs.",
+    ),
+]
+
+
 @app.command()
 @friendly_errors
 def experiment(
@@ -1675,9 +1688,8 @@ def experiment(
     workers: Annotated[
         int | None, typer.Option(help="Runs in parallel (default: the machine's cores).")
     ] = None,
-    report_only: Annotated[
-        bool, typer.Option("--report-only", help="Write the report from the runs in DIR; train nothing.")
-    ] = False,
+    report_only: ReportOnlyOption = False,
+    status: StatusOption = False,
     reuse: Annotated[
         list[str] | None,
         typer.Option(metavar="DIR", help="An earlier experiment: its runs with these settings are copied."),
@@ -1688,7 +1700,8 @@ def experiment(
 
     Killed or interrupted, the same command resumes: finished runs are skipped, unfinished ones
     continue from their last checkpoint. With --reuse, a run that an earlier experiment holds
-    finished for the same env, condition, seed and settings is copied instead of trained.
+    finished for the same env, condition, seed and settings is copied instead of trained. With
+    --status, the same command says how far its runs are, and changes nothing.
     """
     from pidlab.experiment.sweep import parse_seeds, plan
 
@@ -1698,6 +1711,8 @@ def experiment(
         env_list, _names(conditions, "condition_names"), parse_seeds(_seed_text(seeds)), folder,
         conditions_file=conditions_file, recipe_files=recipe or [], algo=algo, steps=steps,
     )  # fmt: skip
+    if status:
+        return _status(p, report_only)
     _check_report_only(p.out, report_only, reuse)
     from pidlab.experiment.sweep import check_sweep, lock_experiment
     from pidlab.report.experiment import write_report
@@ -1709,6 +1724,24 @@ def experiment(
         typer.echo(f"report: {write_report(p, progress_bar=progress)}")
     if failed:
         raise typer.Exit(code=1)
+
+
+def _status(p: Any, report_only: bool) -> None:
+    """``experiment --status``: each run's progress, read from ``p.out``; nothing is written."""
+    from pathlib import Path
+
+    from pidlab.experiment.progress import run_progress, status_lines
+    from pidlab.experiment.sweep import check_out_folder
+
+    if report_only:
+        _fail("--status with --report-only: the status writes no report (drop one of them)")
+    check_out_folder(p)
+    rows = [(t.env_id, t.condition, t.seed, int(t.recipe["steps"]), run_progress(Path(t.run_dir),
+             int(t.recipe["steps"]))) for t in p.tasks]  # fmt: skip
+    where = p.out if (p.out / "experiment.json").exists() else f"{p.out} (not started: no experiment.json)"
+    typer.echo(f"experiment {where}")
+    for line in status_lines(rows):
+        typer.echo(line)
 
 
 def _check_report_only(out: Any, report_only: bool, reuse: list[str] | None) -> None:

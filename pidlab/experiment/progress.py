@@ -12,10 +12,13 @@ progress, and the run's own resume or report says what is wrong with it.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from pidlab.errors import PidlabError
-from pidlab.rl.rundir import finished_summary
+from pidlab.provenance import lock_holder
+from pidlab.rl.rundir import checkpoint_folders, finished_summary, read_state
 
 TAIL_BYTES = 4096
 """How much of the end of ``episodes.csv`` is read: several rows of the widest log."""
@@ -90,3 +93,118 @@ def steps_done(run_dir: Path, budget: int) -> int:
     except (PidlabError, OSError):
         pass
     return min(budget, logged_env_steps(run_dir))
+
+
+RUN_STATES = ("finished", "under way", "not started", "damaged")
+"""What :func:`run_progress` finds a run to be."""
+
+
+@dataclass(frozen=True)
+class RunProgress:
+    """Where one run of a sweep stands, read from its folder; nothing is written.
+
+    Attributes
+    ----------
+    state : str
+        One of :data:`RUN_STATES`: ``finished`` (its summary says it completed its budget),
+        ``under way`` (a checkpoint, a logged episode, or a process training it now), ``not
+        started``, or ``damaged`` (its summary or newest checkpoint cannot be read; ``problem``
+        says what, as its resume does).
+    checkpointed : int
+        Env steps of the newest checkpoint that reads (its budget once finished): where a resume
+        starts, falling back past a damaged one as a resume does.
+    logged : int
+        Env steps its ``episodes.csv`` has reached (:func:`logged_env_steps`), at most its budget.
+    training : bool
+        A process holds the run's lock now (:func:`pidlab.provenance.lock_holder`).
+    problem : str
+        For a damaged run, the first line of what is wrong.
+    """
+
+    state: str
+    checkpointed: int
+    logged: int
+    training: bool
+    problem: str = ""
+
+
+def run_progress(run_dir: Path, budget: int) -> RunProgress:
+    """Where the run in ``run_dir`` stands against its ``budget`` of env steps.
+
+    Parameters
+    ----------
+    run_dir : Path
+        The run directory (it need not exist yet).
+    budget : int
+        The run's budget in env steps.
+
+    Returns
+    -------
+    RunProgress
+    """
+    training = lock_holder(run_dir) is not None if run_dir.is_dir() else False
+    logged = min(budget, logged_env_steps(run_dir))
+    summary_problem = ""
+    try:
+        if finished_summary(run_dir, budget) is not None:
+            return RunProgress("finished", budget, budget, training)
+    except (PidlabError, OSError) as exc:
+        summary_problem = _first_line(exc)
+    checkpointed, problem = _resume_point(run_dir)
+    problem = summary_problem or problem
+    if problem:
+        return RunProgress("damaged", min(checkpointed, budget), logged, training, problem)
+    state = "under way" if checkpointed or logged or training else "not started"
+    return RunProgress(state, min(checkpointed, budget), logged, training)
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+def _resume_point(run_dir: Path) -> tuple[int, str]:
+    """Env steps of the newest checkpoint that reads, and what is wrong with the newest if it does not.
+
+    A resume does the same: it falls back past a damaged checkpoint to the previous one.
+    """
+    problem = ""
+    for folder in reversed(checkpoint_folders(run_dir)):
+        try:
+            return read_state(folder)["env_steps"], problem
+        except (PidlabError, OSError) as exc:
+            problem = problem or _first_line(exc)
+    return 0, problem
+
+
+def status_lines(rows: Sequence[tuple[str, str, int, int, RunProgress]]) -> list[str]:
+    """A sweep's status as text: each (env, condition)'s runs by state, the unfinished runs, the totals.
+
+    Parameters
+    ----------
+    rows : sequence of (env_id, condition, seed, budget, RunProgress)
+        Every run of the sweep, in its order.
+
+    Returns
+    -------
+    list of str
+    """
+    lines: list[str] = []
+    cells: dict[tuple[str, str], list[RunProgress]] = {}
+    for env_id, condition, _seed, _budget, rp in rows:
+        cells.setdefault((env_id, condition), []).append(rp)
+    width = max((len(f"{e} {c}") for e, c in cells), default=0)
+    for (env_id, condition), found in cells.items():
+        counts = ", ".join(f"{n} {s}" for s in RUN_STATES if (n := sum(r.state == s for r in found)))
+        lines.append(f"{f'{env_id} {condition}':<{width}}  {len(found)} runs: {counts}")
+    for env_id, condition, seed, budget, rp in rows:
+        if rp.state in ("under way", "damaged"):
+            now = "; training now" if rp.training else ""
+            why = f"; damaged: {rp.problem}" if rp.state == "damaged" else ""
+            lines.append(f"  {env_id}/{condition}/seed-{seed}: checkpoint at {rp.checkpointed:,} of "
+                         f"{budget:,} env steps, log at {rp.logged:,}{now}{why}")  # fmt: skip
+    total = sum(r[3] for r in rows)
+    kept = sum(r[4].checkpointed for r in rows)
+    counts = ", ".join(f"{sum(r[4].state == s for r in rows)} {s}" for s in RUN_STATES)
+    share = f" ({100 * kept / total:.1f} %)" if total else ""
+    lines.append(f"runs: {counts} (of {len(rows)}); {kept:,} of {total:,} env steps checkpointed{share}")
+    return lines
