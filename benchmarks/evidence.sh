@@ -64,6 +64,11 @@
 # marks the sweep "in progress" in docs/results/README.md and exits 130), and run the same command
 # later. When results/FOLDER is gone (a new machine), the published logs in docs/results/FOLDER are
 # restored first, so the finished runs are skipped and only the unfinished ones train again.
+#
+#   bash benchmarks/evidence.sh --offpolicy Hopper-v5 -- --status   # how far that sweep is: each
+#                                                     # run's state (pidlab experiment --status); it
+#                                                     # trains, restores and publishes nothing (with no
+#                                                     # results/FOLDER, it reads docs/results/FOLDER)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 envs=() extra=() mode=evidence
@@ -94,6 +99,8 @@ while [ $# -gt 0 ]; do
     envs+=("$1"); shift
 done
 [ ${#envs[@]} -gt 0 ] || envs=(InvertedPendulum-v5 InvertedDoublePendulum-v5 Hopper-v5 Walker2d-v5)
+status_only=0
+for arg in ${extra[@]+"${extra[@]}"}; do [ "$arg" != --status ] || status_only=1; done
 rescue=none,paper,rescue,rescue-penalty,rescue-terminal,rescue-fading
 
 design() {  # design ENV: "FOLDER CONDITIONS STEPS SEEDS"
@@ -276,7 +283,9 @@ export PATH="$PWD/.venv/bin:$PATH"
 for env in "${envs[@]}"; do
     read -r folder conditions steps seeds <<< "$(design "$env")"
     out="results/$folder" dst="docs/results/$folder"
-    if [ ! -e "$out/experiment.json" ] && [ -e "$dst/experiment.json" ]; then   # a new machine
+    if [ "$status_only" -eq 1 ]; then   # read only: the sweep here, else what is published
+        [ -e "$out/experiment.json" ] || [ ! -e "$dst/experiment.json" ] || out=$dst
+    elif [ ! -e "$out/experiment.json" ] && [ -e "$dst/experiment.json" ]; then   # a new machine
         echo "evidence.sh: restoring the finished runs of $folder from $dst"
         mkdir -p "$out" && cp "$dst/experiment.json" "$out/" && cp -r "$dst/runs" "$out/"
     fi
@@ -292,6 +301,10 @@ for env in "${envs[@]}"; do
     done
     status=0
     pidlab experiment "${args[@]}" ${reuse[@]+"${reuse[@]}"} ${extra[@]+"${extra[@]}"} || status=$?
+    if [ "$status_only" -eq 1 ]; then
+        [ "$status" -eq 0 ] || exit "$status"
+        continue
+    fi
     # 2: bad input, refused before any run (its one line said what). 130: interrupted; 1: a run failed
     # (the others went on). Either way the finished runs are published.
     if [ "$status" -eq 2 ] || { [ "$status" -ne 0 ] && [ ! -e "$out/experiment.json" ]; }; then
@@ -311,4 +324,5 @@ for env in "${envs[@]}"; do
         exit "$status"
     fi
 done
+[ "$status_only" -eq 0 ] || exit 0
 .venv/bin/python benchmarks/results_table.py > /dev/null   # the README's tables, from the summaries

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -359,3 +360,30 @@ def test_the_one_env_sweeps_refuse_other_envs(env, sweep, amendment, home):
     assert done.stderr.strip().splitlines() == [
         f"evidence.sh: --{sweep} {env}: the design is for {home} (docs/analysis-plan.md, Amendment {amendment})"
     ]
+
+
+def test_the_status_of_a_sweep_trains_restores_and_publishes_nothing(tmp_path):
+    """``evidence.sh DESIGN ENV -- --status`` says how far the sweep is, from the published runs when
+    results/ has none here, and writes nothing: no restore, no training, no publishing."""
+    import subprocess
+
+    for folder in ("benchmarks", "scripts", ".venv/bin"):
+        (tmp_path / folder).mkdir(parents=True)
+    (tmp_path / "benchmarks" / "evidence.sh").write_bytes((ROOT / "benchmarks" / "evidence.sh").read_bytes())
+    (tmp_path / "scripts" / "setup.sh").write_text("")  # installed already: this venv's pidlab
+    (tmp_path / ".venv" / "bin" / "pidlab").symlink_to(Path(sys.executable).with_name("pidlab"))
+    for shipped in ("coach", "tuning", "models", "docs"):
+        (tmp_path / shipped).symlink_to(ROOT / shipped)
+    published = ROOT / "docs" / "results" / "InvertedPendulum-v5-offpolicy"
+    before = sorted((str(p), p.stat().st_mtime_ns) for p in published.rglob("*"))
+    script = ["bash", str(tmp_path / "benchmarks" / "evidence.sh"), "--offpolicy", "InvertedPendulum-v5"]
+    done = subprocess.run([*script, "--", "--status"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0] == f"experiment {published.resolve()}"
+    assert lines[-1] == (
+        "runs: 50 finished, 0 under way, 0 not started, 0 damaged (of 50); 2,500,000 of 2,500,000 env steps "
+        "checkpointed (100.0 %)"
+    )
+    assert not (tmp_path / "results").exists()
+    assert sorted((str(p), p.stat().st_mtime_ns) for p in published.rglob("*")) == before
