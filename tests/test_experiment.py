@@ -425,6 +425,10 @@ def test_sweep_killed_and_restarted_loses_no_finished_run(tmp_path):
     restart = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert restart.returncode == 0, restart.stderr
     assert "4 done" not in restart.stdout and "skipped" in restart.stdout
+    finished_lines = [ln for ln in restart.stderr.splitlines() if ln.startswith("pidlab: run ")]
+    assert finished_lines[-1].endswith(" done (4 of 4 runs finished; 12,000 of 12,000 env steps)")
+    assert sorted(ln.split()[2] for ln in finished_lines) == [f"{IP}/none/seed-1", f"{IP}/pidlab/seed-0",
+                                                              f"{IP}/pidlab/seed-1"]  # fmt: skip
     assert (first / "summary.json").read_bytes() == done_before  # finished run untouched
     info = read_json(second / "run.json")
     assert len(info.get("resumes", [])) >= 1  # continued from its checkpoint, not restarted
