@@ -20,6 +20,7 @@ from pidlab.experiment.progress import (
 from pidlab.experiment.sweep import RunOutcome, RunTask, _Tally
 from pidlab.provenance import hold_lock, lock_holder
 from pidlab.rl.rundir import EPISODE_COLUMNS, LEGACY_EPISODE_COLUMNS
+from tests.helpers import cli_in_process
 
 
 def _row(steps: int, width: int = len(EPISODE_COLUMNS)) -> str:
@@ -174,3 +175,38 @@ def test_the_status_lines_hand_computed():
         "runs: 1 finished, 1 under way, 1 not started, 1 damaged (of 4); 1,400 of 4,000 env steps checkpointed "
         "(35.0 %)",
     ]
+
+
+@pytest.mark.parametrize(
+    ("extra", "line"),
+    [
+        (["--report-only"], "--status with --report-only: the status writes no report (drop one of them)"),
+        (["--workers", "0"], "--workers 0: expected an integer in [1, 256]"),
+        (["--address", "127.0.0.1:1"], "--address '127.0.0.1:1': only with the ray backend"),
+        (["--backend", "mpi"], "--backend 'mpi': expected one of process, ray"),
+    ],
+)
+def test_the_status_checks_the_options_of_its_command_in_one_line(tmp_path, extra, line):
+    out = tmp_path / "exp"
+    args = ["experiment", "--envs", "InvertedPendulum-v5", "--conditions", "none", "--seeds", "2", "--out", str(out)]
+    code, stderr = cli_in_process(*args, "--status", *extra)
+    assert (code, stderr.strip()) == (2, f"pidlab: error: {line}")
+    assert not out.exists()
+
+
+def test_the_status_of_an_experiment_not_started_creates_nothing(tmp_path):
+    from typer.testing import CliRunner
+
+    from pidlab.cli import app
+
+    out = tmp_path / "exp"
+    args = ["experiment", "--envs", "InvertedPendulum-v5", "--conditions", "none", "--seeds", "2", "--out", str(out),
+            "--steps", "5000", "--status"]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines() == [
+        f"experiment {out.resolve()} (not started: no experiment.json)",
+        "InvertedPendulum-v5 none  2 runs: 2 not started",
+        "runs: 0 finished, 0 under way, 2 not started, 0 damaged (of 2); 0 of 10,000 env steps checkpointed (0.0 %)",
+    ]
+    assert not out.exists()

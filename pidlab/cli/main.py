@@ -1712,7 +1712,7 @@ def experiment(
         conditions_file=conditions_file, recipe_files=recipe or [], algo=algo, steps=steps,
     )  # fmt: skip
     if status:
-        return _status(p, report_only)
+        return _status(p, report_only, backend, workers, address)
     _check_report_only(p.out, report_only, reuse)
     from pidlab.experiment.sweep import check_sweep, lock_experiment
     from pidlab.report.experiment import write_report
@@ -1726,15 +1726,20 @@ def experiment(
         raise typer.Exit(code=1)
 
 
-def _status(p: Any, report_only: bool) -> None:
-    """``experiment --status``: each run's progress, read from ``p.out``; nothing is written."""
+def _status(p: Any, report_only: bool, backend: str, workers: int | None, address: str | None) -> None:
+    """``experiment --status``: each run's progress, read from ``p.out``; nothing is written.
+
+    The options of the command it is added to are checked as that command checks them (but
+    ``--reuse``, whose folders it does not read).
+    """
     from pathlib import Path
 
     from pidlab.experiment.progress import run_progress, status_lines
-    from pidlab.experiment.sweep import check_out_folder
+    from pidlab.experiment.sweep import check_backend, check_out_folder
 
     if report_only:
         _fail("--status with --report-only: the status writes no report (drop one of them)")
+    check_backend(backend, workers, address)
     check_out_folder(p)
     rows = [(t.env_id, t.condition, t.seed, int(t.recipe["steps"]), run_progress(Path(t.run_dir),
              int(t.recipe["steps"]))) for t in p.tasks]  # fmt: skip

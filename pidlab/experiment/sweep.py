@@ -717,7 +717,7 @@ def check_sweep(
         is not an earlier experiment or offers a damaged run.
     """
     check_sweep_arguments(p, backend, workers, address, reuse=reuse)
-    _check_backend(backend, workers, address)
+    check_backend(backend, workers, address)
     check_out_folder(p)
     check_finished_logs(Path(t.run_dir) for t in p.tasks)
     return find_reuses(p.tasks, reuse, p.out)
@@ -741,7 +741,14 @@ def _term_as_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
-def _check_backend(backend: str, workers: int | None, address: str | None) -> None:
+def check_backend(backend: str, workers: int | None, address: str | None) -> None:
+    """Check where a sweep would run (backend, workers, Ray address); nothing is started.
+
+    Raises
+    ------
+    ExperimentError
+        An unknown backend, Ray not installed, an address without Ray, a worker count out of range.
+    """
     if backend not in BACKENDS:
         raise ExperimentError(f"backend={backend!r}: expected one of {', '.join(BACKENDS)}", param="backend")
     if backend == "ray" and importlib.util.find_spec("ray") is None:
