@@ -14,11 +14,11 @@ from pidlab.experiment.progress import (
     RunProgress,
     logged_env_steps,
     run_progress,
-    status_lines,
     steps_done,
 )
 from pidlab.experiment.sweep import RunOutcome, RunTask, _Tally
 from pidlab.provenance import hold_lock, lock_holder
+from pidlab.report.console import status_lines
 from pidlab.rl.rundir import EPISODE_COLUMNS, LEGACY_EPISODE_COLUMNS
 from tests.helpers import cli_in_process
 

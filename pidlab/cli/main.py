@@ -1734,15 +1734,17 @@ def _status(p: Any, report_only: bool, backend: str, workers: int | None, addres
     """
     from pathlib import Path
 
-    from pidlab.experiment.progress import run_progress, status_lines
+    from pidlab.experiment.progress import run_progress
     from pidlab.experiment.sweep import check_backend, check_out_folder
+    from pidlab.report.console import status_lines
 
     if report_only:
         _fail("--status with --report-only: the status writes no report (drop one of them)")
     check_backend(backend, workers, address)
     check_out_folder(p)
-    rows = [(t.env_id, t.condition, t.seed, int(t.recipe["steps"]), run_progress(Path(t.run_dir),
-             int(t.recipe["steps"]))) for t in p.tasks]  # fmt: skip
+    budgets = [int(t.recipe["steps"]) for t in p.tasks]
+    rows = [(t.env_id, t.condition, t.seed, b, run_progress(Path(t.run_dir), b))
+            for t, b in zip(p.tasks, budgets, strict=True)]  # fmt: skip
     where = p.out if (p.out / "experiment.json").exists() else f"{p.out} (not started: no experiment.json)"
     typer.echo(f"experiment {where}")
     for line in status_lines(rows):

@@ -10,6 +10,7 @@ from rich.console import Console, Group
 from rich.table import Table
 from rich.text import Text
 
+from pidlab.experiment.progress import RUN_STATES, RunProgress
 from pidlab.linear.linearize import Linearization
 from pidlab.linear.lti import LtiReport
 
@@ -710,3 +711,37 @@ def forecast_view(f: Any, units: dict[str, str], kept: float | None = None) -> G
     for key, exact, model in rows:
         v.add_row(exact, model, f"{a[key]:,}")
     return Group(head, t, v)
+
+
+def status_lines(rows: Sequence[tuple[str, str, int, int, RunProgress]]) -> list[str]:
+    """A sweep's status as text: each (env, condition)'s runs by state, the unfinished runs, the totals.
+
+    Parameters
+    ----------
+    rows : sequence of (env_id, condition, seed, budget, RunProgress)
+        Every run of the sweep, in its order (:func:`pidlab.experiment.progress.run_progress`).
+
+    Returns
+    -------
+    list of str
+    """
+    lines: list[str] = []
+    cells: dict[tuple[str, str], list[RunProgress]] = {}
+    for env_id, condition, _seed, _budget, rp in rows:
+        cells.setdefault((env_id, condition), []).append(rp)
+    width = max((len(f"{e} {c}") for e, c in cells), default=0)
+    for (env_id, condition), found in cells.items():
+        counts = ", ".join(f"{n} {s}" for s in RUN_STATES if (n := sum(r.state == s for r in found)))
+        lines.append(f"{f'{env_id} {condition}':<{width}}  {len(found)} runs: {counts}")
+    for env_id, condition, seed, budget, rp in rows:
+        if rp.state in ("under way", "damaged"):
+            now = "; training now" if rp.training else ""
+            why = f"; damaged: {rp.problem}" if rp.state == "damaged" else ""
+            lines.append(f"  {env_id}/{condition}/seed-{seed}: checkpoint at {rp.checkpointed:,} of "
+                         f"{budget:,} env steps, log at {rp.logged:,}{now}{why}")  # fmt: skip
+    total = sum(r[3] for r in rows)
+    kept = sum(r[4].checkpointed for r in rows)
+    counts = ", ".join(f"{sum(r[4].state == s for r in rows)} {s}" for s in RUN_STATES)
+    share = f" ({100 * kept / total:.1f} %)" if total else ""
+    lines.append(f"runs: {counts} (of {len(rows)}); {kept:,} of {total:,} env steps checkpointed{share}")
+    return lines
