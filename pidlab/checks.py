@@ -70,6 +70,8 @@ def fail(
 ) -> NoReturn:
     """Raise ``error``: ``"{where} = {value}: expected {expected}"`` (or ``"{param}={value}: ..."``).
 
+    A command-line option (``where`` starting ``--``) is shown as it is typed: ``"--seed -1: ..."``.
+
     Raises
     ------
     PidlabError
@@ -77,7 +79,8 @@ def fail(
     """
     if param is not None:
         raise error(f"{param}={shown(value)}: expected {expected}", param=param)
-    raise error(f"{where} = {shown(value)}: expected {expected}")
+    sep = " " if where.startswith("--") else " = "
+    raise error(f"{where}{sep}{shown(value)}: expected {expected}")
 
 
 def _fmt(x: float) -> str:

@@ -172,9 +172,9 @@ def test_a_card_without_perturbations_is_refused_in_one_line(models) -> None:
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--episodes", "-1"], "--episodes = -1: expected an integer in [0, 1000000]"),
-        (["--probes", "0"], "--probes = 0: expected an integer in [1, 1000]"),
-        (["--horizon", "nan"], "--horizon = nan: expected a finite number in (0, 600]"),
+        (["--episodes", "-1"], "--episodes -1: expected an integer in [0, 1000000]"),
+        (["--probes", "0"], "--probes 0: expected an integer in [1, 1000]"),
+        (["--horizon", "nan"], "--horizon nan: expected a finite number in (0, 600]"),
         (
             [str(TUNING / "Walker2d-v5.pidlab-robust.toml")],
             "coaches of InvertedPendulum-v5, Walker2d-v5; expected",
