@@ -7,7 +7,8 @@ analyzes those logs with pidlab's own code, without retraining, and compares the
 byte with the committed metrics.csv, summary.csv, report.md and report.html; then it recomputes the
 tables of docs/results/README.md (benchmarks/results_table.py) from the summaries, and
 docs/rescue.md's forecast tables (benchmarks/forecast_table.py) from the shipped specs and the
-published runs. For a pipeline's experiment (docs/results/pipeline-ENV/experiment/) it also
+published runs, and its shield-floor table (benchmarks/shield_floor.py) from its per-episode JSON
+files and the published runs. For a pipeline's experiment (docs/results/pipeline-ENV/experiment/) it also
 recomputes the section of the pipeline's own report (docs/results/pipeline-ENV/report.md) that
 reads those runs, "The agent alone" (its table, design note and reading), and its last section,
 "Why this coaching", from the published experiment it cites (the other sections come from stages
@@ -160,6 +161,16 @@ def check_forecast() -> list[str]:
     return [] if same else [forecast_table.MISMATCH]
 
 
+def check_shield_floor() -> list[str]:
+    """docs/rescue.md's shield-floor table against benchmarks/shield_floor.py's, from its JSON files."""
+    import shield_floor
+
+    if shield_floor.page_table() == shield_floor.table():
+        return []
+    return ["docs/rescue.md: the shield-floor table differs from benchmarks/shield_floor.py's; run it "
+            "with --table-only"]  # fmt: skip
+
+
 def main(argv: list[str]) -> int:
     """Recompute the folders given (default: every published one); print what differs, or write it."""
     write = "--write" in argv
@@ -189,7 +200,7 @@ def main(argv: list[str]) -> int:
             problems += diffs
         print("\n".join(explanations(a)))
     if not argv and not write:
-        problems += check_readme() + check_forecast()
+        problems += check_readme() + check_forecast() + check_shield_floor()
     for p in problems:
         print(p)
     return 1 if problems else 0
