@@ -202,11 +202,13 @@ def main() -> int:
         same = page_table() == table()
         print("docs/rescue.md's shield-floor table " + ("matches" if same else "differs from") + " the JSON")
         return 0 if same else 1
+    # the tree as it was when the measurement started (the JSON files it writes change it)
+    state = {"std": STD, "seed": SEED, "episodes": args.episodes, "versions": package_versions(),
+             "git": git_state(ROOT)}  # fmt: skip
     for env in [] if args.table_only else args.envs.split(","):
         records = [measure_row(env, row, args.episodes) for row in COACHES[env]]
         OUT.mkdir(parents=True, exist_ok=True)
-        record = {"std": STD, "seed": SEED, "episodes": args.episodes, "versions": package_versions(),
-                  "git": git_state(ROOT), "coaches": records}  # fmt: skip
+        record = {**state, "coaches": records}
         atomic_write_text(OUT / f"{env}.json", json.dumps(record, indent=1) + "\n")
         print(f"wrote {OUT / f'{env}.json'}")
     text = PAGE.read_text(encoding="utf-8")
