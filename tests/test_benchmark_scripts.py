@@ -102,6 +102,12 @@ def test_an_unknown_flag_is_one_line_and_exit_2(script, monkeypatch, capsys):
         ("coach_scores.py", ["--episodes", "-3"], "argument --episodes: '-3': expected a whole number >= 1"),
         ("coverage_table.py", ["--envs", "Foo-v5"], "argument --envs: 'Foo-v5': expected names among"),
         ("shield_floor.py", ["--episodes", "0"], "argument --episodes: '0': expected a whole number >= 1"),
+        ("beyond_the_coach.py", ["x.toml", "--states", "0"], "argument --states: '0': expected a whole number >= 1"),
+        (
+            "beyond_the_coach.py",
+            [str(BENCH.parent / "tuning" / "Hopper-v5.pidlab-room.toml")],
+            "the spec's coach has no certified core (an ellipsoid) to rescue into",
+        ),
         ("region_speed.py", ["--workers", "1,x"], "argument --workers: 'x': expected a whole number >= 1"),
         (
             "tuner_load.py",
