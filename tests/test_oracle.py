@@ -96,3 +96,36 @@ def test_the_published_shield_floor_table_is_its_json_files() -> None:
     )
     assert done.returncode == 0, done.stdout + done.stderr
     assert "matches" in done.stdout
+
+
+@pytest.mark.parametrize(
+    ("x", "ctrl", "says"),
+    [
+        (np.zeros(3), None, "x_plant: expected 6 finite numbers, got shape (3,)"),
+        (
+            np.full(6, np.nan),
+            None,
+            "x_plant: expected 6 finite numbers, got a non-finite value",
+        ),
+        (
+            np.zeros(6),
+            np.array([np.inf]),
+            "ctrl: expected 1 finite number, got a non-finite value",
+        ),
+        (np.zeros(6), np.zeros(2), "ctrl: expected 1 finite number, got shape (2,)"),
+        ("rest", None, "x_plant: expected 6 finite numbers, got str"),
+    ],
+)
+def test_a_bad_question_is_one_region_error(idp: tuple, x: object, ctrl: object, says: str) -> None:
+    oracle = RescueOracle(*idp)
+    with pytest.raises(RegionError) as caught:
+        oracle.rescues(x, ctrl)  # type: ignore[arg-type]
+    assert says in str(caught.value) and "\n" not in str(caught.value)
+    assert oracle.questions == 0
+
+
+def test_a_spec_of_an_env_gymnasium_does_not_know_is_one_region_error() -> None:
+    spec = load_spec(IP_SPEC)
+    loaded = load_model(spec.env_id)
+    with pytest.raises(RegionError, match=r"^Nope-v5: no Gymnasium env to draw reset states from \("):
+        shield_floor(dataclasses.replace(spec, env_id="Nope-v5"), loaded, episodes=1, max_steps=5)

@@ -78,9 +78,24 @@ class RescueOracle:
         ``ctrl=None``: the coach acts from the state itself (a predictive trigger's question about
         the state an action led to, or a start).
         """
+        x = _finite_vector(x_plant, 2 * self.sim.m.nv, "x_plant")
+        kick = None if ctrl is None else _finite_vector(ctrl, self.sim.m.nu, "ctrl") - self.lin.op.ctrl
         self.questions += 1
-        kick = None if ctrl is None else np.asarray(ctrl, dtype=float) - self.lin.op.ctrl
-        return _rescued(self.sim, (x_plant, kick), self.steps, self.core)[0]
+        return _rescued(self.sim, (x, kick), self.steps, self.core)[0]
+
+
+def _finite_vector(value: object, size: int, name: str) -> np.ndarray:
+    """``value`` as a float vector of ``size`` finite numbers, else a one-line :class:`RegionError`."""
+    expected = f"{name}: expected {size} finite number{'' if size == 1 else 's'}"
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise RegionError(f"{expected}, got {type(value).__name__}") from None
+    if v.shape != (size,):
+        raise RegionError(f"{expected}, got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise RegionError(f"{expected}, got a non-finite value")
+    return v
 
 
 @dataclass(frozen=True)
@@ -143,8 +158,18 @@ Start = tuple[np.ndarray, np.ndarray]
 
 
 def _reset_states(env_id: str, episodes: int, seed: int) -> tuple[list[Start], int, gym.spaces.Box]:
-    """The env's own reset states for seeds ``seed, seed+1, ...``, its time limit and action space."""
-    env = gym.make(env_id)
+    """The env's own reset states for seeds ``seed, seed+1, ...``, its time limit and action space.
+
+    Raises
+    ------
+    RegionError
+        ``env_id`` is no Gymnasium env (register your own with ``--gym-packages``).
+    """
+    try:
+        env = gym.make(env_id)
+    except gym.error.Error as exc:
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise RegionError(f"{env_id}: no Gymnasium env to draw reset states from ({why})") from None
     try:
         states = []
         for k in range(episodes):
@@ -226,11 +251,12 @@ def shield_floor(
     integer(episodes, "episodes", RegionError, low=1, high=100_000)
     number(std, "std", RegionError, low=0.0, low_open=True, high=100.0)
     check_seed(seed, "seed", RegionError)
+    if max_steps is not None:
+        integer(max_steps, "max_steps", RegionError, low=1, high=10**7)
+    starts, limit, space = _reset_states(spec.env_id, episodes, seed)
     oracle = RescueOracle(spec, loaded, horizon_s, into)
     run = Simulator(spec, loaded, oracle.lin)
-    starts, limit, space = _reset_states(spec.env_id, episodes, seed)
-    if max_steps is not None:
-        limit = integer(max_steps, "max_steps", RegionError, low=1, high=10**7)
+    limit = limit if max_steps is None else int(max_steps)
     rng = np.random.default_rng(seed)
     low, high = space.low.astype(float), space.high.astype(float)
 
