@@ -22,54 +22,35 @@ from __future__ import annotations
 import sys
 import time
 
-import gymnasium as gym
 import mujoco
 import numpy as np
 from bench_cli import Parser, count, fail, positive, run
 
 from pidlab.controller.spec import CoachSpec, load_spec
 from pidlab.plant.model import load_model
-from pidlab.region.oracle import RescueOracle
+from pidlab.region.oracle import RescueOracle, reset_states, shield_episode, untrained_agent
 from pidlab.region.simulate import Simulator
 
 ELITE = 0.1
 """The share of each round's sequences the next round's distribution is fitted to."""
 
 
-def shielded_states(oracle: RescueOracle, spec: CoachSpec, limit: int, seed: int = 0):
+def shielded_states(oracle: RescueOracle, spec: CoachSpec, seed: int = 0):
     """One episode of the exact-test shield: the states after vetoed actions, and after actions that ran.
 
-    Each state is ``(qpos, qvel)`` of the model right after the action, before the coach acts.
+    The episode is :func:`~pidlab.region.oracle.shield_floor`'s first for ``seed``. Each state is
+    ``(qpos, qvel)`` of the model right after the action, before the coach acts.
     """
-    sim = oracle.sim
-    env = gym.make(spec.env_id)
-    env.reset(seed=seed)
-    start = (env.unwrapped.data.qpos.copy(), env.unwrapped.data.qvel.copy())
-    low, high = env.action_space.low.astype(float), env.action_space.high.astype(float)
-    env.close()
-    run_sim = Simulator(spec, sim.loaded, oracle.lin)
-    m, d, fs = run_sim.m, run_sim.d, run_sim.loaded.frame_skip
-    mujoco.mj_resetData(m, d)
-    d.qpos[:], d.qvel[:] = start
-    mujoco.mj_forward(m, d)
-    rng = np.random.default_rng(seed)
+    (start,), limit, space = reset_states(spec.env_id, 1, seed)
     vetoed, allowed = [], []
-    obs = run_sim.observe()
-    for _ in range(limit):
-        action = np.clip(rng.normal(0.0, 1.0, low.shape), low, high)
-        ok = oracle.rescues(run_sim.plant_state(), action)
-        after = after_action(oracle, run_sim.plant_state(), action)
-        (allowed if ok else vetoed).append(after)
-        if ok:
-            d.ctrl[:] = action
-        else:
-            run_sim.coach.reset(obs)
-            d.ctrl[:] = run_sim.coach.act(obs)
-        mujoco.mj_step(m, d, nstep=fs)
-        obs = run_sim.observe()
-        if run_sim.terminated(obs):
-            break
-    return vetoed, allowed, (low, high)
+
+    def seen(x: np.ndarray, action: np.ndarray, ran: bool) -> None:
+        (allowed if ran else vetoed).append(after_action(oracle, x, action))
+
+    run_sim = Simulator(spec, oracle.sim.loaded, oracle.lin)
+    draw = untrained_agent(space, 1.0, np.random.default_rng(seed))
+    shield_episode(oracle, run_sim, start, limit, draw, seen)
+    return vetoed, allowed, (space.low.astype(float), space.high.astype(float))
 
 
 def after_action(oracle: RescueOracle, x_plant: np.ndarray, action: np.ndarray):
@@ -169,7 +150,7 @@ def main() -> None:
     if oracle.core.region is None or oracle.core.at_end:
         fail(f"{args.spec}: the spec's coach has no certified core (an ellipsoid) to rescue into")
     t0 = time.perf_counter()
-    vetoed, allowed, box = shielded_states(oracle, spec, 1000)
+    vetoed, allowed, box = shielded_states(oracle, spec)
     rng = np.random.default_rng(0)
     pick = rng.permutation(len(vetoed))[: args.states]
     search = (args.samples, args.rounds, args.prefix)

@@ -14,7 +14,7 @@ import pytest
 from pidlab.controller.spec import load_spec
 from pidlab.errors import RegionError
 from pidlab.plant.model import load_model
-from pidlab.region.oracle import RescueOracle, _episode, _reset_states, shield_floor
+from pidlab.region.oracle import RescueOracle, reset_states, shield_episode, shield_floor
 from pidlab.region.simulate import Simulator
 from tests.helpers import ROOT
 
@@ -44,9 +44,9 @@ def test_under_the_oracle_an_agent_that_always_pushes_never_falls(idp: tuple) ->
     spec, loaded = idp
     oracle = RescueOracle(spec, loaded)
     run = Simulator(spec, loaded, oracle.lin)
-    (start,), limit, _ = _reset_states(spec.env_id, 1, 3)
+    (start,), limit, _ = reset_states(spec.env_id, 1, 3)
     assert limit == 1000  # the env's own time limit
-    episode = _episode(oracle, run, start, 120, lambda: np.array([1.0]))
+    episode = shield_episode(oracle, run, start, 120, lambda: np.array([1.0]))
     assert episode.start_rescued and not episode.fell and episode.steps == 120
     assert 60 < episode.coach_steps <= 120  # most pushes are vetoed
     assert oracle.questions == 121  # the start, then one question per step

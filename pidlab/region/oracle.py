@@ -157,7 +157,7 @@ Start = tuple[np.ndarray, np.ndarray]
 """A reset state: ``(qpos, qvel)``."""
 
 
-def _reset_states(env_id: str, episodes: int, seed: int) -> tuple[list[Start], int, gym.spaces.Box]:
+def reset_states(env_id: str, episodes: int, seed: int) -> tuple[list[Start], int, gym.spaces.Box]:
     """The env's own reset states for seeds ``seed, seed+1, ...``, its time limit and action space.
 
     Raises
@@ -182,11 +182,25 @@ def _reset_states(env_id: str, episodes: int, seed: int) -> tuple[list[Start], i
         env.close()
 
 
-def _episode(
+def untrained_agent(space: gym.spaces.Box, std: float, rng: np.random.Generator) -> Callable[[], np.ndarray]:
+    """An untrained agent's actions: ``N(0, std^2)`` each, clipped to ``space`` (SB3's PPO at start)."""
+    low, high = space.low.astype(float), space.high.astype(float)
+
+    def draw() -> np.ndarray:
+        return np.clip(rng.normal(0.0, std, size=low.shape), low, high)
+
+    return draw
+
+
+def shield_episode(
     oracle: RescueOracle, run: Simulator, start: Start, limit: int,
-    draw: Callable[[], np.ndarray],
+    draw: Callable[[], np.ndarray], seen: Callable[[np.ndarray, np.ndarray, bool], None] | None = None,
 ) -> FloorEpisode:  # fmt: skip
-    """One episode from ``start`` (qpos, qvel): the agent's draws, vetted by ``oracle``."""
+    """One episode from ``start`` (qpos, qvel): the agent's draws, vetted by ``oracle``.
+
+    ``run`` steps the episode (a :class:`Simulator` of its own, not ``oracle.sim``). ``seen``, if
+    given, is told each question: the tangent state, the agent's action and whether it ran.
+    """
     m, d, frame_skip = run.m, run.d, run.loaded.frame_skip
     mujoco.mj_resetData(m, d)
     d.qpos[:], d.qvel[:] = start
@@ -195,8 +209,11 @@ def _episode(
     start_rescued = oracle.rescues(run.plant_state())
     coach_steps = 0
     for step in range(1, limit + 1):
-        action = draw()
-        if oracle.rescues(run.plant_state(), action):
+        action, x = draw(), run.plant_state()
+        allowed = oracle.rescues(x, action)
+        if seen is not None:
+            seen(x, action, allowed)
+        if allowed:
             d.ctrl[:] = action
         else:
             coach_steps += 1
@@ -253,19 +270,14 @@ def shield_floor(
     check_seed(seed, "seed", RegionError)
     if max_steps is not None:
         integer(max_steps, "max_steps", RegionError, low=1, high=10**7)
-    starts, limit, space = _reset_states(spec.env_id, episodes, seed)
+    starts, limit, space = reset_states(spec.env_id, episodes, seed)
     oracle = RescueOracle(spec, loaded, horizon_s, into)
     run = Simulator(spec, loaded, oracle.lin)
     limit = limit if max_steps is None else int(max_steps)
-    rng = np.random.default_rng(seed)
-    low, high = space.low.astype(float), space.high.astype(float)
-
-    def draw() -> np.ndarray:
-        return np.clip(rng.normal(0.0, std, size=low.shape), low, high)
-
+    draw = untrained_agent(space, std, np.random.default_rng(seed))
     done = []
     for start in starts:
-        done.append(_episode(oracle, run, start, limit, draw))
+        done.append(shield_episode(oracle, run, start, limit, draw))
         if progress is not None:
             progress(len(done))
     return ShieldFloor(spec.env_id, spec.name, into, float(horizon_s), float(std), int(seed), tuple(done))
