@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pidlab.controller.pid import Coach
 from pidlab.controller.spec import dumps_spec, load_spec, loads_spec
 from pidlab.errors import UnknownSignalError
 from pidlab.region.bounds import derive_bounds, with_bounds
@@ -161,3 +162,51 @@ def test_bisections_find_the_largest_passing_factor():
     calls = []
     halving_bisect(lambda r: calls.append(r) or r <= 0.3, 5)
     assert calls == [1.0, 0.5, 0.25, 0.375, 0.3125]
+
+
+def test_a_level_set_over_contacts_is_drawn_about_the_balance_posture(models):
+    """Walker2d's balance coach: a level set at its design posture, certified by simulation alone."""
+    from pidlab.controller.balance import design_observation
+    from pidlab.region.roa import region_start, region_value
+    from pidlab.region.simulate import Simulator
+
+    loaded = models["Walker2d-v5"]
+    spec = load_spec(TUNING / "Walker2d-v5.pidlab-balance.toml")
+    roa, _ = estimate_roa(
+        spec, loaded, samples=10, bisection_samples=6, bisection_rounds=6, method="lyapunov"
+    )
+    lyap = roa.lyapunov
+    assert roa.method == METHOD_LYAPUNOV and roa.check.failures == 0 and roa.level > 0
+    assert roa.c_optimization is None  # no symbolic model covers the contacts
+    # the observable part: every observation variable but none for the forward position
+    assert len(lyap.variables) == 17 and "rootx_pos" not in lyap.variables and len(lyap.tangent) == 17
+    assert np.allclose(lyap.center, design_observation(spec, loaded, lyap.variables))
+    from pidlab.region.roa import contact_analysis
+
+    sim = Simulator(spec, loaded, contact_analysis(spec, loaded, Coach(spec, loaded)).linearization)
+    y = np.linspace(-0.01, 0.01, 17)
+    obs, v0 = region_start(sim, lyap, y)  # each variable moved by its own deviation
+    names = loaded.require_card().observation_names
+    seen = np.array([obs[names.index(v)] for v in lyap.variables]) - lyap.center
+    assert np.allclose(seen, y, atol=1e-12)
+    assert v0 == pytest.approx(float(y @ lyap.P_y @ y)) == pytest.approx(region_value(sim, lyap, obs))
+
+
+def test_a_level_set_over_contacts_needs_a_balance_coach_and_a_known_method(models):
+    robust = load_spec(TUNING / "Walker2d-v5.pidlab-robust.toml")
+    with pytest.raises(RegionError, match="balance coach") as err:
+        estimate_roa(robust, models["Walker2d-v5"], samples=4, method="lyapunov")
+    assert err.value.param == "method" and "\n" not in str(err.value)
+    with pytest.raises(RegionError, match=r"method='grid': expected one of lyapunov, simulation"):
+        estimate_roa(robust, models["Walker2d-v5"], samples=4, method="grid")
+    ip = load_spec(TUNING / "InvertedPendulum-v5.pidlab-robust.toml")
+    with pytest.raises(RegionError, match="names no \\[region\\] variables"):
+        estimate_roa(ip, models["InvertedPendulum-v5"], samples=4, method="simulation")
+
+
+def test_cli_bounds_method_bad_input():
+    spec = str(TUNING / "Walker2d-v5.pidlab-robust.toml")
+    code, stderr = cli_in_process("bounds", spec, "--method", "grid")
+    assert code == 2 and stderr.strip() == "pidlab: error: --method grid: expected one of lyapunov, simulation"
+    code, stderr = cli_in_process("bounds", spec, "--method", "lyapunov", "--samples", "4")
+    assert code == 2 and "balance coach" in stderr and len(stderr.strip().splitlines()) == 1

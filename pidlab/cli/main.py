@@ -929,19 +929,33 @@ def bounds(
     workers: Annotated[
         int | None, typer.Option(help="Worker processes for the simulations (default: the machine's cores).")
     ] = None,
+    method: Annotated[
+        str | None,
+        typer.Option(
+            help="The region: 'lyapunov' (a level set certified by simulation; on a robot with contacts, "
+            "about a balance coach's posture) or 'simulation' (a recoverable box). Default: the model card's."
+        ),
+    ] = None,
 ) -> None:
     """Derive critical-state bounds (ellipsoid and box) from the certified region."""
     from pidlab.controller.spec import editing_spec
+    from pidlab.region.roa import METHODS
 
     if samples < 1:
         _fail(f"--samples {samples}: expected a positive number")
+    if method is not None and method not in METHODS:
+        _fail(f"--method {method}: expected one of {', '.join(METHODS)}")
     # --write: the spec is read under its lock, held to its rewrite (a second writer is refused)
     with editing_spec(spec_file, write) as spec:
-        _bounds_of(spec, spec_file, variables, write, (samples, seed, workers))
+        _bounds_of(spec, spec_file, variables, write, (samples, seed, workers, method))
 
 
 def _bounds_of(
-    spec: Any, spec_file: str, variables: str | None, write: bool, how: tuple[int, int, int | None]
+    spec: Any,
+    spec_file: str,
+    variables: str | None,
+    write: bool,
+    how: tuple[int, int, int | None, str | None],
 ) -> None:
     """``bounds``: the region and bounds of ``spec``, shown, and written into ``spec_file`` with ``write``."""
     from pidlab.controller.spec import save_spec
@@ -950,12 +964,12 @@ def _bounds_of(
     from pidlab.region.roa import estimate_roa
     from pidlab.report.console import bounds_view, roa_view, wide_console
 
-    samples, seed, workers = how
+    samples, seed, workers, method = how
     loaded = load_model(spec.env_id)
     names = None if variables is None else _names(variables, "variables")
     if names:
         check_variables(names, loaded)
-    result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed, workers=workers)
+    result, _ = estimate_roa(spec, loaded, samples=samples, seed=seed, workers=workers, method=method)
     crit = derive_bounds(result, spec, loaded, variables=names, seed=seed, workers=workers)
     con = wide_console()
     card = loaded.require_card()

@@ -43,7 +43,15 @@ from pidlab.errors import RegionError
 from pidlab.linear.linearize import Linearization
 from pidlab.parallel import resolve_workers
 from pidlab.plant.model import LoadedModel
-from pidlab.region.roa import METHOD_SIMULATION, Lyapunov, RegionOfAttraction, check_variables
+from pidlab.region.roa import (
+    METHOD_SIMULATION,
+    Lyapunov,
+    RegionOfAttraction,
+    check_variables,
+    contact_analysis,
+    region_start,
+    region_value,
+)
 from pidlab.region.shrink import geometric_bisect, shrink_until_clean
 from pidlab.region.simulate import SimulationPool, Simulator, horizon_steps, sample_ellipsoid, tangent_index
 
@@ -208,7 +216,7 @@ def derive_bounds(
         variables = list(roa.box) if roa.box else [v for v in (lp0.signal, lp0.rate_signal) if v]
     check_variables(variables, loaded)
     coach = Coach(spec, loaded)
-    lin = analyze_coach(coach, loaded).linearization
+    lin = _region_linearization(roa, spec, loaded, coach)
     vertices = _action_vertices(coach, lin)
     provenance = _region_provenance(roa)
     rng = np.random.default_rng(seed)
@@ -219,6 +227,15 @@ def derive_bounds(
         if roa.method == METHOD_SIMULATION:
             return _box_bounds(roa, spec, step, check_samples, provenance)
         return _ellipsoid_bounds(roa, spec, lin, step, variables, check_samples, provenance)
+
+
+def _region_linearization(
+    roa: RegionOfAttraction, spec: CoachSpec, loaded: LoadedModel, coach: Coach
+) -> Linearization:
+    """The linear model ``roa`` was drawn on: a level set's own (its centre), else the model card's point."""
+    if roa.lyapunov is not None and loaded.require_card().region_method == "simulation":
+        return contact_analysis(spec, loaded, coach).linearization
+    return analyze_coach(coach, loaded).linearization
 
 
 def _action_vertices(coach: Coach, lin: Linearization) -> np.ndarray:
@@ -247,6 +264,8 @@ def _region_provenance(roa: RegionOfAttraction) -> dict[str, Any]:
     }
     if roa.c_optimization is not None:
         provenance["c_optimization"] = float(roa.c_optimization)
+    if roa.lyapunov is not None and roa.lyapunov.tangent is not None:
+        provenance["centre"] = "the posture the balance coach was designed at"
     return provenance
 
 
@@ -353,11 +372,15 @@ def _linear_one_step(
 ) -> tuple[float, float]:
     """``(alpha, beta)`` of the linear bound ``sqrt(V+) <= alpha sqrt(V) + beta`` for one agent step."""
     C = np.asarray(lin.sysd.C)
-    sel = [names.index(v) for v in lyap.variables]
-    P_x = C[sel].T @ lyap.P_y @ C[sel]
+    sel = np.array([names.index(v) for v in lyap.variables])
+    # the states the variables see (all of them, unless the observation leaves one out that no
+    # other state depends on: Walker2d's forward position)
+    seen = np.flatnonzero(np.any(C[sel] != 0.0, axis=0))
+    P_x = C[np.ix_(sel, seen)].T @ lyap.P_y @ C[np.ix_(sel, seen)]
     root = np.real(scipy.linalg.sqrtm(P_x))
-    alpha = float(np.linalg.norm(root @ lin.Ad @ np.linalg.inv(root), 2))
-    beta = float(max(np.linalg.norm(root @ lin.Bd @ v) for v in vertices))
+    Ad, Bd = lin.Ad[np.ix_(seen, seen)], lin.Bd[seen]
+    alpha = float(np.linalg.norm(root @ Ad @ np.linalg.inv(root), 2))
+    beta = float(max(np.linalg.norm(root @ Bd @ v) for v in vertices))
     return alpha, beta
 
 
@@ -365,8 +388,7 @@ def _ellipsoid_escapes(lyap: Lyapunov, c: float, step: _OneStep, r: float, n: in
     """Failed recoveries after one step of ``acts`` from ``n`` random states on ``V = r c``."""
     pts = sample_ellipsoid(lyap.P_y, r * c, n, step.rng)
     boundary = pts / np.sqrt(np.einsum("ij,jk,ik->i", pts, lyap.P_y, pts) / (r * c))[:, None]
-    plant_n = step.sim.lin.sysd.nstates
-    return _escapes(step, [(lyap.to_state @ y)[:plant_n] for y in boundary], acts, lyap, c)
+    return _escapes(step, list(boundary), acts, lyap, c)
 
 
 def _rho_margin(lyap: Lyapunov, c: float, step: _OneStep, name: str) -> tuple[float, float]:
@@ -474,31 +496,31 @@ def _escapes(
 def _kicked_recovery(
     sim: Simulator, item: tuple[np.ndarray, np.ndarray], steps: int, lyap: Lyapunov | None
 ) -> int:
-    """1 if the coach cannot recover from ``x_plant`` after one agent action ``v``, else 0.
+    """1 if the coach cannot recover from a state after one agent action ``v``, else 0.
 
-    ``item = (x_plant, v)``, ``v`` a deviation from the operating point's control. A recovery
-    fails when the env would terminate right after the action or within ``steps``, or (with
-    ``lyap``) when ``V`` at the end is not below ``V`` just after the action. A task of
-    :meth:`~pidlab.parallel.WorkerPool.run`.
+    ``item = (state, v)``, ``v`` a deviation from the operating point's control; ``state`` is a
+    tangent deviation ``x_plant`` (no ``lyap``) or an observation deviation from ``lyap``'s centre
+    (:func:`~pidlab.region.roa.region_start`). A recovery fails when the env would terminate
+    right after the action or within ``steps``, or (with ``lyap``) when ``V`` at the end is not
+    below ``V`` just after the action. A task of :meth:`~pidlab.parallel.WorkerPool.run`.
     """
-    x_plant, v = item
-    sim.start(x_plant)
+    state, v = item
+    if lyap is None:
+        sim.start(state)
+    else:
+        region_start(sim, lyap, state)
     sim.d.ctrl[:] = sim.lin.op.ctrl + v
     mujoco.mj_step(sim.m, sim.d, nstep=sim.loaded.frame_skip)
     obs = sim.observe()
     if sim.terminated(obs):
         return 1
     sim.coach.reset(obs)
-    v_kicked = 0.0
-    if lyap is not None:
-        X = sim.closed_loop_state()
-        v_kicked = float(X @ lyap.P @ X)
+    v_kicked = 0.0 if lyap is None else region_value(sim, lyap, obs)
     term, _ = sim.run(obs, steps)
     if term:
         return 1
     if lyap is not None:
-        X = sim.closed_loop_state()
-        return int(float(X @ lyap.P @ X) >= v_kicked)
+        return int(region_value(sim, lyap, sim.observe()) >= v_kicked)
     return 0
 
 

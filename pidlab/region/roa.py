@@ -106,6 +106,12 @@ class Lyapunov:
         ``X = to_state @ (y - center)`` with the coach at reset.
     P_y : ndarray, shape (k, k)
         ``V`` in the observation variables: ``to_state' P to_state``.
+    tangent : tuple of int, optional
+        Per variable, its index in the simulator's tangent state ``(dq, dv)``, where the linear
+        model is the observable part of the plant only (a robot whose observation leaves out a
+        coordinate no other state depends on, such as Walker2d's forward position) and the coach
+        has no states: a sample then starts from the variables themselves, and ``V`` is read from
+        the observation (:func:`region_start`, :func:`region_value`). None: through ``to_state``.
     """
 
     P: np.ndarray
@@ -115,6 +121,7 @@ class Lyapunov:
     center: np.ndarray
     to_state: np.ndarray
     P_y: np.ndarray
+    tangent: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -205,7 +212,9 @@ def lyapunov_function(analysis: CoachAnalysis, coach: Coach, y_op: np.ndarray) -
     Raises
     ------
     RegionError
-        The closed loop is not (strictly) stable.
+        The closed loop is not (strictly) stable; or its linear model is the plant's observable
+        part only and the coach has states of its own (``V`` could not be read from the
+        observation), or a variable is no joint's position or rate.
     """
     if not analysis.stable:
         bad = ", ".join(f"|z|={abs(p.value):.5f}" for p in analysis.discrete.poles if not p.stable)
@@ -230,15 +239,70 @@ def lyapunov_function(analysis: CoachAnalysis, coach: Coach, y_op: np.ndarray) -
                 # at reset: integral 0, filter 0, previous measurement = the signal
                 rows.append((Cp[sig] @ Csel_inv)[None, :] if k == 2 else np.zeros((1, len(chosen))))
     M = np.vstack(rows)
+    variables = tuple(names[i] for i in chosen)
+    reduced = Cp.shape[1] < analysis.linearization.sysd.nstates
     return Lyapunov(
         P=P,
         Q=Q,
         A_cl=A,
-        variables=tuple(names[i] for i in chosen),
+        variables=variables,
         center=y_op[chosen],
         to_state=M,
         P_y=M.T @ P @ M,
+        tangent=_tangent_of(variables, coach, analysis.linearization) if reduced else None,
     )
+
+
+def _tangent_of(variables: tuple[str, ...], coach: Coach, lin: Linearization) -> tuple[int, ...]:
+    """Each variable's index in the tangent state, for a linear model of the observable part only.
+
+    Raises
+    ------
+    RegionError
+        The coach has states (``V`` would need them), or a variable is no joint's position or rate.
+    """
+    if np.any(coach.layout.active_states()):
+        raise RegionError(
+            f"{coach.spec.name}: the linear model is the plant's observable part only, and a level set "
+            "over it needs a coach without states of its own (kp only); this coach has integrators, "
+            "filters or derivatives"
+        )
+    states = lin.state_names
+    missing = [v for v in variables if v not in states]
+    if missing:
+        raise RegionError(
+            f"{coach.spec.name}: {missing[0]!r} is no joint position or rate of the model; a level set over "
+            "the observable part is drawn in joint coordinates"
+        )
+    return tuple(states.index(v) for v in variables)
+
+
+def region_start(sim: Simulator, lyap: Lyapunov, y_dev: np.ndarray) -> tuple[np.ndarray, float]:
+    """Put ``sim`` at the region's centre (+) the observation deviation ``y_dev``: the obs, and ``V`` there.
+
+    Through ``to_state`` (the coach at reset), or, with :attr:`Lyapunov.tangent`, each variable
+    moved by its own deviation (the coordinates the observation leaves out at the centre's).
+    """
+    if lyap.tangent is None:
+        X0 = lyap.to_state @ y_dev
+        return sim.start(X0[: sim.lin.sysd.nstates]), float(X0 @ lyap.P @ X0)
+    x = np.zeros(2 * sim.m.nv)
+    x[list(lyap.tangent)] = y_dev
+    return sim.start(x), float(y_dev @ lyap.P_y @ y_dev)
+
+
+def region_value(sim: Simulator, lyap: Lyapunov, obs: np.ndarray) -> float:
+    """``V`` where ``sim`` stands (``obs`` its observation there).
+
+    Over the closed-loop state (:meth:`Simulator.closed_loop_state`), or, with
+    :attr:`Lyapunov.tangent`, over the observation: ``(y - center)' P_y (y - center)``.
+    """
+    if lyap.tangent is None:
+        X = sim.closed_loop_state()
+        return float(X @ lyap.P @ X)
+    names = sim.card.observation_names
+    y = np.array([obs[names.index(v)] for v in lyap.variables]) - lyap.center
+    return float(y @ lyap.P_y @ y)
 
 
 # --------------------------------------------------------------------------------------------
@@ -281,15 +345,11 @@ def _level_sample(
     A task of :meth:`~pidlab.parallel.WorkerPool.run`.
     """
     y_dev, keep_path = item
-    X0 = lyap.to_state @ y_dev
-    obs = sim.start(X0[: sim.lin.sysd.nstates])
-    v0 = float(X0 @ lyap.P @ X0)
+    obs, v0 = region_start(sim, lyap, y_dev)
     term, path = sim.run(obs, steps, record)
     outcome = TERMINATED if term else RECOVERED
-    if not term:
-        X = sim.closed_loop_state()
-        if float(X @ lyap.P @ X) >= v0:
-            outcome = NOT_CONVERGED
+    if not term and region_value(sim, lyap, sim.observe()) >= v0:
+        outcome = NOT_CONVERGED
     return outcome, (path if keep_path else None)
 
 
@@ -623,11 +683,15 @@ def estimate_roa(
     record: tuple[str, str] | None = None,
     progress: Progress | None = None,
     workers: int | None = None,
+    method: str | None = None,
 ) -> tuple[RegionOfAttraction, list[Trajectory]]:
     """Estimate and certify the region of attraction of ``spec`` on its env.
 
-    The model card's ``[region] method`` picks the method: a Lyapunov level set, or (over
-    contacts) a recoverable box found by simulation only.
+    ``method`` (default: the model card's ``[region] method``) picks it: a Lyapunov level set, or
+    (over contacts) a recoverable box found by simulation only. On a robot with contacts a level
+    set is drawn about the posture a balance coach was designed at
+    (:func:`pidlab.controller.balance.design_point`) from the linear model there, and certified by
+    simulation alone (:func:`contact_analysis`).
 
     Parameters
     ----------
@@ -650,6 +714,8 @@ def estimate_roa(
     workers : int, optional
         Worker processes for the simulations (default: the machine's cores, at most 4; 1: all
         in this process). The result is the same for any number of workers.
+    method : {"lyapunov", "simulation"}, optional
+        The region's kind; default the model card's.
 
     Returns
     -------
@@ -658,25 +724,86 @@ def estimate_roa(
     Raises
     ------
     RegionError
-        Unstable closed loop, or nothing certified; or an argument out of its range (``samples``
-        in [1, 1e7], ``seed`` in [0, 2**32 - 1], ``horizon_s`` in (0, 3600] s, ``workers`` in
-        [1, 256], ...).
+        Unstable closed loop, or nothing certified; a level set asked on a robot with contacts of
+        a coach not designed about a posture of its own, or a box on a model card without region
+        variables; or an argument out of its range (``samples`` in [1, 1e7], ``seed`` in
+        [0, 2**32 - 1], ``horizon_s`` in (0, 3600] s, ``workers`` in [1, 256], ``method`` one of
+        :data:`METHODS`, ...).
     """
     instance(spec, CoachSpec, "spec")
     instance(loaded, LoadedModel, "loaded")
     _check_budget(samples, seed, horizon_s, bisection_samples, bisection_rounds, keep_trajectories)
     if record is not None:
         check_variables(record, loaded, "record", count=2)
+    chosen = region_method(loaded, method)
     n_workers = resolve_workers(workers, RegionError)
     t0 = time.perf_counter()
     report = progress if progress is not None else _no_progress
     coach = Coach(spec, loaded)
-    analysis = analyze_coach(coach, loaded)
+    if chosen == "lyapunov" and loaded.require_card().region_method == "simulation":
+        analysis = contact_analysis(spec, loaded, coach)
+    else:
+        analysis = analyze_coach(coach, loaded)
     budget = _Budget(samples, seed, horizon_s, bisection_samples, bisection_rounds, keep_trajectories, record)
     with SimulationPool(spec, loaded, analysis.linearization, n_workers) as pool:
-        if loaded.require_card().region_method == "simulation":
+        if chosen == "simulation":
             return _recoverable_box(pool, spec, budget, t0, report)
         return _lyapunov_region(pool, spec, coach, analysis, budget, t0, report)
+
+
+METHODS = ("lyapunov", "simulation")
+"""The kinds of region :func:`estimate_roa` certifies (a model card's ``[region] method``)."""
+
+
+def region_method(loaded: LoadedModel, method: str | None) -> str:
+    """``method``, checked, or the model card's ``[region] method`` (None).
+
+    Raises
+    ------
+    RegionError
+        Not one of :data:`METHODS`, or ``"simulation"`` on a card without ``[region] variables``.
+    """
+    card = loaded.require_card()
+    if method is None:
+        return card.region_method
+    if method not in METHODS:
+        raise RegionError(
+            f"method={shown(method)}: expected one of {', '.join(METHODS)}", param="method"
+        )
+    if method == "simulation" and not card.region_variables:
+        raise RegionError(
+            f"method='simulation': {loaded.name}'s model card names no [region] variables for the box; "
+            "expected method='lyapunov'",
+            param="method",
+        )
+    return method
+
+
+def contact_analysis(spec: CoachSpec, loaded: LoadedModel, coach: Coach) -> CoachAnalysis:
+    """The closed loop a level set over contacts is drawn from: at the coach's design posture.
+
+    At a robot's reset pose the contacts and joint limits switch under any push, and the linear
+    model there means little; a balance coach regulates the robot to a posture of its own, at rest
+    on its feet, and was designed on the linear model there
+    (:func:`pidlab.controller.balance.design_linearization`). The level set is centred there and
+    certified by simulation alone (no symbolic model covers the contacts).
+
+    Raises
+    ------
+    RegionError
+        The coach was not designed about a posture of its own.
+    """
+    from pidlab.controller.balance import design_linearization
+
+    lin = design_linearization(spec, loaded)
+    if lin is None:
+        raise RegionError(
+            f"{spec.name}: a level set on {spec.env_id} (contacts) is drawn about the posture a balance "
+            "coach was designed at, and this coach records none; expected a balance coach (`pidlab tune ENV "
+            "--auto --preset balance`), or method='simulation'",
+            param="method",
+        )
+    return analyze_coach(coach, loaded, lin)
 
 
 def _lyapunov_region(

@@ -409,6 +409,11 @@ def roa_view(result: Any, units: dict[str, str] | None = None) -> Group:
             f"level c (V = X' P X, Q = I): certified {result.level:.4g}; CasADi estimate {opt}; "
             f"simulation bisection {result.c_simulation:.4g}\n"
         )
+        if result.lyapunov.tangent is not None:
+            head.append(
+                "centre: the posture the balance coach was designed at; V over the observation "
+                "(the plant's observable part), no CasADi estimate over contacts\n"
+            )
     head.append(
         f"certification: {chk.samples} simulated initial states, {chk.failures} failures "
         f"({chk.terminated} terminated, {chk.not_converged} not converged) over {chk.horizon_s:g} s; "
@@ -421,7 +426,7 @@ def roa_view(result: Any, units: dict[str, str] | None = None) -> Group:
     )
     t.add_column("variable")
     t.add_column("unit")
-    t.add_column("operating point", justify="right")
+    t.add_column("centre", justify="right")
     t.add_column("half-width", justify="right")
     if result.lyapunov is not None:
         L = result.lyapunov
