@@ -98,6 +98,20 @@ def test_the_published_shield_floor_table_is_its_json_files() -> None:
     assert "matches" in done.stdout
 
 
+def test_a_coach_not_measured_yet_is_left_out_of_the_shield_floor_table(monkeypatch) -> None:
+    """A row added to the script before its env is measured again: no row for it, the others kept."""
+    sys_path = str(ROOT / "benchmarks")
+    monkeypatch.syspath_prepend(sys_path)
+    import shield_floor
+
+    before = shield_floor.table()
+    walker = shield_floor.COACHES["Walker2d-v5"]
+    extra = shield_floor.Row(shield_floor.Coach("a coach no JSON holds yet", "tuning/Walker2d-v5.pidlab-robust.toml"))
+    monkeypatch.setitem(shield_floor.COACHES, "Walker2d-v5", (*walker, extra))
+    assert shield_floor.table() == before
+    assert "a coach no JSON holds yet" not in before and before.count("| Walker2d-v5 |") == len(walker)
+
+
 @pytest.mark.parametrize(
     ("x", "ctrl", "says"),
     [
