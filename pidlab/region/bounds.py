@@ -36,7 +36,6 @@ from scipy.optimize import minimize
 from pidlab import __version__
 from pidlab.checks import instance, integer
 from pidlab.checks import seed as check_seed
-from pidlab.controller.analysis import analyze_coach
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import CoachSpec
 from pidlab.errors import RegionError
@@ -48,7 +47,7 @@ from pidlab.region.roa import (
     Lyapunov,
     RegionOfAttraction,
     check_variables,
-    contact_analysis,
+    region_analysis,
     region_start,
     region_value,
 )
@@ -216,7 +215,8 @@ def derive_bounds(
         variables = list(roa.box) if roa.box else [v for v in (lp0.signal, lp0.rate_signal) if v]
     check_variables(variables, loaded)
     coach = Coach(spec, loaded)
-    lin = _region_linearization(roa, spec, loaded, coach)
+    drawn_as = "simulation" if roa.lyapunov is None else "lyapunov"
+    lin = region_analysis(spec, loaded, coach, drawn_as).linearization
     vertices = _action_vertices(coach, lin)
     provenance = _region_provenance(roa)
     rng = np.random.default_rng(seed)
@@ -227,15 +227,6 @@ def derive_bounds(
         if roa.method == METHOD_SIMULATION:
             return _box_bounds(roa, spec, step, check_samples, provenance)
         return _ellipsoid_bounds(roa, spec, lin, step, variables, check_samples, provenance)
-
-
-def _region_linearization(
-    roa: RegionOfAttraction, spec: CoachSpec, loaded: LoadedModel, coach: Coach
-) -> Linearization:
-    """The linear model ``roa`` was drawn on: a level set's own (its centre), else the model card's point."""
-    if roa.lyapunov is not None and loaded.require_card().region_method == "simulation":
-        return contact_analysis(spec, loaded, coach).linearization
-    return analyze_coach(coach, loaded).linearization
 
 
 def _action_vertices(coach: Coach, lin: Linearization) -> np.ndarray:

@@ -24,7 +24,10 @@ Hopper and Walker2d (contacts)
     A quadratic Lyapunov argument over contacts is not sound. The recoverable set is estimated
     by simulation only, as a box over the coached variables (torso pitch and its rate) around
     the standing pose: the largest box from whose corners and interior (sampled) the coach
-    recovers without termination within the horizon.
+    recovers without termination within the horizon. A balance coach, designed about a posture
+    of its own, can have the level set instead (``method="lyapunov"``): about that posture, from
+    the linear model there, over every observed variable, certified by the simulation check alone
+    (:func:`contact_analysis`).
 
 Every result says which method produced it.
 """
@@ -740,10 +743,7 @@ def estimate_roa(
     t0 = time.perf_counter()
     report = progress if progress is not None else _no_progress
     coach = Coach(spec, loaded)
-    if chosen == "lyapunov" and loaded.require_card().region_method == "simulation":
-        analysis = contact_analysis(spec, loaded, coach)
-    else:
-        analysis = analyze_coach(coach, loaded)
+    analysis = region_analysis(spec, loaded, coach, chosen)
     budget = _Budget(samples, seed, horizon_s, bisection_samples, bisection_rounds, keep_trajectories, record)
     with SimulationPool(spec, loaded, analysis.linearization, n_workers) as pool:
         if chosen == "simulation":
@@ -777,6 +777,22 @@ def region_method(loaded: LoadedModel, method: str | None) -> str:
             param="method",
         )
     return method
+
+
+def region_analysis(spec: CoachSpec, loaded: LoadedModel, coach: Coach, method: str) -> CoachAnalysis:
+    """The closed loop a region of ``method`` (one of :data:`METHODS`) is drawn on.
+
+    A level set on a robot with contacts: at the balance coach's posture
+    (:func:`contact_analysis`); anything else: at the model card's operating point.
+
+    Raises
+    ------
+    RegionError
+        As :func:`contact_analysis`.
+    """
+    if method == "lyapunov" and loaded.require_card().region_method == "simulation":
+        return contact_analysis(spec, loaded, coach)
+    return analyze_coach(coach, loaded)
 
 
 def contact_analysis(spec: CoachSpec, loaded: LoadedModel, coach: Coach) -> CoachAnalysis:
