@@ -192,6 +192,26 @@ def test_a_level_set_over_contacts_is_drawn_about_the_balance_posture(models):
     assert v0 == pytest.approx(float(y @ lyap.P_y @ y)) == pytest.approx(region_value(sim, lyap, obs))
 
 
+def test_a_phase_portrait_over_contacts_starts_about_the_posture(models):
+    """``method='lyapunov'`` on Walker2d: the grid is laid about the balance coach's posture, each of
+    the two variables moved by its own offset (the others at the posture); the card's method keeps
+    the operating point."""
+    from pidlab.controller.balance import design_observation
+    from pidlab.region.roa import phase_portrait
+
+    loaded = models["Walker2d-v5"]
+    spec = load_spec(TUNING / "Walker2d-v5.pidlab-balance.toml")
+    pair = ("thigh_joint_pos", "rooty_vel")
+    paths = phase_portrait(spec, loaded, pair, (0.02, 0.3), grid=2, horizon_s=0.024, method="lyapunov")
+    centre = design_observation(spec, loaded, pair)
+    firsts = np.array([p[0] for p in paths])
+    offsets = np.array([(a, b) for a in (-0.02, 0.02) for b in (-0.3, 0.3)])
+    assert np.allclose(firsts, centre + offsets, atol=1e-9)
+    assert all(len(p) == 4 for p in paths)  # 0.024 s: 3 control periods of 8 ms, and the start
+    card_op = phase_portrait(spec, loaded, pair, (0.02, 0.3), grid=2, horizon_s=0.024)
+    assert not np.allclose(np.array([p[0] for p in card_op]), firsts)  # the reset pose, not the posture
+
+
 def test_a_level_set_over_contacts_needs_a_balance_coach_and_a_known_method(models):
     robust = load_spec(TUNING / "Walker2d-v5.pidlab-robust.toml")
     with pytest.raises(RegionError, match="balance coach") as err:
@@ -209,4 +229,8 @@ def test_cli_bounds_method_bad_input():
     code, stderr = cli_in_process("bounds", spec, "--method", "grid")
     assert code == 2 and stderr.strip() == "pidlab: error: --method grid: expected one of lyapunov, simulation"
     code, stderr = cli_in_process("bounds", spec, "--method", "lyapunov", "--samples", "4")
+    assert code == 2 and "balance coach" in stderr and len(stderr.strip().splitlines()) == 1
+    code, stderr = cli_in_process("roa", spec, "--method", "grid")
+    assert code == 2 and stderr.strip() == "pidlab: error: --method grid: expected one of lyapunov, simulation"
+    code, stderr = cli_in_process("roa", spec, "--method", "lyapunov", "--samples", "4")
     assert code == 2 and "balance coach" in stderr and len(stderr.strip().splitlines()) == 1

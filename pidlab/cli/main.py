@@ -802,6 +802,12 @@ def analyze(
         con.print(f"wrote {len(written)} plots to {plots}")
 
 
+_METHOD_HELP = (
+    "The region: 'lyapunov' (a level set certified by simulation; on a robot with contacts, "
+    "about a balance coach's posture) or 'simulation' (a recoverable box). Default: the model card's."
+)
+
+
 @app.command()
 @friendly_errors
 def roa(
@@ -820,15 +826,18 @@ def roa(
     workers: Annotated[
         int | None, typer.Option(help="Worker processes for the simulations (default: the machine's cores).")
     ] = None,
+    method: Annotated[str | None, typer.Option(help=_METHOD_HELP)] = None,
 ) -> None:
     """Estimate and certify the coach's region of attraction (Lyapunov + MuJoCo simulation)."""
     from pidlab.controller.spec import load_spec
     from pidlab.plant.model import load_model
-    from pidlab.region.roa import estimate_roa
+    from pidlab.region.roa import METHODS, estimate_roa
     from pidlab.report.console import roa_view, wide_console
 
     if samples < 1:
         _fail(f"--samples {samples}: expected a positive number")
+    if method is not None and method not in METHODS:
+        _fail(f"--method {method}: expected one of {', '.join(METHODS)}")
     if not horizon > 0:
         _fail(f"--horizon {horizon}: expected a positive time in s")
     if plots:
@@ -850,11 +859,12 @@ def roa(
         keep_trajectories=80 if pair else 0,
         record=pair,
         workers=workers,
+        method=method,
     )
     con = wide_console()
     con.print(roa_view(result, units))
     if plots and pair is not None:
-        folder = _write_roa_plots(spec, loaded, (result, kept), pair, units, horizon, plots)
+        folder = _write_roa_plots(spec, loaded, (result, kept, method), pair, units, horizon, plots)
         con.print(f"wrote 2 plots to {folder}")
 
 
@@ -889,7 +899,7 @@ def _portrait_extent(result: Any, pair: tuple[str, str]) -> tuple[float, float]:
 def _write_roa_plots(
     spec: Any,
     loaded: Any,
-    estimate: tuple[Any, Any],
+    estimate: tuple[Any, Any, str | None],
     pair: tuple[str, str],
     units: dict[str, str],
     horizon: float,
@@ -900,11 +910,12 @@ def _write_roa_plots(
     from pidlab.region.roa import phase_portrait
     from pidlab.report.plots import plot_phase_portrait, plot_roa_slice
 
-    result, kept = estimate
+    result, kept, method = estimate
     folder = make_folder(plots, "plots")
     fig = plot_roa_slice(result, pair, kept, units)
     save_figure(fig, folder / f"roa_{pair[0]}_{pair[1]}.png")
-    paths = phase_portrait(spec, loaded, pair, _portrait_extent(result, pair), horizon_s=horizon)
+    extent = _portrait_extent(result, pair)
+    paths = phase_portrait(spec, loaded, pair, extent, horizon_s=horizon, method=method)
     fig = plot_phase_portrait(
         paths, pair, units, f"{spec.env_id} / {spec.name}: coached phase portrait (MuJoCo)"
     )
@@ -929,13 +940,7 @@ def bounds(
     workers: Annotated[
         int | None, typer.Option(help="Worker processes for the simulations (default: the machine's cores).")
     ] = None,
-    method: Annotated[
-        str | None,
-        typer.Option(
-            help="The region: 'lyapunov' (a level set certified by simulation; on a robot with contacts, "
-            "about a balance coach's posture) or 'simulation' (a recoverable box). Default: the model card's."
-        ),
-    ] = None,
+    method: Annotated[str | None, typer.Option(help=_METHOD_HELP)] = None,
 ) -> None:
     """Derive critical-state bounds (ellipsoid and box) from the certified region."""
     from pidlab.controller.spec import editing_spec

@@ -394,29 +394,65 @@ def phase_portrait(
     extent: tuple[float, float],
     grid: int = 7,
     horizon_s: float = 3.0,
+    method: str | None = None,
 ) -> list[np.ndarray]:
     """Coached MuJoCo trajectories, recorded in two variables, from a grid over ``+-extent``.
 
-    The two variables are set through the plant state (least-norm change), everything else
-    at the operating point.
+    About the point the region of ``method`` (default: the model card's) is drawn at: the
+    operating point, where the two variables are set through the plant state (least-norm change)
+    and everything else stays; or, for a level set over contacts, the balance coach's posture,
+    where each of the two moves by its own offset (:func:`region_start`).
+
+    Raises
+    ------
+    RegionError
+        A variable unknown, or not one the level set over contacts is drawn in; ``method`` as
+        :func:`region_method`.
     """
     check_variables(variables, loaded, "variables", count=2)
+    chosen = region_method(loaded, method)
     coach = Coach(spec, loaded)
-    lin = analyze_coach(coach, loaded).linearization
+    analysis = region_analysis(spec, loaded, coach, chosen)
+    lin = analysis.linearization
     sim = Simulator(spec, loaded, lin)
-    card = loaded.require_card()
-    names = card.observation_names
+    names = loaded.require_card().observation_names
     idx = [names.index(v) for v in variables]
-    Cinv = np.linalg.pinv(np.asarray(lin.sysd.C))
+    start = _portrait_start(sim, analysis, coach, variables, chosen)
     steps = horizon_steps(horizon_s, loaded.control_dt)
     paths = []
     for a in np.linspace(-extent[0], extent[0], grid):
         for b in np.linspace(-extent[1], extent[1], grid):
-            x = Cinv[:, idx[0]] * a + Cinv[:, idx[1]] * b
-            obs = sim.start(x)
-            _, path = sim.run(obs, steps, idx)
+            _, path = sim.run(start(a, b), steps, idx)
             paths.append(path)
     return paths
+
+
+def _portrait_start(
+    sim: Simulator, analysis: CoachAnalysis, coach: Coach, variables: tuple[str, str], method: str
+) -> Callable[[float, float], np.ndarray]:
+    """``start(a, b)``: ``sim`` put where the two variables deviate by ``a`` and ``b``; its observation."""
+    over_contacts = method == "lyapunov" and sim.card.region_method == "simulation"  # as region_analysis
+    lyap = lyapunov_function(analysis, coach, sim.y_op) if over_contacts else None
+    if lyap is not None and lyap.tangent is not None:
+        missing = [v for v in variables if v not in lyap.variables]
+        if missing:
+            raise RegionError(
+                f"variables: {missing[0]!r} is not among the variables the level set about "
+                f"{coach.spec.name}'s posture is drawn in; expected two of {', '.join(lyap.variables)}",
+                param="variables",
+            )
+        pos = [lyap.variables.index(v) for v in variables]
+
+        def about_posture(a: float, b: float) -> np.ndarray:
+            y_dev = np.zeros(len(lyap.variables))
+            y_dev[pos] = (a, b)
+            return region_start(sim, lyap, y_dev)[0]
+
+        return about_posture
+    names = sim.card.observation_names
+    Cinv = np.linalg.pinv(np.asarray(analysis.linearization.sysd.C))
+    cols = [Cinv[:, names.index(v)] for v in variables]
+    return lambda a, b: sim.start(cols[0] * a + cols[1] * b)
 
 
 # --------------------------------------------------------------------------------------------
