@@ -132,6 +132,48 @@ def test_the_focus_level_computed_by_hand() -> None:
         focus_level(np.array([]))
 
 
+def test_failure_bounds_computed_by_hand() -> None:
+    """No failure: the rule of three. Otherwise the one-sided Clopper-Pearson bound: the rate at which
+    that many failures or fewer come up with probability 0.05 (1 of 2: 1 - p^2 = 0.05)."""
+    from scipy.stats import binom
+
+    from pidlab.region.classifier import allowed_failures, failure_bound
+
+    assert failure_bound(0, 2000) == pytest.approx(0.0015) and failure_bound(0, 200) == pytest.approx(0.015)
+    assert failure_bound(1, 2) == pytest.approx(math.sqrt(0.95))
+    assert failure_bound(2, 2) == 1.0
+    for k, n in ((1, 20), (3, 200), (8, 2000)):
+        assert binom.cdf(k, n, failure_bound(k, n)) == pytest.approx(0.05)
+    assert allowed_failures(2000, 0.0) == 0 and allowed_failures(2000, 0.0015) == 0  # 1 of 2,000: 0.0024
+    for n, alpha in ((200, 0.03), (2000, 0.005), (2000, 0.01)):
+        k = allowed_failures(n, alpha)
+        assert failure_bound(k, n) <= alpha < failure_bound(k + 1, n)
+    assert allowed_failures(200, 0.03) == 1 and allowed_failures(2000, 0.005) == 4
+
+
+def test_a_tolerated_false_claim_rate_accepts_a_draw_with_few_failures(monkeypatch) -> None:
+    """The validation loop's rule, on set outcomes (the labels here stand in for MuJoCo's; the
+    estimate's own run is tested on IDP below): a draw with more failures than the rate allows raises
+    the threshold past them, and the next draw, within it, is accepted with its failures kept."""
+    from types import SimpleNamespace
+
+    from pidlab.region import classifier
+
+    states = np.linspace(-1.0, 1.0, 200)[:, None]
+    outcomes = iter([np.arange(200) >= 3, np.arange(200) != 150])  # 3 failures, then 1
+    est = SimpleNamespace(rescued=lambda drawn, label: (next(outcomes), None))
+    monkeypatch.setattr(classifier, "draw_states", lambda est, n, keep, kept: states[:n])
+    work = SimpleNamespace(settings=_small(validation=200, false_claims=0.03), est=est)
+    clf, (rounds, removed, kept), scores = classifier._until_clean(
+        work, _tiny(-5.0), 200, lambda c: c.inside, "validation"
+    )
+    assert (rounds, removed, kept) == (2, 3, 1)  # 1 of 200 is within 3 %; 3 of 200 is not (0.038)
+    assert clf.threshold == np.nextafter(float(_tiny().scores(states[2:3])[0]), np.inf)
+    assert len(scores) == 200
+    with pytest.raises(RegionError, match="false_claims=0.01: 200 validation states with no failure"):
+        _small(validation=200, false_claims=0.01)
+
+
 def test_no_edge_share_means_no_edge_draw() -> None:
     from types import SimpleNamespace
 
@@ -293,6 +335,8 @@ def test_settings_out_of_range_are_refused() -> None:
         (["--domain", "hinge_sin=1", "--focus", "-1"], "--focus -1: expected an integer in [0, 2000000]"),
         (["--domain", "hinge_sin=1", "--near", "-1"], "--near -1: expected an integer in [0, 2000000]"),
         (["--domain", "hinge_sin=1", "--into", "up"], "--into 'up': expected one of core, box"),
+        (["--domain", "hinge_sin=1", "--false-claims", "0.5"], "--false-claims 0.5: expected a finite number"),
+        (["--domain", "hinge_sin=1", "--false-claims", "0.001"], "--false-claims 0.001: 2000 validation states"),
     ],
 )
 def test_the_command_refuses_bad_input_in_one_line(args: list[str], message: str) -> None:

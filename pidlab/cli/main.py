@@ -1114,6 +1114,15 @@ def rescue_classifier(
     coverage: Annotated[int, typer.Option(help="Fresh states over the domain for the coverage.")] = 20_000,
     focus: FocusOption = 0,
     near: NearOption = 0,
+    false_claims: Annotated[
+        float,
+        typer.Option(
+            metavar="RATE",
+            help="The failure rate tolerated inside the region, in [0, 0.5): a validation draw is accepted "
+            "when its failures show a rate below RATE at 95 % (its failures stay inside). 0: a draw must "
+            "have none.",
+        ),
+    ] = 0.0,
     width: Annotated[int, typer.Option(help="Units per hidden layer (two hidden layers).")] = 64,
     epochs: Annotated[int, typer.Option(help="Passes over the labelled states.")] = 100,
     horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
@@ -1148,7 +1157,7 @@ def rescue_classifier(
     settings = ClassifierSettings(
         tuple(box), tuple(box.values()), samples=samples, calibration=calibration, validation=validation,
         coverage=coverage, width=width, epochs=epochs, horizon_s=horizon, seed=seed, edge_share=edge_share,
-        focus=focus, into=into, near=near,
+        focus=focus, into=into, near=near, false_claims=false_claims,
     )  # fmt: skip
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
     with editing_spec(spec_file, write) as spec, copy as write_copy:

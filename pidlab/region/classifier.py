@@ -27,6 +27,12 @@ of the states the coach rescues. A **classifier region** covers all of them:
    region are simulated; a failure raises the threshold past its score and a new fresh draw
    follows, until a draw has none (rule of three: a failure rate below ``3 / validation`` with
    95 % confidence).
+   **A tolerated false-claim rate** (``false_claims`` = alpha > 0): a draw is accepted when its
+   failures show a failure rate below alpha with 95 % confidence (the one-sided Clopper-Pearson
+   bound, :func:`failure_bound`; :func:`allowed_failures`). The failures of the accepted draw stay
+   inside: the region claims states its coach does not rescue, at a measured rate, where the
+   outcome is too irregular for any threshold to rank every failure below every rescue
+   (Walker2d). alpha = 0 is the rule above.
    **At the edge**: the trigger meets the region at its edge, where an agent's actions take the
    state, and a thin sliver of false claims there (a pole near its limit, moving out) escapes a
    uniform draw. So ``validation`` more fresh states are drawn inside the region *among its
@@ -48,6 +54,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import beta
 
 from pidlab import __version__
 from pidlab.checks import integer, number
@@ -119,6 +126,11 @@ class ClassifierSettings:
         Where a rescue ends (:data:`pidlab.region.rescue.RESCUE_ENDS`): the certified core (a coach
         certified by simulation: the horizon held), or the horizon held and ended in the
         recoverable box ``[bounds.box]``.
+    false_claims : float
+        The failure rate inside the region tolerated (alpha in [0, 0.5)): a validation draw is
+        accepted when its failures show a rate below alpha with 95 % confidence. 0: none (a draw
+        is accepted only without a failure); otherwise at least :func:`failure_bound` of no failure
+        in ``validation`` states, the least that many states can show.
     """
 
     variables: tuple[str, ...]
@@ -136,6 +148,7 @@ class ClassifierSettings:
     focus: int = 0
     into: str = "core"
     near: int = 0
+    false_claims: float = 0.0
 
     def __post_init__(self) -> None:
         """Refuse settings out of range at once (:class:`RegionError` naming the field)."""
@@ -162,6 +175,43 @@ def _check_settings(s: ClassifierSettings) -> None:
     number(s.edge_share, "edge_share", RegionError, low=0.0, high=1.0, param="edge_share")
     check_seed(s.seed, "seed", RegionError, param="seed")
     check_into(s.into)
+    number(
+        s.false_claims, "false_claims", RegionError, low=0.0, high=0.5, high_open=True, param="false_claims"
+    )
+    least = failure_bound(0, s.validation)
+    if 0.0 < s.false_claims < least:
+        raise RegionError(
+            f"false_claims={s.false_claims:g}: {s.validation} validation states with no failure show a "
+            f"failure rate below {least:.3g} at best; expected 0 or at least {least:.3g} (or more validation "
+            "states)",
+            param="false_claims",
+        )
+
+
+def failure_bound(failures: int, n: int) -> float:
+    """Upper 95 % bound on the failure rate when ``failures`` of ``n`` draws failed.
+
+    No failure: the rule of three, ``3 / n``. Otherwise the one-sided Clopper-Pearson bound, the
+    rate ``p`` at which ``failures`` or fewer would come up with probability 0.05.
+    """
+    if failures <= 0:
+        return 3.0 / n
+    if failures >= n:
+        return 1.0
+    return float(beta.ppf(0.95, failures + 1, n - failures))
+
+
+def allowed_failures(n: int, false_claims: float) -> int:
+    """The most failures a draw of ``n`` may hold whose :func:`failure_bound` stays within ``false_claims``.
+
+    0 when ``false_claims`` is 0 (a draw is accepted only without a failure).
+    """
+    if false_claims <= 0.0:
+        return 0
+    k = 0
+    while k < n and failure_bound(k + 1, n) <= false_claims:
+        k += 1
+    return k
 
 
 @dataclass(frozen=True)
@@ -190,6 +240,11 @@ class ClassifierRescue:
         Failures the edge draws found (and excluded by a higher threshold).
     calibration_accuracy : float
         Share of calibration states the network's sign classifies right (score >= 0: rescued).
+    validation_failures : int
+        Failures in the accepted validation draw (0 unless ``settings.false_claims`` tolerates some:
+        they stay inside the region).
+    edge_failures : int
+        The same for the accepted edge draw.
     provenance : dict
     reused : int
         Of the simulations, the outcomes read from the labels' journal of an earlier, stopped run
@@ -208,13 +263,15 @@ class ClassifierRescue:
     edge_rounds: int
     edge_failures_removed: int
     calibration_accuracy: float
+    validation_failures: int = 0
+    edge_failures: int = 0
     provenance: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
     reused: int = field(default=0, compare=False)
 
     @property
     def failure_bound_95(self) -> float:
-        """Upper 95 % bound on the failure rate inside the region (rule of three)."""
-        return 3.0 / self.settings.validation
+        """Upper 95 % bound on the failure rate inside: :func:`failure_bound` of the accepted draw."""
+        return failure_bound(self.validation_failures, self.settings.validation)
 
     def to_table(self) -> dict[str, Any]:
         """The spec's ``[bounds.rescue]`` table."""
@@ -368,9 +425,9 @@ def estimate_classifier(
         scores = replace(unfitted, layers=layers).scores(labelled[s.samples :])
         accuracy = float(np.mean((scores >= 0.0) == rescued[s.samples :]))
         clf = replace(unfitted, layers=layers, threshold=calibrated_threshold(scores, rescued[s.samples :]))
-        clf, rounds, removed, scores_inside = _validate(work, clf, s.validation)
+        clf, inside, scores_inside = _validate(work, clf, s.validation)
         clf, edge = _validate_edge(work, clf, scores_inside)
-        return _scored(spec, work, clf, (rounds, removed, *edge, accuracy), focused)
+        return _scored(spec, work, clf, (inside, edge, accuracy), focused)
 
 
 def _anchor(
@@ -447,8 +504,10 @@ def _box(d: _Domain) -> tuple[tuple[float, ...], tuple[float, ...]]:
     return tuple(float(v) for v in d.lower), tuple(float(v) for v in d.upper)
 
 
-def _validate(work: _Work, clf: RescueClassifier, n: int) -> tuple[RescueClassifier, int, int, np.ndarray]:
-    """Fresh draws inside until one has no failure: the classifier, rounds, failures, the draw's scores."""
+def _validate(
+    work: _Work, clf: RescueClassifier, n: int
+) -> tuple[RescueClassifier, tuple[int, int, int], np.ndarray]:
+    """Fresh draws inside until one is accepted: the classifier, (rounds, removed, kept), its scores."""
     anchor = clf.anchor_point()[None, :]
     where = "the operating point" if clf.anchor is None else "the point its coach regulates to"
 
@@ -460,24 +519,28 @@ def _validate(work: _Work, clf: RescueClassifier, n: int) -> tuple[RescueClassif
             )
         return c.inside
 
-    return _until_clean(work, clf, n, inside, "validation")
+    clf, draws, scores = _until_clean(work, clf, n, inside, "validation")
+    return clf, draws, scores
 
 
 def _until_clean(
     work: _Work, clf: RescueClassifier, n: int, keep_of: Callable[[RescueClassifier], Callable], label: str
-) -> tuple[RescueClassifier, int, int, np.ndarray]:
-    """Draws of ``n`` states that ``keep_of(clf)`` keeps, until one has no failure.
+) -> tuple[RescueClassifier, tuple[int, int, int], np.ndarray]:
+    """Draws of ``n`` states that ``keep_of(clf)`` keeps, until one is accepted.
 
-    Each failure raises the threshold past its score. Returns the classifier, the rounds, the
-    failures found and the clean draw's scores.
+    A draw is accepted with no more failures than :func:`allowed_failures` tolerates (none by
+    default); otherwise each of its failures raises the threshold past its score. Returns the
+    classifier, (rounds, failures removed by the earlier draws, failures kept in the accepted
+    one) and the accepted draw's scores.
     """
-    removed = 0
+    removed, allowed = 0, allowed_failures(n, work.settings.false_claims)
     for k in range(1, MAX_ROUNDS + 1):
         drawn = draw_states(work.est, n, keep=keep_of(clf), kept=KEPT[label])
         ok, _ = work.est.rescued(drawn, f"{label} {k}")
-        if ok.all():
-            return clf, k, removed, clf.scores(drawn)
-        removed += int((~ok).sum())
+        failed = int((~ok).sum())
+        if failed <= allowed:
+            return clf, (k, removed, failed), clf.scores(drawn)
+        removed += failed
         clf = replace(clf, threshold=raised_threshold(clf.threshold, clf.scores(drawn[~ok])))
     raise RegionError(f"the classifier region still failed {label} after {MAX_ROUNDS} draws")
 
@@ -491,25 +554,25 @@ def edge_width(threshold: float, scores_inside: np.ndarray, share: float) -> flo
 
 def _validate_edge(
     work: _Work, clf: RescueClassifier, scores_inside: np.ndarray
-) -> tuple[RescueClassifier, tuple[int, int, float]]:
-    """Fresh draws at the region's edge until one has no failure: the classifier, (rounds, failures, band)."""
+) -> tuple[RescueClassifier, tuple[int, int, int, float]]:
+    """Draws at the region's edge until one is accepted: the classifier, (rounds, removed, kept, band)."""
     s = work.settings
     width = edge_width(clf.threshold, scores_inside, s.edge_share)
     if width <= 0.0:
-        return clf, (0, 0, 0.0)
+        return clf, (0, 0, 0, 0.0)
 
     def at_edge(c: RescueClassifier) -> Callable[[np.ndarray], np.ndarray]:
         return lambda v: c.inside(v) & (c.scores(v) <= c.threshold + width)
 
-    clf, rounds, removed, _ = _until_clean(work, clf, s.validation, at_edge, "edge validation")
-    return clf, (rounds, removed, width)
+    clf, (rounds, removed, kept), _ = _until_clean(work, clf, s.validation, at_edge, "edge validation")
+    return clf, (rounds, removed, kept, width)
 
 
 def _scored(
     spec: CoachSpec,
     work: _Work,
     clf: RescueClassifier,
-    how: tuple[int, int, int, int, float, float],
+    how: tuple[tuple[int, int, int], tuple[int, int, int, float], float],
     focused: dict[str, Any],
 ) -> ClassifierRescue:
     """Coverage over fresh domain states, the spec's grid region on the same ones, and the provenance."""
@@ -524,10 +587,10 @@ def _scored(
     def share(mask: np.ndarray) -> float:
         return float((mask & rescued).sum()) / held if held else 0.0
 
-    rounds, removed, edge_rounds, edge_removed, band, accuracy = how
+    (rounds, removed, kept), (edge_rounds, edge_removed, edge_kept, band), accuracy = how
     result = ClassifierRescue(
         clf, s, share(inside), None if in_grid is None else share(in_grid), float(rescued.mean()),
-        float(inside.mean()), rounds, removed, edge_rounds, edge_removed, accuracy,
+        float(inside.mean()), rounds, removed, edge_rounds, edge_removed, accuracy, kept, edge_kept,
     )  # fmt: skip
     elapsed = round(time.perf_counter() - work.started, 1)
     facts: dict[str, Any] = {"simulations": est.simulations, "elapsed_s": elapsed, "coverage_rescuable": held,
@@ -535,6 +598,10 @@ def _scored(
     if edge_rounds:
         facts |= {"edge_share": s.edge_share, "edge_band": band, "edge_samples": s.validation,
                   "edge_rounds": edge_rounds, "edge_failures_removed": edge_removed}  # fmt: skip
+        if s.false_claims:
+            facts["edge_failures"] = edge_kept
+    if s.false_claims:
+        facts["false_claims_tolerated"] = s.false_claims
     if est.grounded:
         facts["starts"] = STARTS_ON_FLOOR
     return replace(result, provenance=_provenance(result, facts), reused=est.reused)
@@ -568,7 +635,7 @@ def _provenance(r: ClassifierRescue, facts: dict[str, Any]) -> dict[str, Any]:
         "negative_weight": s.negative_weight,
         "calibration_accuracy": round(r.calibration_accuracy, 6),
         "validation_samples": s.validation,
-        "validation_failures": 0,
+        "validation_failures": r.validation_failures,
         "validation_rounds": r.validation_rounds,
         "failures_removed": r.failures_removed,
         "failure_probability_95": r.failure_bound_95,

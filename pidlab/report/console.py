@@ -533,16 +533,21 @@ def classifier_view(r: Any, spec_name: str, env_id: str, units: dict[str, str]) 
             f"near: fitted with {s.near:,} more labelled states in boxes about where the coach hands back "
             f"and the operating point ({r.provenance['near_rescued']:.1%} of them rescued)\n"
         )
+    if s.false_claims:
+        head.append(
+            f"false claims tolerated: a draw is accepted when its failures show a failure rate below "
+            f"{s.false_claims:.2%} at 95 % (the failures of the accepted draw stay in the region)\n"
+        )
     head.append(
-        f"validation in MuJoCo: {s.validation:,} fresh states in the region, 0 not rescued "
-        f"(failure rate < {r.failure_bound_95:.2%} at 95 %); {r.validation_rounds} draw(s), "
+        f"validation in MuJoCo: {s.validation:,} fresh states in the region, {r.validation_failures} not "
+        f"rescued (failure rate < {r.failure_bound_95:.2%} at 95 %); {r.validation_rounds} draw(s), "
         f"{r.failures_removed} failure(s) found and excluded on the way\n"
     )
     if r.edge_rounds:
         head.append(
-            f"at its edge (its lowest-scoring {s.edge_share:.0%}): {s.validation:,} fresh states, 0 not "
-            f"rescued; {r.edge_rounds} draw(s), {r.edge_failures_removed} failure(s) found and excluded on "
-            "the way\n"
+            f"at its edge (its lowest-scoring {s.edge_share:.0%}): {s.validation:,} fresh states, "
+            f"{r.edge_failures} not rescued; {r.edge_rounds} draw(s), {r.edge_failures_removed} failure(s) "
+            "found and excluded on the way\n"
         )
     t = Table(title="Domain: this box, states the env's termination rule ends dropped", title_justify="left")
     for col in ("variable", "low", "high"):
