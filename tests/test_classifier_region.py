@@ -180,7 +180,7 @@ def test_no_edge_share_means_no_edge_draw() -> None:
     from pidlab.region.classifier import _validate_edge
 
     work = SimpleNamespace(settings=_small(edge_share=0.0))  # nothing simulated: no estimate is needed
-    assert _validate_edge(work, _tiny(0.0), np.array([1.0, 2.0]))[1] == (0, 0, 0.0)
+    assert _validate_edge(work, _tiny(0.0), np.array([1.0, 2.0]))[1] == (0, 0, 0, 0.0)
 
 
 def test_the_fit_is_deterministic_and_learns_a_separable_rule() -> None:
