@@ -141,7 +141,7 @@ def test_failure_bounds_computed_by_hand() -> None:
 
     assert failure_bound(0, 2000) == pytest.approx(0.0015) and failure_bound(0, 200) == pytest.approx(0.015)
     assert failure_bound(1, 2) == pytest.approx(math.sqrt(0.95))
-    assert failure_bound(2, 2) == 1.0
+    assert failure_bound(2, 2) == 1.0 and failure_bound(0, 2) == 1.0  # never above 1
     for k, n in ((1, 20), (3, 200), (8, 2000)):
         assert binom.cdf(k, n, failure_bound(k, n)) == pytest.approx(0.05)
     assert allowed_failures(2000, 0.0) == 0 and allowed_failures(2000, 0.0015) == 0  # 1 of 2,000: 0.0024
@@ -170,7 +170,7 @@ def test_a_tolerated_false_claim_rate_accepts_a_draw_with_few_failures(monkeypat
     assert (rounds, removed, kept) == (2, 3, 1)  # 1 of 200 is within 3 %; 3 of 200 is not (0.038)
     assert clf.threshold == np.nextafter(float(_tiny().scores(states[2:3])[0]), np.inf)
     assert len(scores) == 200
-    with pytest.raises(RegionError, match="false_claims=0.01: 200 validation states with no failure"):
+    with pytest.raises(RegionError, match=r"false_claims=0.01: 200 validation state\(s\) with no failure"):
         _small(validation=200, false_claims=0.01)
 
 
@@ -336,7 +336,7 @@ def test_settings_out_of_range_are_refused() -> None:
         (["--domain", "hinge_sin=1", "--near", "-1"], "--near -1: expected an integer in [0, 2000000]"),
         (["--domain", "hinge_sin=1", "--into", "up"], "--into 'up': expected one of core, box"),
         (["--domain", "hinge_sin=1", "--false-claims", "0.5"], "--false-claims 0.5: expected a finite number"),
-        (["--domain", "hinge_sin=1", "--false-claims", "0.001"], "--false-claims 0.001: 2000 validation states"),
+        (["--domain", "hinge_sin=1", "--false-claims", "0.001"], "--false-claims 0.001: 2000 validation state(s)"),
     ],
 )
 def test_the_command_refuses_bad_input_in_one_line(args: list[str], message: str) -> None:

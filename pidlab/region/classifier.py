@@ -180,10 +180,10 @@ def _check_settings(s: ClassifierSettings) -> None:
     )
     least = failure_bound(0, s.validation)
     if 0.0 < s.false_claims < least:
+        floor = f"0 or at least {least:.3g}" if least < 0.5 else "0"
         raise RegionError(
-            f"false_claims={s.false_claims:g}: {s.validation} validation states with no failure show a "
-            f"failure rate below {least:.3g} at best; expected 0 or at least {least:.3g} (or more validation "
-            "states)",
+            f"false_claims={s.false_claims:g}: {s.validation} validation state(s) with no failure show a "
+            f"failure rate below {least:.3g} at best; expected {floor} (or more validation states)",
             param="false_claims",
         )
 
@@ -191,11 +191,11 @@ def _check_settings(s: ClassifierSettings) -> None:
 def failure_bound(failures: int, n: int) -> float:
     """Upper 95 % bound on the failure rate when ``failures`` of ``n`` draws failed.
 
-    No failure: the rule of three, ``3 / n``. Otherwise the one-sided Clopper-Pearson bound, the
+    No failure: the rule of three, ``3 / n`` (at most 1). Otherwise the one-sided Clopper-Pearson bound, the
     rate ``p`` at which ``failures`` or fewer would come up with probability 0.05.
     """
     if failures <= 0:
-        return 3.0 / n
+        return min(3.0 / n, 1.0)
     if failures >= n:
         return 1.0
     return float(beta.ppf(0.95, failures + 1, n - failures))
