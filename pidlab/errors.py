@@ -128,5 +128,9 @@ class BudgetError(PidlabError, ValueError):
     """A budget (episodes, model size) too large to finish in reasonable time; the message says the limit."""
 
 
+class WorkerLostError(PidlabError, RuntimeError):
+    """A worker process that stopped abruptly (killed by a signal, or by the system out of memory)."""
+
+
 class JobCancelled(Exception):
     """Raised inside a worker when its job was superseded."""

@@ -14,8 +14,10 @@ workers' timing, so callers use a stopped batch only as "it failed", never its c
 
 The workers are forked where the platform allows (Linux: no start-up cost, nothing pickled) and
 spawned elsewhere. They ignore Ctrl-C (the calling process decides), stop with the process that
-started them (:func:`pidlab.orphans.stop_with_parent`), and are shut down when the pool closes,
-also on an error or an interrupt.
+started them (:func:`pidlab.orphans.stop_with_parent`), and are shut down when the pool closes.
+On an error, an interrupt or a lost worker they are stopped at once, with nothing waited for (a
+wait there could hang: see :meth:`WorkerPool._abandon`); a worker that died is one line,
+:class:`~pidlab.errors.WorkerLostError`, not a traceback.
 """
 
 from __future__ import annotations
@@ -26,11 +28,12 @@ import os
 import signal
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
 from pidlab.checks import integer
-from pidlab.errors import PidlabError
+from pidlab.errors import PidlabError, WorkerLostError
 
 S = TypeVar("S")
 T = TypeVar("T")
@@ -44,6 +47,12 @@ MAX_WORKERS_ASKED = 256
 
 CHUNKS_PER_WORKER = 8
 """A batch is cut into about this many chunks per worker (load balance against messaging)."""
+
+WORKER_LOST = (
+    "a worker process stopped abruptly (killed by a signal, or by the system out of memory), and the "
+    "work in hand was lost; run it again (with one worker everything runs in this process)"
+)
+"""The message of :class:`~pidlab.errors.WorkerLostError` when a pool's worker dies."""
 
 
 def resolve_workers(
@@ -225,6 +234,11 @@ class WorkerPool(Generic[S]):
         Returns
         -------
         Batch
+
+        Raises
+        ------
+        WorkerLostError
+            A worker process died (killed, or out of memory); the pool starts new ones next time.
         """
         if self.workers == 1 or len(items) < 2:
             return self._run_here(task, items, stop, tick)
@@ -261,12 +275,36 @@ class WorkerPool(Generic[S]):
         try:
             for k in range(0, len(items), size):
                 futures[executor.submit(_run_chunk, task, items[k : k + size], stop)] = k
-            return _collect(futures, tick)
-        finally:
-            self._stop.set()  # abandon what is left (after a stop, an error or an interrupt)
-            for f in futures:
-                f.cancel()
-            wait(futures)
+            batch = _collect(futures, tick)
+        except BrokenProcessPool:
+            self._abandon()
+            raise WorkerLostError(WORKER_LOST) from None
+        except BaseException:
+            self._abandon()  # an error or an interrupt: nothing more is waited for
+            raise
+        self._stop.set()  # a stop settled the batch: the chunks in hand return at their next item
+        for f in futures:
+            f.cancel()
+        wait(futures)
+        return batch
+
+    def _abandon(self) -> None:
+        """Stop the workers at once and drop the executor (the next batch starts new ones).
+
+        Waiting for the chunks in hand could last forever: when the workers were killed with the
+        caller (a signal to the process group), Python 3.11's executor fails to mark the futures
+        it had not cancelled, and a wait on them never ends. So nothing is cancelled or waited
+        for here: the workers are terminated, and the executor marks every future broken.
+        """
+        executor, self._executor = self._executor, None
+        if executor is None:
+            return
+        self._stop.set()
+        processes = list(getattr(executor, "_processes", {}).values())  # not public before 3.14
+        executor.shutdown(wait=False)
+        for process in processes:
+            if process.is_alive():
+                process.terminate()
 
 
 def _collect(

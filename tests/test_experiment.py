@@ -452,6 +452,37 @@ def test_sweep_killed_and_restarted_loses_no_finished_run(tmp_path):
     assert len(walls) == 4 and f"Training wall time: {hours}" in (out / "report.md").read_text()
 
 
+def test_a_sweep_whose_worker_dies_stops_the_others_with_their_checkpoints(tmp_path):
+    """SIGKILL one run's worker (as the out-of-memory killer would): the pool is broken, so the sweep
+    stops; the run in the other worker stops at its next step with a checkpoint (one SIGTERM, not
+    two), and the sweep says why in one line and exits 130, as interrupted, with no traceback."""
+    from pidlab.experiment.sweep import STOPPED_BY
+
+    recipe = tiny_recipe(tmp_path, steps=200_000, checkpoint=100_000)
+    out = tmp_path / "exp"
+    cmd = [PIDLAB, "experiment", "--envs", IP, "--conditions", "none", "--seeds", "2", "--recipe",
+           str(recipe), "--out", str(out), "--workers", "2", "--no-progress"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    logs = [out / "runs" / IP / "none" / f"seed-{k}" / "episodes.csv" for k in (0, 1)]
+    deadline = time.time() + 120
+    while time.time() < deadline and not all(log.exists() and log.stat().st_size > 200 for log in logs):
+        assert proc.poll() is None, proc.stderr.read().decode()
+        time.sleep(0.2)
+    found = subprocess.run(["pgrep", "-P", str(proc.pid), "-f", "spawn_main"], capture_output=True, text=True)
+    workers = [int(pid) for pid in found.stdout.split()]
+    assert len(workers) == 2, "the sweep did not start its two workers in time"
+    killed_at = time.time()
+    os.kill(workers[0], signal.SIGKILL)
+    _, stderr = proc.communicate(timeout=120)
+    err = stderr.decode()
+    assert proc.returncode == 130 and "Traceback" not in err
+    assert f"{STOPPED_BY[1]}: unfinished runs keep their last checkpoint; run the same command to resume" in err
+    fresh = [  # the checkpoints written after the kill: the surviving run's, on its stop
+        c for log in logs for c in (log.parent / "checkpoints").glob("*/state.json") if c.stat().st_mtime > killed_at
+    ]
+    assert len(fresh) == 1 and int(fresh[0].parent.name) > 0
+
+
 def test_sweep_on_a_local_ray_instance_matches_the_process_pool(tmp_path):
     pytest.importorskip("ray")
     recipe = tiny_recipe(tmp_path, steps=400)

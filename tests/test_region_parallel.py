@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import time
 
 import mujoco
@@ -136,6 +137,60 @@ def test_pools_stop_their_workers_on_exit_errors_and_interrupts():
         pids = _pids(pool)
         pool.run(_square, list(range(100)), tick=cancel)
     assert _gone(pids)
+
+
+def _dies_on_five(state, x):
+    if x == 5:
+        os.kill(os.getpid(), signal.SIGKILL)  # as the system's out-of-memory killer would
+    time.sleep(0.01)
+    return x
+
+
+def test_a_worker_that_dies_is_one_error_and_the_pool_starts_anew():
+    """A worker killed mid-batch: WorkerLostError (one line), no hang; the next batch gets new workers."""
+    from pidlab.errors import WorkerLostError
+
+    with WorkerPool(int, (1,), workers=2) as pool:
+        pool.run(_square, [1, 2])
+        pids = _pids(pool)
+        with pytest.raises(WorkerLostError, match=r"^a worker process stopped abruptly \(killed") as err:
+            pool.run(_dies_on_five, list(range(40)))
+        assert "\n" not in str(err.value) and _gone(pids)  # the other worker was stopped too
+        assert pool.run(_square, [1, 2, 3]).results == [1, 4, 9]
+        assert not set(_pids(pool)) & set(pids)
+
+
+def test_a_signal_to_the_whole_process_group_ends_a_command_at_once(tmp_path):
+    """SIGTERM to the command and its workers together (a job control's kill): it exits 130 with one
+    line, where Python 3.11's executor, left to mark futures it had cancelled, hung and printed a
+    thread's traceback."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    spec = tmp_path / "InvertedPendulum-v5.pidlab-robust.toml"
+    shutil.copy(TUNING / spec.name, spec)
+    pidlab = str(Path(sys.executable).with_name("pidlab"))
+    cmd = [pidlab, "bounds", str(spec), "--samples", "200000", "--workers", "2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # until its workers run
+        children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        if len(children) >= 2:
+            break
+        time.sleep(0.2)
+    else:
+        proc.kill()
+        pytest.fail("the command started no workers in time")
+    time.sleep(1.0)
+    os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        _, stderr = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail("the command hung after SIGTERM to its process group")
+    assert proc.returncode == 130 and stderr.decode().strip() == "pidlab: interrupted"
 
 
 def _blas_threads(state, item):

@@ -1803,7 +1803,8 @@ def _sweep(
     typer.echo(f"runs: {counts} (of {len(p.tasks)})")
     if result.interrupted:
         typer.echo(
-            "interrupted: unfinished runs keep their last checkpoint; run the same command to resume",
+            f"{result.stopped_by or 'interrupted'}: unfinished runs keep their last checkpoint; run the same "
+            "command to resume",
             err=True,
         )
         raise typer.Exit(code=130)

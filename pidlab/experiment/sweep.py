@@ -577,6 +577,7 @@ def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, 
                       out: Path) -> None:  # fmt: skip
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
 
     ctx = mp.get_context("spawn")
     pool = ProcessPoolExecutor(
@@ -589,22 +590,39 @@ def _run_process_pool(tasks: Sequence[RunTask], workers: int, report: Progress, 
             for f in done:
                 report(f.result())
             poll()
-    except KeyboardInterrupt:
-        (out / STOP_FILE).touch()  # queued runs return at once
-        procs = list(getattr(pool, "_processes", {}).values())
+    except (KeyboardInterrupt, BrokenProcessPool) as exc:  # interrupted, or a worker died
+        _stop_runs(pool, futures, out, signal_them=isinstance(exc, KeyboardInterrupt))
+        raise
+    pool.shutdown(wait=True)
+
+
+def _stop_runs(pool: Any, futures: set[Any], out: Path, signal_them: bool) -> None:
+    """The sweep stops: queued runs return at once, running ones stop at their next step with a checkpoint.
+
+    ``signal_them``: send each worker the SIGTERM that asks its run to stop. A pool broken by a
+    worker that died has sent it itself (Python's executor terminates the rest); a second one would
+    stop a run at once, without its checkpoint, so then the workers are only waited for. Either
+    way, after :data:`STOP_TIMEOUT_S` the workers still alive (idle, or stuck) are ended.
+    """
+    from concurrent.futures import wait
+
+    (out / STOP_FILE).touch()  # queued runs return at once
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    deadline = time.monotonic() + STOP_TIMEOUT_S
+    if signal_them:
         for proc in procs:  # running runs stop at their next step with a checkpoint
             try:
                 os.kill(proc.pid, signal.SIGTERM)
             except ProcessLookupError:
                 pass
-        running = [f for f in futures if not f.cancel()]
-        wait(running, timeout=STOP_TIMEOUT_S)
-        for proc in procs:  # idle now (or stuck): end them rather than wait on the pool
-            if proc.is_alive():
-                proc.terminate()
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise
-    pool.shutdown(wait=True)
+        wait([f for f in futures if not f.cancel()], timeout=STOP_TIMEOUT_S)
+    else:
+        for proc in procs:
+            proc.join(max(0.0, deadline - time.monotonic()))
+    for proc in procs:  # idle now (or stuck): end them rather than wait on the pool
+        if proc.is_alive():
+            proc.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _join_ray(ray: Any, address: str) -> None:
@@ -684,12 +702,29 @@ def _ray_ready(backend: str, workers: int, address: str | None) -> Iterator[None
             ray.shutdown()
 
 
+STOPPED_BY = (
+    "interrupted",
+    "a run's worker process died (killed by a signal, or by the system out of memory)",
+)
+"""Why a sweep stopped early: SIGINT or SIGTERM, or a pool worker that died (the pool stops the others)."""
+
+
 @dataclass(frozen=True)
 class SweepResult:
-    """Outcomes of a sweep, in task order."""
+    """Outcomes of a sweep, in task order.
+
+    Attributes
+    ----------
+    outcomes : tuple of RunOutcome
+    interrupted : bool
+        The sweep stopped before its runs were done; the unfinished ones keep their last checkpoint.
+    stopped_by : str or None
+        Why (one of :data:`STOPPED_BY`); None when it was not stopped.
+    """
 
     outcomes: tuple[RunOutcome, ...]
     interrupted: bool
+    stopped_by: str | None = None
 
     def count(self, status: str) -> int:
         """How many runs ended with ``status``."""
@@ -843,8 +878,10 @@ class _Tally:
         return tuple(self.outcomes.get(_key(t), RunOutcome(*_key(t), "stopped")) for t in tasks)
 
 
-def _dispatch(todo: Sequence[RunTask], backend: str, workers: int, tally: _Tally, out: Path) -> bool:
-    """Run ``todo`` on the backend; True when SIGINT or SIGTERM interrupted it."""
+def _dispatch(todo: Sequence[RunTask], backend: str, workers: int, tally: _Tally, out: Path) -> str | None:
+    """Run ``todo`` on the backend; why it stopped early (:data:`STOPPED_BY`), or None."""
+    from concurrent.futures.process import BrokenProcessPool
+
     old = signal.signal(signal.SIGTERM, _term_as_interrupt)
     try:
         if todo:
@@ -853,11 +890,13 @@ def _dispatch(todo: Sequence[RunTask], backend: str, workers: int, tally: _Tally
             else:
                 _run_ray(todo, tally, tally.poll, out)
     except KeyboardInterrupt:
-        return True
+        return STOPPED_BY[0]
+    except BrokenProcessPool:
+        return STOPPED_BY[1]
     finally:
         signal.signal(signal.SIGTERM, old)
         tally.bar.close()
-    return False
+    return None
 
 
 def run_sweep(
@@ -914,5 +953,5 @@ def run_sweep(
             (p.out / STOP_FILE).unlink(missing_ok=True)
             tally = _Tally(p.tasks, todo, progress_bar, copied)
             _copy(reuses, p.out, tally)
-            interrupted = _dispatch(todo, backend, n, tally, p.out)
-    return SweepResult(tally.ordered(p.tasks), interrupted)
+            stopped_by = _dispatch(todo, backend, n, tally, p.out)
+    return SweepResult(tally.ordered(p.tasks), stopped_by is not None, stopped_by)
