@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -392,6 +393,39 @@ def _parent_death_signal() -> int:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux's")
+def test_a_job_whose_worker_dies_is_one_line_and_the_next_job_runs(ip):
+    """The tuner's pool after a worker is killed (SIGKILL, the out-of-memory killer): the job reports
+    one line that says so, and the next job gets a new pool instead of an error on every click."""
+    import signal
+
+    _, _, spec = ip
+    runner = JobRunner(workers=1)
+    try:
+        runner.start()
+        worker = next(iter(runner._pool._processes.values()))
+        runner.submit("a", "roa", spec, samples=5000)
+        time.sleep(1.0)
+        os.kill(worker.pid, signal.SIGKILL)
+        updates, deadline = [], time.monotonic() + 60
+        while runner.running("a", "roa") and time.monotonic() < deadline:
+            updates += runner.poll("a")
+            time.sleep(0.1)
+        updates += runner.poll("a")
+        errors = [u for u in updates if u.state == "error"]
+        assert len(errors) == 1 and errors[0].stage == (
+            "the roa job's worker process died (killed by a signal, or by the system out of memory); "
+            "start it again"
+        )
+        again = runner.submit("a", "rollout", spec, episodes=1, backend="schematic")
+        done, deadline = [], time.monotonic() + 120
+        while not done and time.monotonic() < deadline:
+            done = [u for u in runner.poll("a") if u.state == "done"]
+            time.sleep(0.1)
+        assert [u.job_id for u in done] == [again] and done[0].result.episodes == 1
+    finally:
+        runner.shutdown()
+
+
 def test_workers_die_with_their_server():
     """The kernel kills a worker the moment its server dies (SIGKILL), instead of a 1 s poll."""
     import signal

@@ -25,6 +25,7 @@ import threading
 import traceback
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from multiprocessing.managers import SyncManager
 from typing import Any
@@ -366,19 +367,27 @@ class JobRunner:
 
     def _start(self) -> tuple[ProcessPoolExecutor, Any]:
         """The worker pool and the manager, started on first use."""
-        if self._pool is None:
-            ctx = mp.get_context("spawn")
-            # the processes are started by this thread: the kernel may end them with the process
-            # only if this thread lives as long as it (see _end_with)
-            started_by = (os.getpid(), threading.current_thread() is threading.main_thread())
+        ctx = mp.get_context("spawn")
+        # the processes are started by this thread: the kernel may end them with the process
+        # only if this thread lives as long as it (see _end_with)
+        started_by = (os.getpid(), threading.current_thread() is threading.main_thread())
+        if self._manager is None:
             manager = SyncManager(ctx=ctx)
             manager.start(initializer=_init_manager, initargs=started_by)
             self._manager = manager
             self._updates = manager.Queue()
+        if self._pool is None:
             self._pool = ProcessPoolExecutor(
                 max_workers=self.workers, mp_context=ctx, initializer=_init_worker, initargs=started_by
             )
         return self._pool, self._manager
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        """A fresh worker pool in place of one a dead worker broke (the manager and its queue stay)."""
+        broken, self._pool = self._pool, None
+        if broken is not None:
+            broken.shutdown(wait=False, cancel_futures=True)
+        return self._start()[0]
 
     def submit(self, owner: str, kind: str, *args: Any, **kwargs: Any) -> int:
         """Start a ``kind`` job (a key of :data:`JOBS`) for ``owner``, abandoning its previous one.
@@ -392,7 +401,10 @@ class JobRunner:
         self.cancel(owner, kind)
         job_id = next(self._next)
         cancel = manager.Event()
-        future = pool.submit(_run, job_id, kind, args, kwargs, self._updates, cancel)
+        try:
+            future = pool.submit(_run, job_id, kind, args, kwargs, self._updates, cancel)
+        except BrokenProcessPool:  # a worker died (killed, or out of memory): the next job gets new ones
+            future = self._new_pool().submit(_run, job_id, kind, args, kwargs, self._updates, cancel)
         self._jobs[(owner, kind)] = Job(job_id, kind, future, cancel)
         return job_id
 
@@ -434,6 +446,11 @@ class JobRunner:
                 continue
             try:
                 status, value = job.future.result()
+            except BrokenProcessPool:  # its worker, or another one of the pool, died
+                status, value = "lost", (
+                    f"the {kind} job's worker process died (killed by a signal, or by the system out of "
+                    "memory); start it again"
+                )
             except Exception as exc:  # the worker process died
                 status, value = "crash", f"{type(exc).__name__}: {exc}"
             if status == "ok":
