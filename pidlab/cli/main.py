@@ -1087,6 +1087,17 @@ NearOption = Annotated[
 ]
 """``rescue-classifier --near``."""
 
+FalseClaimsOption = Annotated[
+    float,
+    typer.Option(
+        metavar="RATE",
+        help="The failure rate tolerated inside the region, in [0, 0.5): a validation draw is accepted "
+        "when its failures show a rate below RATE at 95 % (its failures stay inside). 0: a draw must "
+        "have none.",
+    ),
+]
+"""``rescue-classifier --false-claims``."""
+
 
 @app.command("rescue-classifier")
 @friendly_errors
@@ -1114,15 +1125,7 @@ def rescue_classifier(
     coverage: Annotated[int, typer.Option(help="Fresh states over the domain for the coverage.")] = 20_000,
     focus: FocusOption = 0,
     near: NearOption = 0,
-    false_claims: Annotated[
-        float,
-        typer.Option(
-            metavar="RATE",
-            help="The failure rate tolerated inside the region, in [0, 0.5): a validation draw is accepted "
-            "when its failures show a rate below RATE at 95 % (its failures stay inside). 0: a draw must "
-            "have none.",
-        ),
-    ] = 0.0,
+    false_claims: FalseClaimsOption = 0.0,
     width: Annotated[int, typer.Option(help="Units per hidden layer (two hidden layers).")] = 64,
     epochs: Annotated[int, typer.Option(help="Passes over the labelled states.")] = 100,
     horizon: Annotated[float, typer.Option(help="Simulated time per rescue, s.")] = 3.0,
