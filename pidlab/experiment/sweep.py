@@ -658,12 +658,18 @@ def _run_ray(tasks: Sequence[RunTask], report: Progress, poll: Callable[[], None
     import ray
 
     remote = ray.remote(num_cpus=1, max_retries=0)(execute)
-    pending = [remote.remote(t) for t in tasks]
+    task_of = {remote.remote(t): t for t in tasks}
+    pending = list(task_of)
     try:
         while pending:
             done, pending = ray.wait(pending, num_returns=1, timeout=POLL_S)
             for ref in done:
-                report(ray.get(ref))
+                try:
+                    report(ray.get(ref))
+                except ray.exceptions.RayError as exc:  # its worker died (killed, out of memory, node lost)
+                    why = str(exc).strip().splitlines()[0] if str(exc).strip() else "no detail"
+                    error = f"{type(exc).__name__}: {why}"
+                    report(RunOutcome(*_key(task_of[ref]), status="failed", error=error))
             poll()
     except KeyboardInterrupt:
         (out / STOP_FILE).touch()
