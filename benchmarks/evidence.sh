@@ -64,6 +64,10 @@
 # marks the sweep "in progress" in docs/results/README.md and exits 130), and run the same command
 # later. When results/FOLDER is gone (a new machine), the published logs in docs/results/FOLDER are
 # restored first, so the finished runs are skipped and only the unfinished ones train again.
+# It publishes into the checkout it runs in: a sweep run in a second work tree (to pin its code
+# while the first changes) publishes there, so copy that docs/results/FOLDER into the checkout you
+# commit from at every stop. A new machine keeps only what was committed (on 2026-11-30, twelve
+# finished runs of Amendment 23 that sat in a second work tree were lost that way).
 #
 #   bash benchmarks/evidence.sh --offpolicy Hopper-v5 -- --status   # how far that sweep is: each
 #                                                     # run's state (pidlab experiment --status); it
@@ -319,7 +323,7 @@ for env in "${envs[@]}"; do
     .venv/bin/python benchmarks/recompute.py "$dst"
     if [ "$status" -ne 0 ]; then
         .venv/bin/python benchmarks/results_table.py > /dev/null
-        echo "evidence.sh: the sweep stopped (exit $status); its finished runs are published in $dst;" \
+        echo "evidence.sh: the sweep stopped (exit $status); its finished runs are published in $PWD/$dst;" \
             "run the same command to go on" >&2
         exit "$status"
     fi
