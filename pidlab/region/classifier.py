@@ -519,8 +519,7 @@ def _validate(
             )
         return c.inside
 
-    clf, draws, scores = _until_clean(work, clf, n, inside, "validation")
-    return clf, draws, scores
+    return _until_clean(work, clf, n, inside, "validation")
 
 
 def _until_clean(
