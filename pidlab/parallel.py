@@ -181,8 +181,11 @@ class WorkerPool(Generic[S]):
     def __enter__(self) -> WorkerPool[S]:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:  # an error or an interrupt, also between batches: nothing is waited for
+            self._abandon()
 
     @property
     def state(self) -> S:

@@ -451,7 +451,7 @@ class JobRunner:
                     f"the {kind} job's worker process died (killed by a signal, or by the system out of "
                     "memory); start it again"
                 )
-            except Exception as exc:  # the worker process died
+            except Exception as exc:  # the job could not reach its worker (or come back from it)
                 status, value = "crash", f"{type(exc).__name__}: {exc}"
             if status == "ok":
                 out.append(JobUpdate(job.id, kind, "done", result=value))

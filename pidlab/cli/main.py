@@ -808,6 +808,14 @@ _METHOD_HELP = (
 )
 
 
+def _check_method(method: str | None) -> None:
+    """``--method``: one of the region kinds, refused in one line before any work."""
+    from pidlab.region.roa import METHODS
+
+    if method is not None and method not in METHODS:
+        _fail(f"--method {method}: expected one of {', '.join(METHODS)}")
+
+
 @app.command()
 @friendly_errors
 def roa(
@@ -831,13 +839,12 @@ def roa(
     """Estimate and certify the coach's region of attraction (Lyapunov + MuJoCo simulation)."""
     from pidlab.controller.spec import load_spec
     from pidlab.plant.model import load_model
-    from pidlab.region.roa import METHODS, estimate_roa
+    from pidlab.region.roa import estimate_roa
     from pidlab.report.console import roa_view, wide_console
 
     if samples < 1:
         _fail(f"--samples {samples}: expected a positive number")
-    if method is not None and method not in METHODS:
-        _fail(f"--method {method}: expected one of {', '.join(METHODS)}")
+    _check_method(method)
     if not horizon > 0:
         _fail(f"--horizon {horizon}: expected a positive time in s")
     if plots:
@@ -944,12 +951,10 @@ def bounds(
 ) -> None:
     """Derive critical-state bounds (ellipsoid and box) from the certified region."""
     from pidlab.controller.spec import editing_spec
-    from pidlab.region.roa import METHODS
 
     if samples < 1:
         _fail(f"--samples {samples}: expected a positive number")
-    if method is not None and method not in METHODS:
-        _fail(f"--method {method}: expected one of {', '.join(METHODS)}")
+    _check_method(method)
     # --write: the spec is read under its lock, held to its rewrite (a second writer is refused)
     with editing_spec(spec_file, write) as spec:
         _bounds_of(spec, spec_file, variables, write, (samples, seed, workers, method))

@@ -431,8 +431,7 @@ def _portrait_start(
     sim: Simulator, analysis: CoachAnalysis, coach: Coach, variables: tuple[str, str], method: str
 ) -> Callable[[float, float], np.ndarray]:
     """``start(a, b)``: ``sim`` put where the two variables deviate by ``a`` and ``b``; its observation."""
-    over_contacts = method == "lyapunov" and sim.card.region_method == "simulation"  # as region_analysis
-    lyap = lyapunov_function(analysis, coach, sim.y_op) if over_contacts else None
+    lyap = lyapunov_function(analysis, coach, sim.y_op) if over_contacts(sim.loaded, method) else None
     if lyap is not None and lyap.tangent is not None:
         missing = [v for v in variables if v not in lyap.variables]
         if missing:
@@ -815,10 +814,15 @@ def region_method(loaded: LoadedModel, method: str | None) -> str:
     return method
 
 
+def over_contacts(loaded: LoadedModel, method: str) -> bool:
+    """Whether a region of ``method`` on ``loaded`` is a level set over contacts (about a posture)."""
+    return method == "lyapunov" and loaded.require_card().region_method == "simulation"
+
+
 def region_analysis(spec: CoachSpec, loaded: LoadedModel, coach: Coach, method: str) -> CoachAnalysis:
     """The closed loop a region of ``method`` (one of :data:`METHODS`) is drawn on.
 
-    A level set on a robot with contacts: at the balance coach's posture
+    A level set on a robot with contacts (:func:`over_contacts`): at the balance coach's posture
     (:func:`contact_analysis`); anything else: at the model card's operating point.
 
     Raises
@@ -826,7 +830,7 @@ def region_analysis(spec: CoachSpec, loaded: LoadedModel, coach: Coach, method: 
     RegionError
         As :func:`contact_analysis`.
     """
-    if method == "lyapunov" and loaded.require_card().region_method == "simulation":
+    if over_contacts(loaded, method):
         return contact_analysis(spec, loaded, coach)
     return analyze_coach(coach, loaded)
 
