@@ -11,7 +11,7 @@ import pytest
 
 from pidlab.controller.pid import Coach
 from pidlab.controller.spec import dumps_spec, load_spec, loads_spec
-from pidlab.errors import UnknownSignalError
+from pidlab.errors import PidlabError, UnknownSignalError
 from pidlab.region.bounds import derive_bounds, with_bounds
 from pidlab.region.roa import METHOD_LYAPUNOV, METHOD_SIMULATION, RegionError, estimate_roa
 from tests.helpers import cli_in_process
@@ -210,6 +210,36 @@ def test_a_phase_portrait_over_contacts_starts_about_the_posture(models):
     assert all(len(p) == 4 for p in paths)  # 0.024 s: 3 control periods of 8 ms, and the start
     card_op = phase_portrait(spec, loaded, pair, (0.02, 0.3), grid=2, horizon_s=0.024)
     assert not np.allclose(np.array([p[0] for p in card_op]), firsts)  # the reset pose, not the posture
+
+
+def test_a_portrait_pair_outside_the_posture_level_set_is_refused_before_any_simulation(models):
+    """``pidlab roa --plots --slice`` asks :func:`check_portrait_variables` before estimating: two
+    variables of Walker2d's level set pass; a variable the level set is not drawn in is one error
+    naming the flag's parameter and the variables it could take."""
+    import dataclasses
+
+    from pidlab.region.roa import (
+        Coach,
+        Simulator,
+        _check_posture_pair,
+        check_portrait_variables,
+        lyapunov_function,
+        region_analysis,
+    )
+
+    loaded = models["Walker2d-v5"]
+    spec = load_spec(TUNING / "Walker2d-v5.pidlab-balance.toml")
+    check_portrait_variables(spec, loaded, ("thigh_joint_pos", "rooty_vel"), "lyapunov")
+    with pytest.raises(PidlabError, match="'nope' is not an observation variable of Walker2d-v5"):
+        check_portrait_variables(spec, loaded, ("rooty_pos", "nope"), "lyapunov", param="slice_vars")
+    coach = Coach(spec, loaded)
+    analysis = region_analysis(spec, loaded, coach, "lyapunov")
+    lyap = lyapunov_function(analysis, coach, Simulator(spec, loaded, analysis.linearization).y_op)
+    assert lyap.tangent is not None and "rooty_vel" in lyap.variables
+    fewer = dataclasses.replace(lyap, variables=tuple(v for v in lyap.variables if v != "rooty_vel"))
+    with pytest.raises(RegionError, match="slice_vars=rooty_pos,rooty_vel: 'rooty_vel' is not among") as err:
+        _check_posture_pair(fewer, spec.name, ("rooty_pos", "rooty_vel"), "slice_vars")
+    assert err.value.param == "slice_vars" and "expected two of rooty" not in str(err.value)
 
 
 def test_a_level_set_over_contacts_needs_a_balance_coach_and_a_known_method(models):

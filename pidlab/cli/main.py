@@ -856,7 +856,7 @@ def roa(
     spec = load_spec(spec_file)
     loaded = load_model(spec.env_id)
     units = {v.name: v.unit for v in loaded.require_card().observation}
-    pair = _slice_pair(spec, loaded, slice_vars) if plots else None
+    pair = _slice_pair(spec, loaded, slice_vars, method) if plots else None
     result, kept = estimate_roa(
         spec,
         loaded,
@@ -875,16 +875,20 @@ def roa(
         con.print(f"wrote 2 plots to {folder}")
 
 
-def _slice_pair(spec: Any, loaded: Any, slice_vars: str | None) -> tuple[str, str]:
-    """``roa --slice``: two observation variables (default: the first loop's signal and rate)."""
-    from pidlab.region.bounds import check_variables
+def _slice_pair(spec: Any, loaded: Any, slice_vars: str | None, method: str | None) -> tuple[str, str]:
+    """``roa --slice``: two observation variables (default: the first loop's signal and rate).
+
+    Checked before the estimate: about a posture, both must be among the level set's variables.
+    """
+    from pidlab.region.roa import check_portrait_variables
 
     lp0 = spec.loops[0]
     chosen = _names(slice_vars, "slice_vars") if slice_vars else [lp0.signal, lp0.rate_signal or ""]
     if len(chosen) != 2 or not all(chosen):
         _fail("--slice: expected two observation variables, e.g. --slice hinge_pos,hinge_vel")
-    check_variables(chosen, loaded, "slice_vars", count=2)
-    return (chosen[0], chosen[1])
+    pair = (chosen[0], chosen[1])
+    check_portrait_variables(spec, loaded, pair, method, param="slice_vars")
+    return pair
 
 
 def _portrait_extent(result: Any, pair: tuple[str, str]) -> tuple[float, float]:

@@ -427,19 +427,55 @@ def phase_portrait(
     return paths
 
 
+def check_portrait_variables(
+    spec: CoachSpec,
+    loaded: LoadedModel,
+    variables: tuple[str, str],
+    method: str | None = None,
+    param: str = "variables",
+) -> None:
+    """Refuse, before any simulation, two variables :func:`phase_portrait` cannot draw in.
+
+    Any two observation variables serve about the operating point; about a balance coach's
+    posture (a level set over contacts), only two the level set is drawn in.
+
+    Raises
+    ------
+    RegionError
+        As :func:`phase_portrait`.
+    """
+    check_variables(variables, loaded, param, count=2)
+    chosen = region_method(loaded, method)
+    if not over_contacts(loaded, chosen):
+        return
+    coach = Coach(spec, loaded)
+    analysis = region_analysis(spec, loaded, coach, chosen)
+    y_op = Simulator(spec, loaded, analysis.linearization).y_op
+    lyap = lyapunov_function(analysis, coach, y_op)
+    if lyap.tangent is not None:
+        _check_posture_pair(lyap, spec.name, variables, param)
+
+
+def _check_posture_pair(
+    lyap: Lyapunov, coach_name: str, variables: tuple[str, str], param: str = "variables"
+) -> None:
+    """Refuse a variable the level set about a posture is not drawn in."""
+    missing = [v for v in variables if v not in lyap.variables]
+    if missing:
+        raise RegionError(
+            f"{param}={','.join(variables)}: {missing[0]!r} is not among the variables the level set "
+            f"about {coach_name}'s posture is drawn in; expected two of {', '.join(lyap.variables)}",
+            param=param,
+        )
+
+
 def _portrait_start(
     sim: Simulator, analysis: CoachAnalysis, coach: Coach, variables: tuple[str, str], method: str
 ) -> Callable[[float, float], np.ndarray]:
     """``start(a, b)``: ``sim`` put where the two variables deviate by ``a`` and ``b``; its observation."""
     lyap = lyapunov_function(analysis, coach, sim.y_op) if over_contacts(sim.loaded, method) else None
     if lyap is not None and lyap.tangent is not None:
-        missing = [v for v in variables if v not in lyap.variables]
-        if missing:
-            raise RegionError(
-                f"variables: {missing[0]!r} is not among the variables the level set about "
-                f"{coach.spec.name}'s posture is drawn in; expected two of {', '.join(lyap.variables)}",
-                param="variables",
-            )
+        _check_posture_pair(lyap, coach.spec.name, variables)
         pos = [lyap.variables.index(v) for v in variables]
 
         def about_posture(a: float, b: float) -> np.ndarray:
