@@ -7,6 +7,7 @@ the old file or the new one, never half of one.
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import os
@@ -237,6 +238,56 @@ def read_json(path: str | Path) -> Any:
     return json.loads(Path(path).read_text(encoding="utf-8"))
 
 
+MAX_TEXT_BYTES = 64 * 2**20
+"""The largest text file pidlab reads (a spec, recipe, record or run log is far smaller): a larger
+one is refused in one line instead of being read into memory."""
+
+_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe"), (stat.S_ISCHR, "a device"),
+          (stat.S_ISBLK, "a device"), (stat.S_ISSOCK, "a socket"))  # fmt: skip
+
+
+def open_regular(path: str | Path, limit: int | None = None) -> int:
+    """A read-only descriptor of the regular file ``path``, examined before any read.
+
+    A named pipe, a device (``/dev/zero``, ``/dev/stdin``) or a socket would block a read or never
+    end it: it is refused without a read, as is a folder, or a file over ``limit`` bytes. The file
+    is opened without blocking, then examined, so what is examined is what is read.
+
+    Raises
+    ------
+    OSError
+        As :func:`os.open`; or ``EINVAL`` (no regular file) or ``EFBIG`` (over ``limit``), whose
+        ``strerror`` says why in words.
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            kind = next((name for test, name in _KINDS if test(info.st_mode)), "no regular file")
+            raise OSError(errno.EINVAL, f"it is {kind}; expected a regular file")
+        if limit is not None and info.st_size > limit:
+            raise OSError(errno.EFBIG, f"it holds {info.st_size:,} bytes; expected at most {limit:,}")
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def read_file(path: str | Path, limit: int = MAX_TEXT_BYTES) -> bytes:
+    """The bytes of the regular file ``path``: at most ``limit``, never from a pipe or a device.
+
+    Raises
+    ------
+    OSError
+        As :func:`open_regular`, or the read failed, or the file grew past ``limit`` as it was read.
+    """
+    with os.fdopen(open_regular(path, limit), "rb") as fh:
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise OSError(errno.EFBIG, f"it grew past {limit:,} bytes as it was read")
+    return data
+
+
 def read_text(path: str | Path, what: str, error: type[PidlabError]) -> str:
     """The UTF-8 text of ``path`` (a ``what``, e.g. "recipe"), or ``error`` in one line naming the file.
 
@@ -247,12 +298,13 @@ def read_text(path: str | Path, what: str, error: type[PidlabError]) -> str:
     PidlabError
         Of class ``error``: ``path`` is no path (``None``, an empty string: ``param`` is
         ``"path"``, the parameter of every ``load_*`` function that reads a file), the file
-        cannot be read (missing, a folder, no permission, a loop of symbolic links) or is not
+        cannot be read (missing, a folder, no permission, a loop of symbolic links), is no
+        regular file (a named pipe, a device), is larger than :data:`MAX_TEXT_BYTES`, or is not
         UTF-8 text (binary, UTF-16, a stray latin-1 byte).
     """
     path = path_argument(path, "path", error, what=f"the path of a {what} file")
     try:
-        data = path.read_bytes()
+        data = read_file(path)
     except OSError as exc:
         raise error(f"cannot read {what} {clip(str(path), 200)!r}: {exc.strerror or exc}") from None
     try:

@@ -41,7 +41,7 @@ from typing import Any
 
 from pidlab.checks import exists
 from pidlab.errors import PidlabError
-from pidlab.files import check_output_folder, make_folder, write_json
+from pidlab.files import check_output_folder, make_folder, read_file, write_json
 
 PACKAGES = (
     "pidlab",
@@ -269,7 +269,7 @@ def record_from_dict(data: Mapping[str, Any], schema: str) -> Record:
 def _load(path: Path, schema: str) -> Record | str:
     """The record in ``path``, or why it is none (unreadable, damaged, not a JSON object)."""
     try:
-        data = json.loads(path.read_bytes().decode("utf-8"))
+        data = json.loads(read_file(path).decode("utf-8"))
     except OSError as exc:
         return f"unreadable: {exc.strerror or exc}"
     except UnicodeDecodeError:

@@ -68,3 +68,63 @@ def test_bad_input_is_one_line_exit_2_and_changes_nothing(
     assert len(lines) == 1 and lines[0].startswith("pidlab: error: "), stderr
     assert case["expect"] in lines[0], lines[0]
     assert _snapshot(tmp_path) == before, "the command changed the scratch folder"
+
+
+SPECIAL = {
+    "analyze": ["analyze", "{p}"],
+    "linearize": ["linearize", "{p}"],
+    "train": ["train", "InvertedPendulum-v5", "--coach", "none", "--recipe", "{p}", "--steps", "100",
+              "--run-dir", "{tmp}/run"],
+    "experiment": ["experiment", "--conditions-file", "{p}", "--envs", "InvertedPendulum-v5", "--seeds", "1",
+                   "--steps", "100", "--out", "{tmp}/sweep"],
+}  # fmt: skip
+"""Commands that read a file a user names, with ``{p}`` for it: a spec, a model, a recipe, conditions."""
+
+
+def _special_file(kind: str, folder: Path, suffix: str) -> Path:
+    """A path whose read would block (a named pipe), read a device, or read more than a file may hold."""
+    import os
+
+    path = folder / f"{kind}{suffix}"
+    if kind == "pipe":
+        os.mkfifo(path)
+    elif kind == "device":
+        path.symlink_to("/dev/null")  # reads as empty: without the check the case fails, it does not hang
+    else:
+        with open(path, "wb") as fh:
+            fh.truncate(2**30 + 1 if suffix == ".xml" else 64 * 2**20 + 1)  # sparse: no disk used
+    return path
+
+
+@pytest.mark.parametrize("kind, expect", [("pipe", "it is a named pipe; expected a regular file"),
+                                          ("device", "it is a device; expected a regular file"),
+                                          ("huge", "bytes; expected at most")])  # fmt: skip
+@pytest.mark.parametrize("verb", sorted(SPECIAL))
+def test_a_pipe_a_device_or_a_huge_file_is_refused_before_it_is_read(
+    verb: str, kind: str, expect: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A named pipe would block the command forever, ``/dev/zero`` fill the memory, a sparse file of
+    terabytes too: each is refused in one line, without a read. Should a command open the pipe, a
+    writer opened after 20 s ends its wait, so this test fails instead of hanging."""
+    import os
+    import threading
+
+    monkeypatch.chdir(tmp_path)
+    path = _special_file(kind, tmp_path, ".xml" if verb == "linearize" else ".toml")
+    done = threading.Event()
+
+    def unblock() -> None:
+        if not done.wait(20) and kind == "pipe":
+            os.close(os.open(path, os.O_WRONLY))
+
+    guard = threading.Thread(target=unblock, daemon=True)
+    guard.start()
+    args = [a.replace("{p}", str(path)).replace("{tmp}", str(tmp_path)) for a in SPECIAL[verb]]
+    try:
+        code, stderr = cli_in_process(*args)
+    finally:
+        done.set()
+    lines = stderr.strip().splitlines()
+    assert code == 2 and len(lines) == 1, stderr
+    assert str(path) in lines[0] and expect in lines[0], lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]

@@ -49,6 +49,7 @@ from pidlab.controller.spec import (
     writing_spec,
 )
 from pidlab.errors import PidlabError
+from pidlab.files import read_file
 from pidlab.plant.model import load_model
 
 POLL_MS = 150
@@ -999,6 +1000,6 @@ class Tuner:
 def _text_or_none(path: Path) -> str | None:
     """The UTF-8 text of ``path``, or None when it cannot be read as such."""
     try:
-        return path.read_text(encoding="utf-8")
+        return read_file(path).decode("utf-8")
     except (OSError, UnicodeDecodeError):
         return None

@@ -26,7 +26,7 @@ from pidlab.experiment import plan
 from pidlab.experiment.comparison import MEASURE, Comparison, decide, raw_comparison
 from pidlab.experiment.metrics import Rule, RunLogs, RunMetrics, grid_points, moving_average, run_metrics
 from pidlab.experiment.stats import Estimate, bootstrap_ci, iqm
-from pidlab.files import load_json, read_toml
+from pidlab.files import load_json, read_file, read_toml
 from pidlab.rl.rundir import csv_columns, read_csv_rows, read_csv_table
 
 BASELINE = "none"
@@ -589,7 +589,7 @@ def run_algorithms(root: Path, envs: Sequence[str], conditions: Sequence[str]) -
         for condition in conditions:
             for path in sorted((root / "runs" / env / condition).glob("seed-*/config.toml")):
                 try:
-                    algo = tomllib.loads(path.read_text()).get("recipe", {}).get("algo")
+                    algo = tomllib.loads(read_file(path).decode("utf-8")).get("recipe", {}).get("algo")
                 except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
                     continue  # a damaged config is reported where the run is read
                 if isinstance(algo, str):

@@ -66,6 +66,7 @@ from pidlab.experiment.conditions import (
 )
 from pidlab.experiment.progress import steps_done
 from pidlab.experiment.reuse import Reuse, copy_run, find_reuses, record_reuses
+from pidlab.files import read_file
 from pidlab.orphans import orphaned, stop_with_parent
 from pidlab.parallel import resolve_workers
 from pidlab.provenance import (
@@ -466,7 +467,7 @@ def check_finished_logs(run_dirs: Iterable[Path]) -> None:
 
     for run_dir in run_dirs:
         try:
-            summary = json.loads((run_dir / "summary.json").read_bytes().decode("utf-8"))
+            summary = json.loads(read_file(run_dir / "summary.json").decode("utf-8"))
         except (OSError, ValueError, RecursionError):
             continue
         if not isinstance(summary, dict) or not summary.get("completed"):

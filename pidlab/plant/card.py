@@ -111,7 +111,7 @@ from pidlab.checks import (
 )
 from pidlab.data import data_files, find_data_file, models_dir
 from pidlab.errors import ModelCardError
-from pidlab.files import read_toml
+from pidlab.files import read_file, read_toml
 
 MJCF_SUFFIXES = (".xml", ".mjcf", ".mjb")
 """The suffixes of model files: MJCF (``.xml``, ``.mjcf``) and MuJoCo's binary models (``.mjb``)."""
@@ -980,7 +980,7 @@ def card_for_mjcf(mjcf: str | Path) -> ModelCard | None:
     target = Path(mjcf)
     for path in data_files("models", "*.toml"):
         try:
-            raw = path.read_text()
+            raw = read_file(path).decode("utf-8")
         except (OSError, UnicodeDecodeError):  # not a card this file could be described by
             continue
         if "mjcf" not in raw or target.name not in raw:

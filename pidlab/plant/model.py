@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import difflib
 import logging
+import os
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -19,10 +20,13 @@ import numpy as np
 
 from pidlab.checks import exists, path_argument, shown
 from pidlab.errors import ModelCardError, ModelCompileError, UnknownEnvError
+from pidlab.files import open_regular
 from pidlab.plant.card import MJCF_SUFFIXES, ModelCard, card_for_mjcf, find_card
 from pidlab.provenance import digest
 
 _LOG = logging.getLogger("pidlab.mujoco")
+MAX_MODEL_BYTES = 2**30
+"""The largest MJCF or compiled model file pidlab hands MuJoCo (1 GiB)."""
 
 
 def _log_mujoco_warning(text: str) -> None:
@@ -250,7 +254,11 @@ def load_model(target: str | Path) -> LoadedModel:
 
 
 def _check_model_file(path: Path) -> None:
-    """Refuse a path MuJoCo should not see: missing, a folder, unreadable (MuJoCo would warn)."""
+    """Refuse a path MuJoCo should not see.
+
+    Missing, a folder, unreadable (MuJoCo would warn), a named pipe or a device (MuJoCo would wait
+    or read forever), or over :data:`MAX_MODEL_BYTES`.
+    """
     if not path.exists():
         raise ModelCompileError(f"MJCF file {str(path)!r} does not exist; give an existing path")
     if path.is_dir():
@@ -258,8 +266,7 @@ def _check_model_file(path: Path) -> None:
             f"{str(path)!r} is a folder; give an MJCF file (.xml) or a compiled model (.mjb)"
         )
     try:
-        with open(path, "rb") as fh:
-            fh.read(1)
+        os.close(open_regular(path, MAX_MODEL_BYTES))
     except OSError as exc:
         raise ModelCompileError(f"cannot read MJCF file {str(path)!r}: {exc.strerror or exc}") from None
 

@@ -22,6 +22,7 @@ which a resume falls back), never loaded. Any other file in the folder is ignore
 from __future__ import annotations
 
 import hashlib
+import os
 import re
 import warnings
 import zipfile
@@ -33,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from pidlab.errors import CheckpointError
+from pidlab.files import open_regular
 
 MODEL = "model.zip"
 NORMALIZER = "vecnormalize.npz"
@@ -48,11 +50,20 @@ _BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "do
 
 
 def file_digest(path: Path) -> str:
-    """SHA-256 of a file's bytes (hex)."""
+    """SHA-256 of a file's bytes (hex).
+
+    Raises
+    ------
+    CheckpointError
+        ``path`` is no regular file (a named pipe, a device, a folder) or cannot be read.
+    """
     h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
+    try:
+        with os.fdopen(open_regular(path), "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     return h.hexdigest()
 
 
@@ -167,7 +178,7 @@ def check_digest(path: Path, want: str, record: Path) -> None:
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with os.fdopen(open_regular(path), "rb") as fh, np.load(fh, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
     except Exception as exc:  # zipfile, numpy and OS errors on a damaged file
         raise CheckpointError(f"{path}: damaged ({short_reason(exc)})") from None

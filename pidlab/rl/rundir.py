@@ -95,18 +95,16 @@ def read_csv_rows(path: Path) -> list[dict[str, str]]:
     """Rows of a run's CSV file as dicts (header keys)."""
     if not path.exists():
         return []
-    with open(path, newline="", encoding="utf-8") as fh:
-        return list(csv.DictReader(fh))
+    return list(csv.DictReader(io.StringIO(read_text(path, "run log", RunDirError), newline="")))
 
 
 def read_csv_table(path: Path) -> tuple[list[str], list[list[str]]]:
     """A run's CSV file as its header and rows, blank lines skipped (([], []) when absent or empty)."""
     if not path.exists():
         return [], []
-    with open(path, newline="", encoding="utf-8") as fh:
-        reader = csv.reader(fh)
-        header = next(reader, [])
-        return header, [row for row in reader if row]
+    reader = csv.reader(io.StringIO(read_text(path, "run log", RunDirError), newline=""))
+    header = next(reader, [])
+    return header, [row for row in reader if row]
 
 
 def csv_columns(header: list[str], rows: list[list[str]], name: str) -> dict[str, tuple[str, ...]]:
