@@ -42,6 +42,10 @@ R = TypeVar("R")
 MAX_WORKERS = 4
 """The most worker processes a pool starts by default (``workers=None``)."""
 
+ABANDON_WAIT_S = 5.0
+"""How long an abandoned pool waits for its executor's manager thread, which ends once it sees the
+workers gone (it is not waited for beyond that: see :meth:`WorkerPool._abandon`)."""
+
 MAX_WORKERS_ASKED = 256
 """The most worker processes a caller may ask for."""
 
@@ -298,16 +302,23 @@ class WorkerPool(Generic[S]):
         caller (a signal to the process group), Python 3.11's executor fails to mark the futures
         it had not cancelled, and a wait on them never ends. So nothing is cancelled or waited
         for here: the workers are terminated, and the executor marks every future broken.
+        Only the executor's manager thread is given :data:`ABANDON_WAIT_S` to end: it closes its
+        wake-up pipe as it ends, and a command that exited while it did so had Python's exit hook
+        write to that pipe as it closed (``OSError: [Errno 9] Bad file descriptor``, a traceback
+        after ``pidlab: interrupted``).
         """
         executor, self._executor = self._executor, None
         if executor is None:
             return
         self._stop.set()
         processes = list(getattr(executor, "_processes", {}).values())  # not public before 3.14
+        manager = getattr(executor, "_executor_manager_thread", None)
         executor.shutdown(wait=False)
         for process in processes:
             if process.is_alive():
                 process.terminate()
+        if manager is not None:  # it closes its pipes as it ends: at exit, Python must not write to them then
+            manager.join(ABANDON_WAIT_S)
 
 
 def _collect(

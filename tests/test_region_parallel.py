@@ -193,6 +193,61 @@ def test_a_signal_to_the_whole_process_group_ends_a_command_at_once(tmp_path):
     assert proc.returncode == 130 and stderr.decode().strip() == "pidlab: interrupted"
 
 
+def test_a_second_signal_as_the_command_ends_prints_no_traceback(tmp_path):
+    """SIGTERM to the command, then to its process group (as ``timeout`` and job controls send it):
+    the command ends with its one line. The second signal used to land in a weak reference's
+    callback or Python's exit hook and print "Exception ignored in ..." with a traceback."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    spec = tmp_path / "InvertedPendulum-v5.pidlab-robust.toml"
+    shutil.copy(TUNING / spec.name, spec)
+    pidlab = str(Path(sys.executable).with_name("pidlab"))
+    cmd = [pidlab, "bounds", str(spec), "--samples", "200000", "--workers", "2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # until its workers run
+        children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        if len(children) >= 2:
+            break
+        time.sleep(0.2)
+    else:
+        proc.kill()
+        pytest.fail("the command started no workers in time")
+    time.sleep(1.0)
+    os.kill(proc.pid, signal.SIGTERM)
+    for _ in range(20):  # then to the group, again and again, as the command ends
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    try:
+        _, stderr = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail("the command hung after SIGTERM")
+    assert proc.returncode == 130 and stderr.decode().strip() == "pidlab: interrupted", stderr.decode()
+
+
+def test_an_interrupt_raised_in_a_finalizer_is_delivered_again():
+    """While a command runs, a KeyboardInterrupt that a signal raised inside a ``__del__`` (which
+    cannot propagate, so Python prints it and goes on) is sent again and stops the command."""
+    from pidlab.cli.main import _sigterm_interrupts
+
+    class Finalized:
+        def __del__(self):
+            raise KeyboardInterrupt  # as a signal's handler raises it, wherever the main thread is
+
+    with _sigterm_interrupts(), pytest.raises(KeyboardInterrupt):
+        Finalized()  # dropped at once: its __del__ runs here
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:  # the signal sent again arrives within milliseconds
+            time.sleep(0.001)
+
+
 def _blas_threads(state, item):
     from threadpoolctl import threadpool_info
 

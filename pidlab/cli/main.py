@@ -17,6 +17,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Annotated, Any, NoReturn, TypeVar
 
@@ -91,20 +92,69 @@ def usage_message(exc: Exception) -> str:
     return f"{text[:1].lower()}{text[1:].rstrip('.')}{where}"
 
 
+_STOPPING = threading.Event()
+"""Set once SIGTERM has raised :class:`KeyboardInterrupt` in the running command."""
+
+RESEND_DELAY_S = 0.01
+"""How soon an interrupt lost in a finalizer is sent again (:func:`_redeliver_lost_interrupts`)."""
+
+
 def _interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt  # SIGTERM stops a command as Ctrl-C does (clean-up runs, exit 130)
+    """SIGTERM stops a command as Ctrl-C does (clean-up runs, exit 130), once.
+
+    A second SIGTERM while it stops changes nothing and is ignored: a job control that signals
+    the command and then its process group (``timeout``, ``kill -- -PGID``) sends two, and the
+    second one would break off the clean-up of the first.
+    """
+    if _STOPPING.is_set():
+        return
+    _STOPPING.set()
+    raise KeyboardInterrupt
+
+
+def _send_again() -> None:
+    import _thread
+
+    time.sleep(RESEND_DELAY_S)
+    _thread.interrupt_main(signal.SIGTERM)  # nothing, once the command's handler is gone
+
+
+def _redeliver_lost_interrupts(unraisable: Any, previous: Callable[[Any], None]) -> None:
+    """``sys.unraisablehook`` while a command runs: an interrupt that landed in a finalizer is sent again.
+
+    Python runs a signal's handler wherever the main thread is, also inside a weak reference's
+    callback or a ``__del__``; the :class:`KeyboardInterrupt` raised there cannot propagate, so
+    Python would print it as "Exception ignored in ..." with a traceback, and the command would go
+    on as if no one had asked it to stop. Instead SIGTERM (whose handler is :func:`_interrupt`)
+    is sent again from another thread, so that it arrives after the finalizer.
+    """
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        previous(unraisable)
+        return
+    _STOPPING.clear()  # that stop was lost
+    try:
+        threading.Thread(target=_send_again, name="pidlab-interrupt", daemon=True).start()
+    except RuntimeError:  # Python is shutting down: the command has ended
+        pass
 
 
 @contextlib.contextmanager
 def _sigterm_interrupts() -> Iterator[None]:
-    """While a command runs, SIGTERM raises :class:`KeyboardInterrupt` (main thread only)."""
+    """While a command runs, SIGTERM raises :class:`KeyboardInterrupt` (main thread only).
+
+    An interrupt raised inside a finalizer is not lost: :func:`_redeliver_lost_interrupts`.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    _STOPPING.clear()
     old = signal.signal(signal.SIGTERM, _interrupt)
+    previous = sys.unraisablehook
+    sys.unraisablehook = functools.partial(_redeliver_lost_interrupts, previous=previous)
     try:
         yield
     finally:
+        sys.unraisablehook = previous
         signal.signal(signal.SIGTERM, old)
 
 
@@ -1901,12 +1951,21 @@ def run(
 
 
 def main() -> None:
-    """Console entry point."""
+    """Console entry point.
+
+    Once the command has ended, a further SIGINT or SIGTERM is ignored: it would change nothing,
+    and raised while Python shuts down (a weak reference's callback, a thread's exit hook) it
+    printed a traceback after the command's last line. A job control that signals the command and
+    its process group sends two.
+    """
     try:
         app()
     except KeyboardInterrupt:  # pragma: no cover - interactive
         typer.echo("pidlab: interrupted", err=True)
         sys.exit(130)
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
 
 
 if __name__ == "__main__":  # pragma: no cover
