@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import signal
 import sys
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import NoReturn
 
 from pidlab.errors import PidlabError
+from pidlab.interrupts import ignore_stops, sigterm_interrupts
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -106,16 +106,14 @@ def names(allowed: Iterable[str]) -> Callable[[str], str]:
     return parse
 
 
-def _interrupt(signum: int, frame: object) -> NoReturn:
-    """SIGTERM stops a script as Ctrl-C does."""
-    raise KeyboardInterrupt
-
-
 def run(main: Callable[[], int | None]) -> NoReturn:
-    """Run a script's ``main`` and exit with its code (0 for ``None``); bad input exits 2 in one line."""
-    old = signal.signal(signal.SIGTERM, _interrupt)
+    """Run a script's ``main`` and exit with its code (0 for ``None``); bad input exits 2 in one line.
+
+    SIGTERM stops a script as Ctrl-C does, once (:mod:`pidlab.interrupts`, as for ``pidlab``).
+    """
     try:
-        code = main()
+        with sigterm_interrupts():
+            code = main()
     except PidlabError as exc:
         fail(str(exc))
     except OSError as exc:
@@ -125,5 +123,5 @@ def run(main: Callable[[], int | None]) -> NoReturn:
         print(f"{_prog()}: interrupted", file=sys.stderr)
         sys.exit(EXIT_INTERRUPTED)
     finally:
-        signal.signal(signal.SIGTERM, old)
+        ignore_stops()
     sys.exit(code or 0)

@@ -30,9 +30,17 @@ PARSERS = [p for p in SCRIPTS if "Parser(" in p.read_text()]
 
 def _run(script: Path, args: list[str], monkeypatch, capsys) -> tuple[int, list[str]]:
     """Run a script as ``python script args``; its exit code and its stderr's lines."""
+    import signal
+
     monkeypatch.setattr(sys, "argv", [str(script), *args])
-    with pytest.raises(SystemExit) as stop:
-        runpy.run_path(str(script), run_name="__main__")
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with pytest.raises(SystemExit) as stop:
+            runpy.run_path(str(script), run_name="__main__")
+    finally:  # a script ignores both once it has ended, as the process it is would exit then
+        assert all(signal.getsignal(sig) == signal.SIG_IGN for sig in handlers)
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
     return stop.value.code, capsys.readouterr().err.strip().splitlines()
 
 

@@ -235,13 +235,13 @@ def test_a_second_signal_as_the_command_ends_prints_no_traceback(tmp_path):
 def test_an_interrupt_raised_in_a_finalizer_is_delivered_again():
     """While a command runs, a KeyboardInterrupt that a signal raised inside a ``__del__`` (which
     cannot propagate, so Python prints it and goes on) is sent again and stops the command."""
-    from pidlab.cli.main import _sigterm_interrupts
+    from pidlab.interrupts import sigterm_interrupts
 
     class Finalized:
         def __del__(self):
             raise KeyboardInterrupt  # as a signal's handler raises it, wherever the main thread is
 
-    with _sigterm_interrupts(), pytest.raises(KeyboardInterrupt):
+    with sigterm_interrupts(), pytest.raises(KeyboardInterrupt):
         Finalized()  # dropped at once: its __del__ runs here
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:  # the signal sent again arrives within milliseconds

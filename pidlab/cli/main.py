@@ -14,10 +14,7 @@ import functools
 import json
 import os
 import re
-import signal
 import sys
-import threading
-import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Annotated, Any, NoReturn, TypeVar
 
@@ -34,6 +31,7 @@ except ImportError:  # pragma: no cover
 
 from pidlab import __version__
 from pidlab.errors import PidlabError
+from pidlab.interrupts import ignore_stops, sigterm_interrupts
 
 EXIT_BAD_INPUT = 2
 """Exit code of bad input: a usage error or a :class:`PidlabError` (one line on stderr)."""
@@ -92,72 +90,6 @@ def usage_message(exc: Exception) -> str:
     return f"{text[:1].lower()}{text[1:].rstrip('.')}{where}"
 
 
-_STOPPING = threading.Event()
-"""Set once SIGTERM has raised :class:`KeyboardInterrupt` in the running command."""
-
-RESEND_DELAY_S = 0.01
-"""How soon an interrupt lost in a finalizer is sent again (:func:`_redeliver_lost_interrupts`)."""
-
-
-def _interrupt(signum: int, frame: Any) -> None:
-    """SIGTERM stops a command as Ctrl-C does (clean-up runs, exit 130), once.
-
-    A second SIGTERM while it stops changes nothing and is ignored: a job control that signals
-    the command and then its process group (``timeout``, ``kill -- -PGID``) sends two, and the
-    second one would break off the clean-up of the first.
-    """
-    if _STOPPING.is_set():
-        return
-    _STOPPING.set()
-    raise KeyboardInterrupt
-
-
-def _send_again() -> None:
-    import _thread
-
-    time.sleep(RESEND_DELAY_S)
-    _thread.interrupt_main(signal.SIGTERM)  # nothing, once the command's handler is gone
-
-
-def _redeliver_lost_interrupts(unraisable: Any, previous: Callable[[Any], None]) -> None:
-    """``sys.unraisablehook`` while a command runs: an interrupt that landed in a finalizer is sent again.
-
-    Python runs a signal's handler wherever the main thread is, also inside a weak reference's
-    callback or a ``__del__``; the :class:`KeyboardInterrupt` raised there cannot propagate, so
-    Python would print it as "Exception ignored in ..." with a traceback, and the command would go
-    on as if no one had asked it to stop. Instead SIGTERM (whose handler is :func:`_interrupt`)
-    is sent again from another thread, so that it arrives after the finalizer.
-    """
-    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
-        previous(unraisable)
-        return
-    _STOPPING.clear()  # that stop was lost
-    try:
-        threading.Thread(target=_send_again, name="pidlab-interrupt", daemon=True).start()
-    except RuntimeError:  # Python is shutting down: the command has ended
-        pass
-
-
-@contextlib.contextmanager
-def _sigterm_interrupts() -> Iterator[None]:
-    """While a command runs, SIGTERM raises :class:`KeyboardInterrupt` (main thread only).
-
-    An interrupt raised inside a finalizer is not lost: :func:`_redeliver_lost_interrupts`.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    _STOPPING.clear()
-    old = signal.signal(signal.SIGTERM, _interrupt)
-    previous = sys.unraisablehook
-    sys.unraisablehook = functools.partial(_redeliver_lost_interrupts, previous=previous)
-    try:
-        yield
-    finally:
-        sys.unraisablehook = previous
-        signal.signal(signal.SIGTERM, old)
-
-
 def _plain_help(command: Any) -> None:
     """Show every help text of ``command``'s tree as written.
 
@@ -200,7 +132,7 @@ class PidlabGroup(TyperGroup):
         if not standalone_mode:
             return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         try:
-            with _sigterm_interrupts():
+            with sigterm_interrupts():
                 code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         except _click.NoArgsIsHelpError:
             code = EXIT_BAD_INPUT  # the help was printed
@@ -1964,8 +1896,7 @@ def main() -> None:
         typer.echo("pidlab: interrupted", err=True)
         sys.exit(130)
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, signal.SIG_IGN)
+        ignore_stops()
 
 
 if __name__ == "__main__":  # pragma: no cover
