@@ -128,7 +128,8 @@ def check_output_file(path: str | Path, param: str | None = None) -> Path:
     Raises
     ------
     OutputError
-        ``path`` is a folder, a read-only file, or lies where no file can be created.
+        ``path`` is a folder, a read-only file, a device, a named pipe or a socket, or lies where
+        no file can be created.
     """
     path = path_argument(path, param or "path", OutputError, what="a file's path")
     problem = _name_problem(path)
@@ -136,6 +137,9 @@ def check_output_file(path: str | Path, param: str | None = None) -> Path:
         raise _refusal(path, f"cannot write there: {problem}", param)
     if path.is_dir():
         raise _refusal(path, "is a folder; give a file name", param)
+    special = _special_kind(path)
+    if special is not None:  # replacing it would remove a device or a pipe (/dev/null, as root)
+        raise _refusal(path, f"is {special}, not a file; pidlab writes regular files only", param)
     if path.exists() and not _writable(path):
         reason = "the file is read-only; pidlab does not replace it (make it writable first)"
         raise _refusal(path, reason, param)
@@ -244,6 +248,17 @@ one is refused in one line instead of being read into memory."""
 
 _KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe"), (stat.S_ISCHR, "a device"),
           (stat.S_ISBLK, "a device"), (stat.S_ISSOCK, "a socket"))  # fmt: skip
+
+
+def _special_kind(path: Path) -> str | None:
+    """What ``path`` is when it exists and is neither a regular file nor a folder (a pipe, ...)."""
+    try:
+        mode = path.stat().st_mode
+    except (OSError, ValueError):
+        return None
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return None
+    return next((name for test, name in _KINDS if test(mode)), "no regular file")
 
 
 def open_regular(path: str | Path, limit: int | None = None) -> int:

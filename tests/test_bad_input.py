@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 
-from tests.helpers import DATA, cli_in_process
+from tests.helpers import DATA, TUNING, cli_in_process
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -127,4 +127,30 @@ def test_a_pipe_a_device_or_a_huge_file_is_refused_before_it_is_read(
     lines = stderr.strip().splitlines()
     assert code == 2 and len(lines) == 1, stderr
     assert str(path) in lines[0] and expect in lines[0], lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
+@pytest.mark.parametrize("kind, expect", [("pipe", "is a named pipe, not a file; pidlab writes regular files only"),
+                                          ("device", "is a device, not a file; pidlab writes regular files only")])  # fmt: skip
+def test_an_output_that_is_a_pipe_or_a_device_is_never_replaced(
+    kind: str, expect: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``-o /dev/null --force`` run as root replaced the device with a regular file (the write is a
+    rename over the path). A pipe or a device (here a link to /dev/null: the link would be replaced,
+    not the device, should the check fail) is refused before any work, and left as it was."""
+    from pidlab.errors import OutputError
+    from pidlab.files import atomic_write_text
+
+    monkeypatch.chdir(tmp_path)
+    path = _special_file(kind, tmp_path, ".toml")
+    before = path.lstat()
+    spec = str(TUNING / "InvertedPendulum-v5.pidlab-rescue.toml")
+    code, stderr = cli_in_process("rescue-classifier", spec, "--domain", "hinge_pos=0.2", "-o", str(path),
+                                  "--force", "--workers", "1")  # fmt: skip
+    lines = stderr.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and expect in lines[0], stderr
+    with pytest.raises(OutputError, match=expect):
+        atomic_write_text(path, "x")
+    after = path.lstat()
+    assert (after.st_mode, after.st_ino) == (before.st_mode, before.st_ino)
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
