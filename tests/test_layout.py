@@ -15,7 +15,7 @@ from tests.helpers import ROOT
 
 PACKAGE = ROOT / "pidlab"
 STAGES = (
-    ("errors", "checks", "files", "provenance", "data", "orphans", "parallel", "lookup", "__init__"),
+    ("errors", "checks", "files", "provenance", "data", "orphans", "parallel", "interrupts", "lookup", "__init__"),
     ("plant", "project"),
     ("linear",),
     ("controller",),
