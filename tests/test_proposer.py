@@ -148,6 +148,15 @@ def test_the_buffer_holds_the_actions_that_ran_and_the_next_proposals(run, spec)
         np.testing.assert_allclose(proposals[i], np.clip(twin.act(next_obs), -3, 3) / 3, rtol=1e-5, atol=1e-6)
 
 
+def test_the_model_archive_does_not_hold_the_proposals_again(run):
+    import json
+    import zipfile
+
+    folder, _ = run
+    with zipfile.ZipFile(latest_checkpoint(folder) / "model.zip") as z:
+        assert "next_proposals" not in json.loads(z.read("data"))  # they are in proposals.npz
+
+
 def test_a_resume_restores_the_proposals(run, spec, tmp_path):
     folder, _ = run
     copy = tmp_path / "copy"

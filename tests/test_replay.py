@@ -306,6 +306,21 @@ def test_the_final_agent_loads_without_its_buffers(run):
     assert Path(folder / "final_model.zip").is_file()
 
 
+def test_the_model_archive_does_not_hold_the_coach_buffer_again(run):
+    """SB3's ``save`` pickled every attribute it does not exclude into the archive's ``data``: the
+    coach's buffer, at its capacity, went in beside ``coach_buffer.npz`` (64 MB of a 69.5 MB
+    InvertedDoublePendulum checkpoint). The agent's buffer never did; now neither does the coach's."""
+    import json
+    import zipfile
+
+    folder, _ = run
+    for archive in (latest_checkpoint(folder) / "model.zip", folder / "final_model.zip"):
+        with zipfile.ZipFile(archive) as z:
+            data = json.loads(z.read("data"))
+        assert "coach_buffer" not in data and "replay_buffer" not in data
+        assert data["coach_transitions"] > 0  # the counters stay: a loaded agent knows what it saw
+
+
 # ----------------------------------------------------------------------------- demonstrations, for SAC
 
 

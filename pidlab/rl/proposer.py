@@ -94,6 +94,10 @@ class ProposerSAC(CoachedSAC):
         shape = (int(self.buffer_size), *(self.action_space.shape or ()))
         self.next_proposals = np.zeros(shape, dtype=np.float32)
 
+    def _excluded_save_params(self) -> list[str]:
+        """SB3's, and the proposals: a checkpoint keeps them in ``proposals.npz``, not in the model zip."""
+        return [*super()._excluded_save_params(), "next_proposals"]
+
     def _store_transition(self, replay_buffer: Any, buffer_action: np.ndarray, new_obs: Any,
                           reward: np.ndarray, dones: np.ndarray,
                           infos: list[dict[str, Any]]) -> None:  # fmt: skip
