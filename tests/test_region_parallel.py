@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import time
 
 import mujoco
@@ -160,12 +161,9 @@ def test_a_worker_that_dies_is_one_error_and_the_pool_starts_anew():
         assert not set(_pids(pool)) & set(pids)
 
 
-def test_a_signal_to_the_whole_process_group_ends_a_command_at_once(tmp_path):
-    """SIGTERM to the command and its workers together (a job control's kill): it exits 130 with one
-    line, where Python 3.11's executor, left to mark futures it had cancelled, hung and printed a
-    thread's traceback."""
+def _bounds_with_workers(tmp_path):
+    """A real ``pidlab bounds`` in a session of its own, once its two workers run (a long job)."""
     import shutil
-    import subprocess
     import sys
     from pathlib import Path
 
@@ -184,6 +182,14 @@ def test_a_signal_to_the_whole_process_group_ends_a_command_at_once(tmp_path):
         proc.kill()
         pytest.fail("the command started no workers in time")
     time.sleep(1.0)
+    return proc
+
+
+def test_a_signal_to_the_whole_process_group_ends_a_command_at_once(tmp_path):
+    """SIGTERM to the command and its workers together (a job control's kill): it exits 130 with one
+    line, where Python 3.11's executor, left to mark futures it had cancelled, hung and printed a
+    thread's traceback."""
+    proc = _bounds_with_workers(tmp_path)
     os.killpg(proc.pid, signal.SIGTERM)
     try:
         _, stderr = proc.communicate(timeout=30)
@@ -197,26 +203,7 @@ def test_a_second_signal_as_the_command_ends_prints_no_traceback(tmp_path):
     """SIGTERM to the command, then to its process group (as ``timeout`` and job controls send it):
     the command ends with its one line. The second signal used to land in a weak reference's
     callback or Python's exit hook and print "Exception ignored in ..." with a traceback."""
-    import shutil
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    spec = tmp_path / "InvertedPendulum-v5.pidlab-robust.toml"
-    shutil.copy(TUNING / spec.name, spec)
-    pidlab = str(Path(sys.executable).with_name("pidlab"))
-    cmd = [pidlab, "bounds", str(spec), "--samples", "200000", "--workers", "2"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:  # until its workers run
-        children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
-        if len(children) >= 2:
-            break
-        time.sleep(0.2)
-    else:
-        proc.kill()
-        pytest.fail("the command started no workers in time")
-    time.sleep(1.0)
+    proc = _bounds_with_workers(tmp_path)
     os.kill(proc.pid, signal.SIGTERM)
     for _ in range(20):  # then to the group, again and again, as the command ends
         try:
