@@ -205,3 +205,32 @@ def test_the_rescue_commands_keep_their_own_journal_beside_the_spec_and_remove_i
     assert code == 0, err
     assert not (tmp_path / f".{spec.name}.{kind}").exists()
     assert (other / "chunk-000001.npz").read_bytes() == b"kept"  # another command's journal is left alone
+
+
+def test_a_second_command_on_the_same_journal_is_refused_and_leaves_it(tmp_path) -> None:
+    """Two ``rescue-classifier`` writing the same spec shared one journal: each wrote the same chunk
+    files, and the first to end removed them. The second is refused in one line, before any work."""
+    import subprocess
+    import sys
+
+    out = tmp_path / f"{IP}.mine.toml"
+    journal = tmp_path / f".{out.name}.labels"
+    (journal / "abc").mkdir(parents=True)
+    (journal / "abc" / "chunk-000001.npz").write_bytes(b"kept")
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom pidlab.errors import RegionError\n"
+         "from pidlab.provenance import hold_lock\nwith hold_lock(sys.argv[1], RegionError):\n"
+         "    print('held', flush=True)\n    time.sleep(60)\n", str(journal)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        code, err = cli_in_process(
+            "rescue-classifier", str(SPEC), "--domain", "hinge_pos=0.2", "--workers", "1", "-o", str(out)
+        )
+    finally:
+        holder.kill()
+        holder.wait()
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"{journal}: in use by another pidlab command (pid {holder.pid})" in err
+    assert not out.exists() and (journal / "abc" / "chunk-000001.npz").read_bytes() == b"kept"

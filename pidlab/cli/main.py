@@ -1034,19 +1034,19 @@ def rescue(
             coverage=coverage, probes=probes, horizon_s=horizon, seed=seed,
         )  # fmt: skip
         con = wide_console()
-        journal = _journal_beside(con, spec_file, "rescue-labels")
-        region = _with_bar("rescue region", lambda progress: estimate_rescue(
-            spec, loaded, settings, workers=workers, progress=progress, journal=journal))  # fmt: skip
-        _said_resumed(con, region.reused, journal)
-        units = {v.name: v.unit for v in loaded.require_card().observation}
-        con.print(rescue_view(region, units))
-        if plots:
-            folder = _write_rescue_plot(spec, region, units, plots, write)
-            con.print(f"wrote the region's figure to {folder}")
-        if write:
-            path = save_spec(with_rescue(spec, region), spec_file)
-            con.print(f"wrote the rescue region into {path} as its takeover region")
-    drop_journal(journal)
+        with _journal_beside(con, spec_file, "rescue-labels") as journal:
+            region = _with_bar("rescue region", lambda progress: estimate_rescue(
+                spec, loaded, settings, workers=workers, progress=progress, journal=journal))  # fmt: skip
+            _said_resumed(con, region.reused, journal)
+            units = {v.name: v.unit for v in loaded.require_card().observation}
+            con.print(rescue_view(region, units))
+            if plots:
+                folder = _write_rescue_plot(spec, region, units, plots, write)
+                con.print(f"wrote the region's figure to {folder}")
+            if write:
+                path = save_spec(with_rescue(spec, region), spec_file)
+                con.print(f"wrote the rescue region into {path} as its takeover region")
+            drop_journal(journal)
 
 
 IntoOption = Annotated[
@@ -1154,21 +1154,22 @@ def rescue_classifier(
         focus=focus, into=into, near=near, false_claims=false_claims,
     )  # fmt: skip
     copy = writing_spec(output, force=force, param="output") if output else contextlib.nullcontext(None)
+    con = wide_console()
     with editing_spec(spec_file, write) as spec, copy as write_copy:
         loaded = load_model(spec.env_id)
         _check_domain_names(box, loaded)
-        con = wide_console()
-        journal = _journal_beside(con, output or spec_file, "labels")  # beside the spec it writes
-        found = _resumable_classifier(con, spec, loaded, settings, workers, journal)
-        units = {v.name: v.unit for v in loaded.require_card().observation}
-        con.print(classifier_view(found, spec.name, spec.env_id, units))
-        new = with_classifier(spec, found)
-        if write:
-            con.print(f"wrote the classifier region into {save_spec(new, spec_file)} as its takeover region")
-        elif output and write_copy is not None:
-            path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
-            con.print(f"wrote the spec with its classifier region to {path}")
-    drop_journal(journal)  # its outcomes are in the region written
+        with _journal_beside(con, output or spec_file, "labels") as journal:  # beside the spec it writes
+            found = _resumable_classifier(con, spec, loaded, settings, workers, journal)
+            units = {v.name: v.unit for v in loaded.require_card().observation}
+            con.print(classifier_view(found, spec.name, spec.env_id, units))
+            new = with_classifier(spec, found)
+            if write:
+                path = save_spec(new, spec_file)
+                con.print(f"wrote the classifier region into {path} as its takeover region")
+            elif output and write_copy is not None:
+                path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
+                con.print(f"wrote the spec with its classifier region to {path}")
+            drop_journal(journal)  # its outcomes are in the region written
 
 
 def _resumable_classifier(
@@ -1183,7 +1184,8 @@ def _resumable_classifier(
     return found
 
 
-def _journal_beside(con: Any, spec_file: str, kind: str) -> Any:
+@contextlib.contextmanager
+def _journal_beside(con: Any, spec_file: str, kind: str) -> Iterator[Any]:
     """Where a rescue command keeps its outcomes: ``.NAME.KIND`` beside a spec (None: not writable).
 
     ``pidlab rescue-classifier`` keeps ``.NAME.labels`` beside the spec it writes, ``pidlab rescue``
@@ -1191,18 +1193,28 @@ def _journal_beside(con: Any, spec_file: str, kind: str) -> Any:
 
     Each command has its own ``kind`` of folder, so that one never removes another's unfinished
     journal; inside it, a subfolder per coach and setting (:func:`pidlab.region.journal.journal_key`).
+    The folder's lock is held while the block runs: a second command on the same journal is
+    refused in one line (it would write the same chunk files, and remove them when it ended).
+    A journal the block dropped leaves no folder behind.
     """
     import os
     from pathlib import Path
+
+    from pidlab.errors import RegionError
+    from pidlab.provenance import hold_lock
 
     path = Path(spec_file)
     folder = path.parent / f".{path.name}.{kind}"
     if not os.access(path.parent, os.W_OK):
         con.print(f"{path.parent} is not writable: no journal is kept, a stopped run starts again")
-        return None
-    con.print(f"each simulation's outcome is kept in {folder} as it is found: if stopped, the same "
-              "command resumes from them")  # fmt: skip
-    return folder
+        yield None
+        return
+    with hold_lock(folder, RegionError):
+        con.print(f"each simulation's outcome is kept in {folder} as it is found: if stopped, the same "
+                  "command resumes from them")  # fmt: skip
+        yield folder
+    with contextlib.suppress(OSError):
+        folder.rmdir()  # only when empty: a journal dropped at the end
 
 
 def _said_resumed(con: Any, reused: int, journal: Any) -> None:
@@ -1302,19 +1314,22 @@ def rescue_coverage(
     specs, loaded = _specs_of_one_env(spec_files)
     _check_domain_names(box, loaded)
     con = wide_console()
-    journals = [_journal_beside(con, f, "coverage-labels") for f in spec_files]
-    found = []
-    for spec, journal in zip(specs, journals, strict=True):
-        work = functools.partial(measure_domain_coverage, spec, loaded, settings, workers, journal=journal)
-        found.append(_with_bar(f"coverage: {spec.name}", work))
-        _said_resumed(con, found[-1].reused, journal)
-    units = {v.name: v.unit for v in loaded.require_card().observation}
-    con.print(coverage_view(found, units))
-    if json_file is not None:
-        write_json(json_file, [c.to_dict() for c in found])
-        con.print(f"wrote {json_file}")
-    for journal in journals:
-        drop_journal(journal)
+    with contextlib.ExitStack() as held:
+        journals = [held.enter_context(_journal_beside(con, f, "coverage-labels")) for f in spec_files]
+        found = []
+        for spec, journal in zip(specs, journals, strict=True):
+            work = functools.partial(
+                measure_domain_coverage, spec, loaded, settings, workers, journal=journal
+            )
+            found.append(_with_bar(f"coverage: {spec.name}", work))
+            _said_resumed(con, found[-1].reused, journal)
+        units = {v.name: v.unit for v in loaded.require_card().observation}
+        con.print(coverage_view(found, units))
+        if json_file is not None:
+            write_json(json_file, [c.to_dict() for c in found])
+            con.print(f"wrote {json_file}")
+        for journal in journals:
+            drop_journal(journal)
 
 
 @app.command()
