@@ -250,15 +250,18 @@ _KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe"), (stat.S_I
           (stat.S_ISBLK, "a device"), (stat.S_ISSOCK, "a socket"))  # fmt: skip
 
 
+def _kind(mode: int) -> str:
+    """What a file of ``mode`` that is no regular file is, in words."""
+    return next((name for test, name in _KINDS if test(mode)), "no regular file")
+
+
 def _special_kind(path: Path) -> str | None:
     """What ``path`` is when it exists and is neither a regular file nor a folder (a pipe, ...)."""
     try:
         mode = path.stat().st_mode
     except (OSError, ValueError):
         return None
-    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
-        return None
-    return next((name for test, name in _KINDS if test(mode)), "no regular file")
+    return None if stat.S_ISREG(mode) or stat.S_ISDIR(mode) else _kind(mode)
 
 
 def open_regular(path: str | Path, limit: int | None = None) -> int:
@@ -278,8 +281,7 @@ def open_regular(path: str | Path, limit: int | None = None) -> int:
     try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
-            kind = next((name for test, name in _KINDS if test(info.st_mode)), "no regular file")
-            raise OSError(errno.EINVAL, f"it is {kind}; expected a regular file")
+            raise OSError(errno.EINVAL, f"it is {_kind(info.st_mode)}; expected a regular file")
         if limit is not None and info.st_size > limit:
             raise OSError(errno.EFBIG, f"it holds {info.st_size:,} bytes; expected at most {limit:,}")
     except BaseException:
