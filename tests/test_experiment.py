@@ -363,6 +363,12 @@ def test_a_finished_run_with_a_cut_log_is_refused_before_any_write(tmp_path):
         assert f"Remove the run's folder (rm -r {run}), then run this command again" in lines[0], lines[0]
         assert tree_digest(out) == before
     assert read_json(out / "experiment.json")["resumes"] == []
+    (run / "episodes.csv").write_text("".join(rows))
+    (run / "timing.csv").unlink()
+    os.mkfifo(run / "timing.csv")  # a log that is no file: the same advice, not a bare refusal
+    code, stderr = cli_in_process(*args)
+    assert code == 2 and f"{run}: the finished run's logs are damaged" in stderr, stderr
+    assert "timing.csv': it is a named pipe" in stderr and "Remove the run's folder" in stderr
     shutil.rmtree(run)  # what the line says to do
     code, stderr = cli_in_process(*args)
     assert code == 0, stderr

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from pidlab.errors import ExperimentError
+from pidlab.errors import ExperimentError, RunDirError
 from pidlab.experiment import plan
 from pidlab.experiment.comparison import MEASURE, Comparison, decide, raw_comparison
 from pidlab.experiment.metrics import Rule, RunLogs, RunMetrics, grid_points, moving_average, run_metrics
@@ -191,8 +191,10 @@ def load_run(run_dir: Path, env_id: str, condition: str, seed: int, rule: Rule) 
         raise logs_damaged(run_dir, exc, again) from None
 
 
-LOG_DAMAGE = (KeyError, ValueError, TypeError, AttributeError, OSError)
-"""What reading a finished run's damaged logs raises (:func:`read_logs`)."""
+LOG_DAMAGE = (KeyError, ValueError, TypeError, AttributeError, OSError, RunDirError)
+"""What reading a finished run's damaged logs raises (:func:`read_logs`; a log that is no regular
+file, or not UTF-8 text, is a :class:`~pidlab.errors.RunDirError` of
+:func:`pidlab.rl.rundir.read_csv_rows`)."""
 
 
 def logs_damaged(run_dir: Path, exc: Exception, again: str) -> ExperimentError:
