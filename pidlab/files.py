@@ -14,7 +14,7 @@ import os
 import stat
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 from pidlab.checks import NAME_MAX_BYTES, clip, path_argument
 from pidlab.errors import OutputError, PidlabError
@@ -290,6 +290,17 @@ def open_regular(path: str | Path, limit: int | None = None) -> int:
     return fd
 
 
+def open_binary(path: str | Path, limit: int | None = None) -> BinaryIO:
+    """The regular file ``path`` opened for reading bytes (:func:`open_regular`), as a file object.
+
+    Raises
+    ------
+    OSError
+        As :func:`open_regular`.
+    """
+    return os.fdopen(open_regular(path, limit), "rb")
+
+
 def read_file(path: str | Path, limit: int = MAX_TEXT_BYTES) -> bytes:
     """The bytes of the regular file ``path``: at most ``limit``, never from a pipe or a device.
 
@@ -298,7 +309,7 @@ def read_file(path: str | Path, limit: int = MAX_TEXT_BYTES) -> bytes:
     OSError
         As :func:`open_regular`, or the read failed, or the file grew past ``limit`` as it was read.
     """
-    with os.fdopen(open_regular(path, limit), "rb") as fh:
+    with open_binary(path, limit) as fh:
         data = fh.read(limit + 1)
     if len(data) > limit:
         raise OSError(errno.EFBIG, f"it grew past {limit:,} bytes as it was read")

@@ -1013,7 +1013,6 @@ def rescue(
     from pidlab.controller.spec import editing_spec, save_spec
     from pidlab.files import check_output_folder
     from pidlab.plant.model import load_model
-    from pidlab.region.journal import drop_journal
     from pidlab.region.rescue import default_settings, estimate_rescue, with_rescue
     from pidlab.report.console import rescue_view, wide_console
 
@@ -1046,7 +1045,6 @@ def rescue(
             if write:
                 path = save_spec(with_rescue(spec, region), spec_file)
                 con.print(f"wrote the rescue region into {path} as its takeover region")
-            drop_journal(journal)
 
 
 IntoOption = Annotated[
@@ -1142,7 +1140,6 @@ def rescue_classifier(
     from pidlab.controller.spec import editing_spec, save_spec, writing_spec
     from pidlab.plant.model import load_model
     from pidlab.region.classifier import ClassifierSettings, with_classifier
-    from pidlab.region.journal import drop_journal
     from pidlab.report.console import classifier_view, wide_console
 
     if write and output:
@@ -1169,7 +1166,6 @@ def rescue_classifier(
             elif output and write_copy is not None:
                 path = write_copy(dataclasses.replace(new, name=_copy_name(spec, output)))
                 con.print(f"wrote the spec with its classifier region to {path}")
-            drop_journal(journal)  # its outcomes are in the region written
 
 
 def _resumable_classifier(
@@ -1195,13 +1191,15 @@ def _journal_beside(con: Any, spec_file: str, kind: str) -> Iterator[Any]:
     journal; inside it, a subfolder per coach and setting (:func:`pidlab.region.journal.journal_key`).
     The folder's lock is held while the block runs: a second command on the same journal is
     refused in one line (it would write the same chunk files, and remove them when it ended).
-    A journal the block dropped leaves no folder behind.
+    A block that ends without an error drops the journal (its outcomes are in what the command
+    wrote), still under the lock; one stopped or failed keeps it for the same command to resume.
     """
     import os
     from pathlib import Path
 
     from pidlab.errors import RegionError
     from pidlab.provenance import hold_lock
+    from pidlab.region.journal import drop_journal
 
     path = Path(spec_file)
     folder = path.parent / f".{path.name}.{kind}"
@@ -1213,8 +1211,7 @@ def _journal_beside(con: Any, spec_file: str, kind: str) -> Iterator[Any]:
         con.print(f"each simulation's outcome is kept in {folder} as it is found: if stopped, the same "
                   "command resumes from them")  # fmt: skip
         yield folder
-    with contextlib.suppress(OSError):
-        folder.rmdir()  # only when empty: a journal dropped at the end
+        drop_journal(folder)
 
 
 def _said_resumed(con: Any, reused: int, journal: Any) -> None:
@@ -1304,7 +1301,6 @@ def rescue_coverage(
     """Score each coach's regions over a domain: the rescuable states they hold, and their false claims."""
     from pidlab.files import check_output_file, write_json
     from pidlab.region.coverage import DomainSettings, measure_domain_coverage
-    from pidlab.region.journal import drop_journal
     from pidlab.report.console import coverage_view, wide_console
 
     box = _domain_box(domain)
@@ -1328,8 +1324,6 @@ def rescue_coverage(
         if json_file is not None:
             write_json(json_file, [c.to_dict() for c in found])
             con.print(f"wrote {json_file}")
-        for journal in journals:
-            drop_journal(journal)
 
 
 @app.command()

@@ -19,7 +19,6 @@ states are simulated again.
 from __future__ import annotations
 
 import io
-import os
 import shutil
 import zipfile
 from pathlib import Path
@@ -28,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from pidlab.errors import RegionError
-from pidlab.files import atomic_write_bytes, open_regular
+from pidlab.files import atomic_write_bytes, open_binary
 from pidlab.provenance import digest
 
 CHUNK = 2000
@@ -88,7 +87,7 @@ class LabelJournal:
         """Take in one chunk file; one that cannot be read is left out (its states are simulated again)."""
         self._written = max(self._written, _number(path))
         try:
-            with os.fdopen(open_regular(path), "rb") as fh, np.load(fh, allow_pickle=False) as f:
+            with open_binary(path) as fh, np.load(fh, allow_pickle=False) as f:
                 starts, kicks, kicked, ok, obs = (f[k] for k in ("starts", "kicks", "kicked", "ok", "obs"))
             if not (starts.ndim == kicks.ndim == obs.ndim == 2 and len(starts) == len(kicks) == len(kicked)
                     == len(ok) == len(obs)):  # fmt: skip

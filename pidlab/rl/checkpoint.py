@@ -22,7 +22,6 @@ which a resume falls back), never loaded. Any other file in the folder is ignore
 from __future__ import annotations
 
 import hashlib
-import os
 import re
 import warnings
 import zipfile
@@ -34,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from pidlab.errors import CheckpointError
-from pidlab.files import open_regular
+from pidlab.files import open_binary
 
 MODEL = "model.zip"
 NORMALIZER = "vecnormalize.npz"
@@ -59,7 +58,7 @@ def file_digest(path: Path) -> str:
     """
     h = hashlib.sha256()
     try:
-        with os.fdopen(open_regular(path), "rb") as f:
+        with open_binary(path) as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
     except OSError as exc:
@@ -178,7 +177,7 @@ def check_digest(path: Path, want: str, record: Path) -> None:
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
     try:
-        with os.fdopen(open_regular(path), "rb") as fh, np.load(fh, allow_pickle=False) as data:
+        with open_binary(path) as fh, np.load(fh, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
     except Exception as exc:  # zipfile, numpy and OS errors on a damaged file
         raise CheckpointError(f"{path}: damaged ({short_reason(exc)})") from None

@@ -20,7 +20,6 @@ demonstration step there as a transition of the coach's
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from pidlab.errors import CoachingError
-from pidlab.files import atomic_write_bytes, open_regular
+from pidlab.files import atomic_write_bytes, open_binary
 
 FILE = "demonstrations.npz"
 FIELDS = ("obs", "actions", "rewards", "terminated", "truncated", "env_index")
@@ -169,7 +168,7 @@ def load(path: str | Path) -> Demonstrations:
         The file is missing a field, holds objects, or its arrays disagree in length.
     """
     try:
-        with os.fdopen(open_regular(path), "rb") as fh, np.load(fh, allow_pickle=False) as data:
+        with open_binary(path) as fh, np.load(fh, allow_pickle=False) as data:
             arrays = {k: np.asarray(data[k]) for k in FIELDS + tuple(k for k in OPTIONAL if k in data)}
     except (OSError, KeyError, ValueError) as exc:
         raise CoachingError(f"{path}: not a demonstrations file ({exc})") from None
